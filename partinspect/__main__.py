@@ -1,0 +1,5 @@
+import sys
+
+from partinspect.cli import main
+
+sys.exit(main())

@@ -1,0 +1,199 @@
+"""The `inspect` command: argument parsing, exit codes and progress; no maths.
+
+Heavy libraries (cadquery, open3d, cv2) are imported only by the subcommand
+that needs them, so ``inspect --help`` answers at once.
+
+Exit codes (DESIGN.md): 0 every characteristic passes; 1 at least one fails;
+3 no fail but some inconclusive; 2 the run could not be made (bad input or
+usage), with one line on stderr naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from partinspect import __version__
+from partinspect.errors import InputError
+
+EXIT_PASS, EXIT_FAIL, EXIT_ERROR, EXIT_INCONCLUSIVE = 0, 1, 2, 3
+
+SUBCOMMANDS = ("features", "render")
+
+MAIN_DESCRIPTION = """\
+Inspect a machined part against its STEP model from one calibrated stereo
+image pair. Writes report.html, report.json and junit.xml into OUT.
+
+IMAGES_DIR holds left.png, right.png and calibration.yaml (or OpenCV
+stereo_calib's intrinsics.yml + extrinsics.yml). Tolerances come from
+--tolerances, else PART.tol.yaml beside the STEP file (part.tol.yaml for
+part.step), else ISO 2768-mK general tolerances.
+
+other commands:
+  inspect features PART.step [--json]     list the CAD features and their ids
+  inspect render PART.step OUT_DIR [...]  render a synthetic stereo pair with exact ground truth
+  (inspect COMMAND --help for each)
+
+exit codes: 0 pass, 1 fail, 3 inconclusive, 2 the run could not be made."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors are one line, exit code 2."""
+
+    def error(self, message):
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _main_parser():
+    p = _Parser(
+        prog="inspect",
+        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render} ...",
+        description=MAIN_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("part", metavar="PART.step", help="the part's CAD model (STEP AP203/AP214/AP242)")
+    p.add_argument("images", metavar="IMAGES_DIR", help="folder with left.png, right.png, calibration.yaml")
+    p.add_argument("-o", "--output", metavar="OUT", default="inspection", help="output folder (default: ./inspection)")
+    p.add_argument("--tolerances", metavar="FILE", help="tolerance spec (YAML); default PART.tol.yaml beside the STEP file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--debug", action="store_true", help="show a traceback on internal errors")
+    p.add_argument("--version", action="version", version=f"partinspect {__version__}")
+    return p
+
+
+def _features_parser():
+    p = _Parser(prog="inspect features", description="List the line, circle and arc edges of a STEP model with their ids.")
+    p.add_argument("part", metavar="PART.step")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _render_parser():
+    p = _Parser(
+        prog="inspect render",
+        description=(
+            "Render a synthetic stereo pair of a STEP part with exact ground truth: writes "
+            "OUT_DIR/images/{left,right}.png, OUT_DIR/images/calibration.yaml and OUT_DIR/truth.json."
+        ),
+    )
+    p.add_argument("part", metavar="PART.step")
+    p.add_argument("out", metavar="OUT_DIR")
+    p.add_argument(
+        "--pose",
+        metavar="POSE",
+        help="RX,RY,RZ[,TX,TY,TZ]: degrees about the part's bounding-box centre, then its position in mm in "
+        "the left camera frame; or a JSON file with part_to_camera (default: a tilted view of the part)",
+    )
+    p.add_argument("--noise", metavar="SIGMA", type=float, default=2.0, help="sensor noise, grey levels (default 2)")
+    p.add_argument("--seed", metavar="S", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument(
+        "--deviate",
+        metavar="ID.PARAM=DELTA",
+        action="append",
+        default=[],
+        help="render a part that differs from the STEP file, e.g. circle-3.diameter=0.08 or "
+        "circle-2.center=0.1,0,0 (mm; repeatable)",
+    )
+    p.add_argument("--distortion", action="store_true", help="render through a realistic lens distortion")
+    p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _progress(quiet):
+    from partinspect.progress import Progress
+
+    return Progress(enabled=False if quiet else None)
+
+
+def _run_inspect(args):
+    from partinspect.pipeline import run_inspection
+
+    result = run_inspection(
+        args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet)
+    )
+    if not args.quiet:
+        print(result.summary_line())
+    return result.exit_code
+
+
+def _run_features(args):
+    import json
+
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+    from partinspect.reports.tables import features_table
+
+    inv = inventory(load_step(args.part))
+    if args.json:
+        print(json.dumps(inv.to_dict(), indent=2))
+    else:
+        print(features_table(inv))
+    return EXIT_PASS
+
+
+def _parse_size(text):
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w < 16 or h < 16:
+            raise ValueError
+    except ValueError:
+        raise InputError(None, f"--size: expected WIDTHxHEIGHT in pixels (at least 16x16), got {text!r}") from None
+    return w, h
+
+
+def _run_render(args):
+    from partinspect.simulate.folder import render_to_folder
+
+    if args.noise < 0:
+        raise InputError(None, f"--noise must be >= 0 grey levels, got {args.noise}")
+    size = _parse_size(args.size)
+    progress = _progress(args.quiet)
+    render_to_folder(
+        args.part,
+        args.out,
+        pose=args.pose,
+        noise=args.noise,
+        seed=args.seed,
+        deviations=args.deviate,
+        distortion=args.distortion,
+        image_size=size,
+        progress=progress,
+    )
+    if not args.quiet:
+        print(f"rendered {os.path.join(args.out, 'images')} and {os.path.join(args.out, 'truth.json')}")
+    return EXIT_PASS
+
+
+def main(argv=None):
+    """Entry point of the `inspect` console script; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in SUBCOMMANDS:
+        command, rest = argv[0], argv[1:]
+        parser = {"features": _features_parser, "render": _render_parser}[command]()
+        run = {"features": _run_features, "render": _run_render}[command]
+    else:
+        parser, rest, run = _main_parser(), argv, _run_inspect
+    args = parser.parse_args(rest)
+    try:
+        return run(args)
+    except InputError as exc:
+        print(f"inspect: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("inspect: interrupted; earlier outputs are left as they were", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return EXIT_PASS
+    except Exception as exc:  # an internal error: still one line, never a half-written report
+        if args.debug or os.environ.get("PARTINSPECT_DEBUG"):
+            raise
+        print(
+            f"inspect: internal error: {type(exc).__name__}: {' '.join(str(exc).split())} "
+            "(please report it; --debug shows the traceback)",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR

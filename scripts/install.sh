@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Install everything partinspect needs on a fresh Debian machine:
+# the system library Open3D loads (libusb-1.0-0), then the Python package
+# with its dependencies (editable, with the test extras).
+# Usage: bash scripts/install.sh [--browser]   (--browser: also Chromium, for the report's browser test)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYTHON=${PYTHON:-python3}
+
+apt_install() {
+    # $1: a file that tells whether the package is there; the rest: Debian packages.
+    local probe=$1; shift
+    if [ -e "$probe" ] || ldconfig -p 2>/dev/null | grep -q "$probe"; then
+        return 0
+    fi
+    local sudo=""
+    [ "$(id -u)" -eq 0 ] || sudo="sudo"
+    if ! command -v apt-get >/dev/null 2>&1; then
+        echo "install: cannot install $* (no apt-get here); install it with your system's package manager" >&2
+        return 1
+    fi
+    echo "install: installing Debian package(s) $*" >&2
+    if ! { $sudo apt-get install -y -q "$@" >/dev/null 2>&1 || { $sudo apt-get update -q >/dev/null 2>&1 && $sudo apt-get install -y -q "$@" >/dev/null 2>&1; }; }; then
+        echo "install: could not install Debian package(s) $* (are you root or a sudoer, and is a package mirror reachable?)" >&2
+        return 1
+    fi
+}
+
+apt_install libusb-1.0.so.0 libusb-1.0-0
+if [ "${1:-}" = "--browser" ]; then
+    apt_install /usr/bin/chromium chromium
+fi
+
+# Re-install when pyproject.toml changed since the last install by this Python.
+stamp=build/.install-stamp
+want="$("$PYTHON" -c 'import sys;print(sys.executable)') $(sha256sum pyproject.toml | cut -c1-16)"
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PYTHON" -c "import importlib.metadata as m; m.version(\"partinspect\")" >/dev/null 2>&1 \
+   || ! "$PYTHON" -c 'import importlib.util as u,sys; sys.exit(not all(u.find_spec(m) for m in ("cadquery","open3d","cv2","trimesh","pytest")))'; then
+    echo "install: installing partinspect and its Python dependencies (pip)" >&2
+    "$PYTHON" -m pip install -q --disable-pip-version-check -e ".[test]"
+    mkdir -p build && echo "$want" > "$stamp"
+fi
+command -v inspect >/dev/null 2>&1 || hash -r
+command -v pyenv >/dev/null 2>&1 && pyenv rehash >/dev/null 2>&1 || true
