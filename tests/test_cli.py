@@ -1,0 +1,82 @@
+"""The command line: exit codes, one-line errors, fast start."""
+
+import subprocess
+import sys
+
+import pytest
+
+from partinspect.cli import main
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "partinspect", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600
+    )
+
+
+def test_help_does_not_import_heavy_libraries():
+    code = (
+        "import sys\n"
+        "from partinspect.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit as e:\n    assert e.code == 0\n"
+        "heavy = [m for m in ('cadquery', 'OCP', 'open3d', 'cv2', 'trimesh', 'scipy', 'numpy', 'jinja2') if m in sys.modules]\n"
+        "print('HEAVY', heavy, file=sys.stderr)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY []" in out.stderr
+    assert "inspect PART.step IMAGES_DIR" in out.stdout
+    assert "features" in out.stdout and "render" in out.stdout
+
+
+@pytest.mark.parametrize("sub", ["features", "render"])
+def test_subcommand_help(sub, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([sub, "--help"])
+    assert e.value.code == 0
+    assert f"inspect {sub}" in capsys.readouterr().out
+
+
+def test_usage_error_is_one_line_exit_2():
+    out = run_cli()
+    assert out.returncode == 2
+    assert out.stderr.count("\n") == 1 and "inspect: error:" in out.stderr
+    assert out.stdout == ""
+
+
+def test_missing_step_file(tmp_path, capsys):
+    code = main([str(tmp_path / "nope.step"), str(tmp_path), "-o", str(tmp_path / "out"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err == f"inspect: error: {tmp_path / 'nope.step'}: STEP file not found\n"
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_images_folder_named(tmp_path, shared_data, capsys):
+    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+    code = main([str(step), str(tmp_path / "no images"), "-o", str(tmp_path / "out"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert str(tmp_path / "no images") in err and err.count("\n") == 1
+
+
+def test_output_folder_not_writable(tmp_path, shared_data, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+    code = main([str(step), str(tmp_path), "-o", str(blocker), "-q"])
+    assert code == 2
+    assert "output path exists and is not a folder" in capsys.readouterr().err
+
+
+def test_missing_tolerance_file(tmp_path, shared_data, capsys):
+    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+    code = main([str(step), str(tmp_path), "--tolerances", str(tmp_path / "t.yaml"), "-q"])
+    assert code == 2
+    assert capsys.readouterr().err == f"inspect: error: {tmp_path / 't.yaml'}: tolerance file not found\n"
+
+
+def test_render_rejects_bad_size(tmp_path, capsys):
+    code = main(["render", "part.step", str(tmp_path), "--size", "big"])
+    assert code == 2
+    assert "--size: expected WIDTHxHEIGHT" in capsys.readouterr().err
