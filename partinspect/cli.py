@@ -146,11 +146,11 @@ def _parse_size(text):
 
 
 def _run_render(args):
-    from partinspect.simulate.folder import render_to_folder
-
     if args.noise < 0:
         raise InputError(None, f"--noise must be >= 0 grey levels, got {args.noise}")
     size = _parse_size(args.size)
+    from partinspect.simulate.folder import render_to_folder
+
     progress = _progress(args.quiet)
     render_to_folder(
         args.part,
