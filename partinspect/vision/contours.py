@@ -1,0 +1,370 @@
+"""Chaining of edge points into contours, and their segmentation into lines and arcs.
+
+Chaining follows Devernay: each edge point links forward to the nearest
+8-neighbour lying ahead of it along the edge (the gradient turned by +90
+deg) with a compatible gradient, and backward likewise; a link is kept when
+both ends agree. The chains are then ordered without a per-point Python
+loop: cycles are cut once, and every point's rank along its chain comes from
+pointer jumping.
+
+Segmentation (paper, section 3: contours subdivided into straight-line
+segments and elliptical arcs) is split-and-merge with a statistical test: a
+piece is accepted as a line, else as an elliptical arc, when the chi-square
+of its orthogonal residuals against the points' own standard uncertainties
+(correlation along the edge included) is not significant at level
+``alpha``; otherwise it is split at the point farthest from its chord.
+Adjacent pieces are then merged while their union still passes the test.
+Points within ``trim`` px (arc length) of a piece's open ends are left out
+of its fit: there the Gaussian smoothing mixes two edges (corners,
+junctions) and the points are displaced.
+
+References
+----------
+.. [1] Devernay, F. (1995). A non-maxima suppression method for edge
+       detection with sub-pixel accuracy. INRIA RR-2724 (chaining).
+.. [2] Paper of this project, section 3.
+.. [3] Ramer, U. (1972). An iterative procedure for the polygonal
+       approximation of plane curves. CGIP 1, 244-256 (split at the
+       farthest point).
+.. [4] Pavlidis, T., Horowitz, S. L. (1974). Segmentation of plane curves.
+       IEEE Trans. Computers C-23(8), 860-870 (split and merge).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from partinspect.vision.fitting import _ellipse_geometry, _ellipse_start, _foot_phases, fit_ellipse, fit_line
+
+__all__ = ["Contour", "Segment", "chain_edges", "segment_contour", "segment_contours"]
+
+_NEIGHBOURS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
+
+
+@dataclass(frozen=True)
+class Contour:
+    """An ordered chain of edge points.
+
+    Attributes
+    ----------
+    index : ndarray, shape (K,)
+        Indices into the EdgePoints, in order along the edge (the
+        direction keeps the bright side on the left in the image, y down).
+    closed : bool
+        The last point links back to the first.
+    """
+
+    index: np.ndarray
+    closed: bool
+
+    def __len__(self):
+        return len(self.index)
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A piece of a contour fitted by one primitive.
+
+    Attributes
+    ----------
+    kind : str
+        "line" or "arc" (an elliptical arc).
+    index : ndarray, shape (K,)
+        Indices into the EdgePoints of all points of the piece, in order.
+    fit_index : ndarray, shape (L,)
+        The subset used in the fit (ends near corners left out).
+    fit : LineFit or EllipseFit
+    contour : int
+        Number of the contour the segment comes from.
+    """
+
+    kind: str
+    index: np.ndarray
+    fit_index: np.ndarray
+    fit: object
+    contour: int
+
+
+def chain_edges(edges, *, min_cos=0.5):
+    """Link edge points into ordered contours.
+
+    Parameters
+    ----------
+    edges : EdgePoints
+    min_cos : float
+        Smallest cosine between the gradients of two linked points.
+
+    Returns
+    -------
+    list of Contour
+        Longest first.
+    """
+    N = len(edges)
+    if N == 0:
+        return []
+    H, W = edges.shape
+    grid = np.full(H * W, -1, np.int64)
+    r, c = edges.pixel[:, 0].astype(np.int64), edges.pixel[:, 1].astype(np.int64)
+    grid[r * W + c] = np.arange(N)
+    nr = r[:, None] + _NEIGHBOURS[None, :, 0]
+    nc = c[:, None] + _NEIGHBOURS[None, :, 1]
+    inside = (nr >= 0) & (nr < H) & (nc >= 0) & (nc < W)
+    nb = np.where(inside, grid[np.clip(nr, 0, H - 1) * W + np.clip(nc, 0, W - 1)], -1)
+    valid = nb >= 0
+    nbs = np.where(valid, nb, 0)
+    xy, n = edges.xy, edges.normal
+    t = np.column_stack([-n[:, 1], n[:, 0]])
+    dxy = xy[nbs] - xy[:, None, :]
+    along = (dxy * t[:, None, :]).sum(axis=2)
+    dist = np.hypot(dxy[..., 0], dxy[..., 1])
+    agree = (n[nbs] * n[:, None, :]).sum(axis=2) >= min_cos
+    ok = valid & agree
+    big = np.inf
+    fwd_score = np.where(ok & (along > 0), dist, big)
+    bwd_score = np.where(ok & (along < 0), dist, big)
+    fj, bj = fwd_score.argmin(axis=1), bwd_score.argmin(axis=1)
+    ar = np.arange(N)
+    fwd = np.where(np.isfinite(fwd_score[ar, fj]), nbs[ar, fj], -1)
+    bwd = np.where(np.isfinite(bwd_score[ar, bj]), nbs[ar, bj], -1)
+    # Keep a link only when both ends agree on it.
+    fwd = np.where((fwd >= 0) & (bwd[np.maximum(fwd, 0)] == ar), fwd, -1)
+    bwd = np.full(N, -1)
+    has = fwd >= 0
+    bwd[fwd[has]] = ar[has]
+
+    src, dst = ar[has], fwd[has]
+    graph = coo_matrix((np.ones(len(src)), (src, dst)), shape=(N, N))
+    n_comp, label = connected_components(graph, directed=False)
+    # Components without a start (no point lacks a predecessor) are cycles:
+    # cut each before its smallest index.
+    starts = np.bincount(label[bwd < 0], minlength=n_comp)
+    closed = starts == 0
+    first = np.full(n_comp, N)
+    np.minimum.at(first, label, ar)
+    cut = first[closed]
+    pred = bwd[cut]
+    fwd[pred] = -1
+    bwd[cut] = -1
+    # Pointer jumping: number of links to the end of the chain.
+    # A chain's last point points to itself with distance 0, so adding the
+    # distance of the point jumped to is right even once the end is reached.
+    nxt = np.where(fwd >= 0, fwd, ar)
+    dist_end = (fwd >= 0).astype(np.int64)
+    while True:
+        nn = nxt[nxt]
+        if np.array_equal(nn, nxt):
+            break
+        dist_end = dist_end + dist_end[nxt]
+        nxt = nn
+    order = np.lexsort((-dist_end, label))
+    bounds = np.flatnonzero(np.diff(label[order])) + 1
+    out = [Contour(idx, bool(closed[label[idx[0]]])) for idx in np.split(order, bounds)]
+    out.sort(key=len, reverse=True)
+    return out
+
+
+def _arc_length(xy):
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+
+
+def _test_piece(xy, cov, corr_length, alpha, floor, kinds=("line", "arc"), min_arc=12, max_iter=30):
+    """Try the primitives in order; return (kind, fit, p_value) of the first accepted or None."""
+    cov_t = cov + (floor * floor) * np.eye(2) if floor else cov
+    for kind in kinds:
+        try:
+            if kind == "line":
+                fit = fit_line(xy, cov_t, corr_length=corr_length)
+            else:
+                if len(xy) < min_arc or not _ellipse_plausible(xy, cov_t):
+                    continue
+                fit = fit_ellipse(xy, cov_t, corr_length=corr_length, max_iter=max_iter)
+                if not fit.converged or not np.all(np.isfinite(fit.params)):
+                    continue
+                # An "ellipse" far larger than its data is a line in disguise.
+                span = np.ptp(xy, axis=0).max()
+                if fit.params[2] > 50.0 * max(span, 1.0):
+                    continue
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        p = fit.consistency.p_value
+        if p >= alpha:
+            return kind, fit, p
+    return None
+
+
+def _ellipse_plausible(xy, cov, factor=9.0):
+    """Cheap screen before the iterative fit: the direct algebraic fit's
+    orthogonal residuals must not exceed the point noise by far (their mean
+    square within ``factor`` times the expected); the geometric fit improves
+    on the algebraic one by much less than that for data that are not an
+    ellipse, and skipping it keeps the merge tests on corners cheap."""
+    p = _ellipse_start(xy)
+    if p[3] <= 0 or not np.all(np.isfinite(p)):
+        return False
+    phi = _foot_phases(xy, p)
+    r, n, _ = _ellipse_geometry(xy, p, phi)
+    s2 = np.einsum("ni,nij,nj->n", n, cov, n)
+    return float((r * r / s2).mean()) < factor
+
+
+def _trimmed(idx_local, s, trim, open_start, open_end):
+    """Positions of the piece used in its fit: drop `trim` px at open ends."""
+    keep = np.ones(len(idx_local), bool)
+    if open_start:
+        keep &= s - s[0] >= trim
+    if open_end:
+        keep &= s[-1] - s >= trim
+    return keep
+
+
+def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floor=0.01,
+                    contour_id=0, refit=True):
+    """Split one contour into line segments and elliptical arcs.
+
+    Parameters
+    ----------
+    edges : EdgePoints
+    contour : Contour
+    alpha : float
+        Significance level of the chi-square test of a piece's residuals.
+    trim : float, optional
+        Arc length left out of the fit at each open end of a piece, px;
+        default 3 sigma + 1 (sigma the edge filter scale): where the
+        smoothing of a neighbouring edge reaches.
+    min_points : int
+        Pieces with fewer fitted points are dropped.
+    floor : float
+        Standard uncertainty added in quadrature to the points' normal
+        uncertainty for the test only, px: a floor for the residual
+        systematic error of the sub-pixel estimator (< 0.005 px measured),
+        so that very clean images are not cut into pieces by it. The
+        returned fits use the points' own covariances.
+    refit : bool
+        Refit each accepted piece with the points' own covariances.
+
+    Returns
+    -------
+    list of Segment
+    """
+    if trim is None:
+        trim = 3.0 * edges.sigma + 1.0
+    idx = contour.index
+    n = len(idx)
+    if n < min_points:
+        return []
+    xy_all, cov_all = edges.xy[idx], edges.cov[idx]
+    cl = edges.sigma
+
+    def fit_range(lo, hi, open_start=True, open_end=True, kinds=("line", "arc")):
+        pos = np.arange(lo, hi) % n
+        xy = xy_all[pos]
+        keep = _trimmed(pos, _arc_length(xy), trim, open_start, open_end)
+        if keep.sum() < min_points:
+            return None
+        res = _test_piece(xy[keep], cov_all[pos[keep]], cl, alpha, floor, kinds)
+        if res is None:
+            return None
+        return res + (pos[keep],)
+
+    # Split: a work list of (lo, hi) ranges in cyclic positions.
+    pieces = []  # (lo, hi, result)
+    if contour.closed:
+        whole = fit_range(0, n, False, False, kinds=("arc",))
+        if whole is not None:
+            return [_make_segment(edges, contour, np.arange(n), whole, contour_id, cl, refit)]
+        far = int(np.argmax(np.linalg.norm(xy_all - xy_all[0], axis=1)))
+        stack = [(far, n), (0, far)] if far > 0 else [(0, n)]
+    else:
+        stack = [(0, n)]
+    while stack:
+        lo, hi = stack.pop()
+        res = fit_range(lo, hi)
+        if res is not None:
+            pieces.append((lo, hi, res))
+            continue
+        if hi - lo < 2 * min_points:
+            continue  # too short to split further: no primitive fits it
+        pos = np.arange(lo, hi) % n
+        xy = xy_all[pos]
+        chord = xy[-1] - xy[0]
+        L = np.hypot(*chord)
+        if L > 1e-9:
+            v = xy - xy[0]
+            d = np.abs(chord[0] * v[:, 1] - chord[1] * v[:, 0]) / L
+        else:
+            d = np.linalg.norm(xy - xy[0], axis=1)
+        d[: min_points // 2] = d[len(d) - min_points // 2:] = -1
+        k = lo + int(np.argmax(d))
+        stack.append((k - n, hi - n) if k >= n else (k, hi))
+        stack.append((lo, k))
+    pieces.sort(key=lambda t: t[0])
+
+    # Merge neighbours while the union still passes; best p-value first.
+    # A piece is (lo, hi): cyclic positions lo .. hi - 1, 0 <= lo < n.
+    while len(pieces) > 1:
+        m = len(pieces)
+        best = None
+        for i in range(m if contour.closed else m - 1):
+            j = (i + 1) % m
+            a, b = pieces[i], pieces[j]
+            if a[1] % n != b[0]:
+                continue  # a dropped piece lies between them
+            hi = a[1] + (b[1] - b[0])
+            if hi - a[0] > n:
+                continue
+            whole_loop = contour.closed and hi - a[0] == n
+            res = fit_range(a[0], hi, not whole_loop, not whole_loop)
+            if res is not None and (best is None or res[2] > best[1][2][2]):
+                best = (i, (a[0], hi, res))
+        if best is None:
+            break
+        i, merged = best
+        j = (i + 1) % m
+        pieces = [p for k, p in enumerate(pieces) if k not in (i, j)] + [merged]
+        pieces.sort(key=lambda t: t[0])
+    segs = []
+    for lo, hi, res in pieces:
+        segs.append(_make_segment(edges, contour, np.arange(lo, hi) % n, res, contour_id, cl, refit))
+    return segs
+
+
+def _make_segment(edges, contour, pos, res, contour_id, corr_length, refit):
+    kind, fit, _, fit_pos = res
+    fit_index = contour.index[fit_pos]
+    if refit:
+        xy, cov = edges.xy[fit_index], edges.cov[fit_index]
+        if kind == "line":
+            fit = fit_line(xy, cov, corr_length=corr_length)
+        else:
+            fit = fit_ellipse(xy, cov, corr_length=corr_length, blur=float(np.median(edges.width[fit_index])))
+    return Segment(kind, contour.index[pos], fit_index, fit, contour_id)
+
+
+def segment_contours(edges, contours=None, *, min_length=10, **kwargs):
+    """Segment every contour of an image.
+
+    Parameters
+    ----------
+    edges : EdgePoints
+    contours : list of Contour, optional
+        Default ``chain_edges(edges)``.
+    min_length : int
+        Contours with fewer points are skipped.
+    **kwargs
+        Passed to :func:`segment_contour`.
+
+    Returns
+    -------
+    list of Segment
+    """
+    if contours is None:
+        contours = chain_edges(edges)
+    out = []
+    for k, c in enumerate(contours):
+        if len(c) >= min_length:
+            out.extend(segment_contour(edges, c, contour_id=k, **kwargs))
+    return out

@@ -1,0 +1,745 @@
+"""Geometric fits of lines, circles and ellipses to edge points, with covariance.
+
+Every fit minimises the sum of squared *orthogonal* distances of the points
+to the curve, each weighted by the inverse variance of its point along the
+normal (``n^T cov_i n``), which is the maximum-likelihood fit for Gaussian
+point errors along the normal (paper, section 3). Near the optimum every fit
+is a linear regression of the normal errors e_i on rows h_i = d(distance_i)
+/ d(params), which gives one common uncertainty evaluation:
+
+    cov(params) = S^-1 (H^T W R W H) S^-1,   S = H^T W H,  W = diag(1 / s_i^2)
+
+where R is the covariance of the normal errors. For independent errors
+(R = W^-1) this is S^-1, Kanatani's KCR lower bound evaluated at the
+estimate; edge points from one edge share image noise through the filter
+(see :func:`partinspect.vision.edges.edge_error_correlation`), and passing
+``corr_length`` accounts for it (errors correlated as exp(-d^2 / (4 l^2))
+over the distance d between points), which otherwise understates the
+standard uncertainties about two-fold for sigma = 1.
+
+Parameter covariances are standard-uncertainty covariances (GUM); the 95 %
+intervals use the coverage factor k = 1.96 of the normal distribution.
+
+References
+----------
+.. [1] Paper of this project, sections 3.1 and 3.2.
+.. [2] Gander, W., Golub, G. H., Strebel, R. (1994). Least-squares fitting of
+       circles and ellipses. BIT 34, 558-578.
+.. [3] Kanatani, K. (1996). Statistical Optimization for Geometric
+       Computation. Elsevier (the KCR lower bound).
+.. [4] Chernov, N., Lesort, C. (2004). Statistical efficiency of curve
+       fitting algorithms. Computational Statistics & Data Analysis 47,
+       713-728.
+.. [5] Halir, R., Flusser, J. (1998). Numerically stable direct least
+       squares fitting of ellipses. WSCG (start values, via OpenCV's
+       ``fitEllipseDirect``).
+.. [6] Satterthwaite, F. E. (1946). An approximate distribution of estimates
+       of variance components. Biometrics Bulletin 2(6), 110-114.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import stats
+
+__all__ = [
+    "LineFit",
+    "CircleFit",
+    "EllipseFit",
+    "fit_line",
+    "fit_circle",
+    "fit_ellipse",
+    "ellipse_points",
+    "line_kcr_bound",
+    "ellipse_kcr_bound",
+    "COVERAGE_95",
+]
+
+COVERAGE_95 = 1.959963984540054  # coverage factor k for a 95 % interval, normal distribution
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """Chi-square test of the residuals against the points' own variances.
+
+    Attributes
+    ----------
+    chi2 : float
+        Sum of squared normalised residuals, sum (r_i / s_i)^2.
+    dof : float
+        Effective degrees of freedom of chi2 (Satterthwaite [6]_ when the
+        errors are correlated; n - p otherwise).
+    scale : float
+        chi2 is distributed as scale * chi-square(dof).
+    p_value : float
+        Probability of a chi2 at least this large if the model and the point
+        variances are right.
+    noise_ratio : float
+        sqrt(chi2 / E[chi2]): the residual spread relative to the expected
+        noise (1 when consistent).
+    """
+
+    chi2: float
+    dof: float
+    scale: float
+    p_value: float
+    noise_ratio: float
+
+
+@dataclass(frozen=True)
+class LineFit:
+    """Line A x + B y + C = 0 (paper, eq. 1).
+
+    Attributes
+    ----------
+    params : ndarray, shape (3,)
+        (A, B, C) with A^2 + B^2 = 1, C in px. Gauge: Hesse normal form,
+        C <= 0, i.e. (A, B) points from the pixel-frame origin towards the
+        line and -C is its distance from the origin.
+    cov : ndarray, shape (3, 3)
+        Covariance of (A, B, C), rank 2 (units 1, 1, px; px^2 for C): the
+        first-order image of the 2x2 covariance of (alpha, C) with
+        (A, B) = (cos alpha, sin alpha), so it lies in the tangent space of
+        the constraint A^2 + B^2 = 1.
+    cov_angle_offset : ndarray, shape (2, 2)
+        Covariance of (alpha, C), rad^2, rad px, px^2.
+    ci95 : ndarray, shape (3, 2)
+        Lower and upper 95 % bounds of A, B, C (k = 1.96).
+    residuals : ndarray, shape (N,)
+        Signed orthogonal distances A x + B y + C of the points, px.
+    point_std : ndarray, shape (N,)
+        Standard uncertainty of each point along the line normal, px.
+    consistency : Consistency
+    centroid : ndarray, shape (2,)
+        Weighted centroid, a point on the line, px.
+    """
+
+    params: np.ndarray
+    cov: np.ndarray
+    cov_angle_offset: np.ndarray
+    ci95: np.ndarray
+    residuals: np.ndarray
+    point_std: np.ndarray
+    consistency: Consistency
+    centroid: np.ndarray
+
+    @property
+    def normal(self):
+        return self.params[:2]
+
+    @property
+    def direction(self):
+        return np.array([-self.params[1], self.params[0]])
+
+
+@dataclass(frozen=True)
+class CircleFit:
+    """Circle of centre (xc, yc) and radius r, px.
+
+    Attributes
+    ----------
+    params : ndarray, shape (3,)
+        (xc, yc, r), px.
+    cov : ndarray, shape (3, 3)
+        Covariance, px^2.
+    ci95 : ndarray, shape (3, 2)
+    residuals : ndarray, shape (N,)
+        Signed distances |p - c| - r (positive outside), px.
+    point_std : ndarray, shape (N,)
+    consistency : Consistency
+    converged : bool
+    iterations : int
+    """
+
+    params: np.ndarray
+    cov: np.ndarray
+    ci95: np.ndarray
+    residuals: np.ndarray
+    point_std: np.ndarray
+    consistency: Consistency
+    converged: bool
+    iterations: int
+
+    @property
+    def center(self):
+        return self.params[:2]
+
+    @property
+    def radius(self):
+        return float(self.params[2])
+
+
+@dataclass(frozen=True)
+class EllipseFit:
+    """Ellipse x(phi) = c + Q(theta) (a cos phi, b sin phi), px.
+
+    Attributes
+    ----------
+    params : ndarray, shape (5,)
+        (xc, yc, a, b, theta): centre px, semi-axes px with a >= b, angle of
+        the a axis from the x axis, rad, in (-pi/2, pi/2].
+    cov : ndarray, shape (5, 5)
+        Covariance of params (px^2, px rad, rad^2). For a circle (a = b)
+        theta is undetermined: its variance is then inf and its
+        covariances 0.
+    ci95 : ndarray, shape (5, 2)
+        Lower and upper 95 % bounds (k = 1.96).
+    residuals : ndarray, shape (N,)
+        Signed orthogonal distances to the ellipse (positive outside), px.
+    phases : ndarray, shape (N,)
+        Parameter phi of each point's foot point, rad.
+    point_std : ndarray, shape (N,)
+    consistency : Consistency
+    converged : bool
+    iterations : int
+    """
+
+    params: np.ndarray
+    cov: np.ndarray
+    ci95: np.ndarray
+    residuals: np.ndarray
+    phases: np.ndarray
+    point_std: np.ndarray
+    consistency: Consistency
+    converged: bool
+    iterations: int
+
+    @property
+    def center(self):
+        return self.params[:2]
+
+    @property
+    def axes(self):
+        return self.params[2:4]
+
+    @property
+    def angle(self):
+        return float(self.params[4])
+
+
+# ---------------------------------------------------------------- shared
+
+def _normal_std(cov, normals):
+    """Standard uncertainty of each point along the given unit normals, px."""
+    if cov is None:
+        return None
+    cov = np.asarray(cov, float)
+    if cov.ndim == 1:  # already a variance along the normal
+        return np.sqrt(cov)
+    return np.sqrt(np.einsum("ni,nij,nj->n", normals, cov, normals))
+
+
+def _band(xy, corr_length):
+    """Correlation of the errors of points i and i + k (cyclically), k = 1..K.
+
+    Returns a list of (k, rho_k) with rho_k shape (N,); the distance is
+    Euclidean, so the ends of an open curve come out uncorrelated and those
+    of a closed one correlated.
+    """
+    n = len(xy)
+    out = []
+    if not corr_length or n < 2:
+        return out
+    for k in range(1, n // 2 + 1):
+        d = np.linalg.norm(np.roll(xy, -k, axis=0) - xy, axis=1)
+        rho = np.exp(-(d * d) / (4.0 * corr_length * corr_length))
+        if k == n - k:  # the same pair seen twice
+            rho = rho * 0.5
+        if rho.max() < 1e-4:
+            break
+        out.append((k, rho))
+    return out
+
+
+def _uncertainty(h, s, xy, corr_length):
+    """Sandwich covariance of a weighted linear regression on rows h.
+
+    Parameters
+    ----------
+    h : ndarray, shape (N, p)
+        d(signed distance_i) / d(params).
+    s : ndarray, shape (N,)
+        Standard uncertainty of each point along the normal, px.
+
+    Returns
+    -------
+    cov : ndarray, shape (p, p)
+    sinv : ndarray, shape (p, p)
+        S^-1, the covariance if the errors were independent.
+    trR2 : float
+        sum_ij rho_ij^2, for the effective degrees of freedom.
+    """
+    hw = h / s[:, None]
+    S = hw.T @ hw
+    sinv = np.linalg.pinv(S, rcond=1e-13, hermitian=True)
+    M = S.copy()
+    trR2 = float(len(h))
+    for k, rho in _band(xy, corr_length):
+        hk = np.roll(hw, -k, axis=0)
+        C = (hw * rho[:, None]).T @ hk
+        M += C + C.T
+        trR2 += 2.0 * float((rho * rho).sum())
+    return sinv @ M @ sinv, sinv, trR2
+
+
+def _consistency(r, s, n_params, trR2):
+    n = len(r)
+    q = float(((r / s) ** 2).sum())
+    dof_raw = max(n - n_params, 1)
+    # Satterthwaite: chi2 ~ c chi-square(nu) with c = tr(R^2)/tr(R),
+    # nu = tr(R)^2 / tr(R^2); the fit removes n_params of tr(R).
+    trR = float(dof_raw)
+    trR2 = max(trR2 * dof_raw / n, 1e-12)
+    scale = trR2 / trR
+    nu = trR * trR / trR2
+    p = float(stats.chi2.sf(q / scale, nu))
+    return Consistency(q, nu, scale, p, float(np.sqrt(q / trR)))
+
+
+def _ci(params, cov):
+    u = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return np.column_stack([params - COVERAGE_95 * u, params + COVERAGE_95 * u])
+
+
+def _as_points(xy, min_points):
+    xy = np.asarray(xy, float)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ValueError(f"points must have shape (N, 2), got {xy.shape}")
+    if len(xy) < min_points:
+        raise ValueError(f"need at least {min_points} points, got {len(xy)}")
+    return xy
+
+
+# ---------------------------------------------------------------- line
+
+def _line_tls(xy, w):
+    c = (w[:, None] * xy).sum(axis=0) / w.sum()
+    d = (xy - c) * np.sqrt(w)[:, None]
+    # Smallest right singular vector of the weighted, centred points.
+    _, _, vt = np.linalg.svd(d, full_matrices=False)
+    n = vt[-1]
+    return n, c
+
+
+def fit_line(xy, cov=None, *, corr_length=None):
+    """Orthogonal (total least squares) line fit by SVD, with covariance.
+
+    Parameters
+    ----------
+    xy : array_like, shape (N, 2)
+        Points, px, ordered along the line when ``corr_length`` is given.
+    cov : array_like, shape (N, 2, 2) or (N,), optional
+        Covariance of each point, px^2 (or its variance along the normal).
+        Weights are the inverse variances along the fitted normal. Without
+        it, all points weigh the same and their common standard uncertainty
+        is estimated from the residuals (N - 2 degrees of freedom).
+    corr_length : float, optional
+        Correlation length of the point errors along the line, px (the edge
+        filter's sigma for points from ``edge_points``).
+
+    Returns
+    -------
+    LineFit
+
+    Notes
+    -----
+    Minimises sum_i w_i (A x_i + B y_i + C)^2 / (A^2 + B^2) (paper, eq. 2):
+    the normal (A, B) is the right singular vector of the smallest singular
+    value of the weighted centred points, C = -(A, B) . centroid [1]_.
+    With weights from the covariances, two passes are made (the normal
+    variances depend on the normal).
+    """
+    xy = _as_points(xy, 3)
+    n_pts = len(xy)
+    w = np.ones(n_pts)
+    nrm, c = _line_tls(xy, w)
+    if cov is not None:
+        for _ in range(2):
+            s = _normal_std(cov, np.broadcast_to(nrm, (n_pts, 2)))
+            w = 1.0 / (s * s)
+            nrm, c = _line_tls(xy, w)
+        s = _normal_std(cov, np.broadcast_to(nrm, (n_pts, 2)))
+    C = -float(nrm @ c)
+    if C > 0:
+        nrm, C = -nrm, -C
+    r = xy @ nrm + C
+    if cov is None:
+        s = np.full(n_pts, np.sqrt((r * r).sum() / max(n_pts - 2, 1)))
+        s = np.maximum(s, 1e-12)
+    alpha = float(np.arctan2(nrm[1], nrm[0]))
+    # d r_i / d(alpha, C) with (A, B) = (cos alpha, sin alpha).
+    h = np.column_stack([-np.sin(alpha) * xy[:, 0] + np.cos(alpha) * xy[:, 1], np.ones(n_pts)])
+    # Centre the angle column at the centroid for conditioning (it only
+    # changes the parametrisation internally), then map back.
+    cov2, _, trR2 = _uncertainty(h, s, xy, corr_length)
+    G = np.array([[-np.sin(alpha), 0.0], [np.cos(alpha), 0.0], [0.0, 1.0]])
+    cov3 = G @ cov2 @ G.T
+    params = np.array([nrm[0], nrm[1], C])
+    cons = _consistency(r, s, 2, trR2)
+    return LineFit(params, cov3, cov2, _ci(params, cov3), r, s, cons, c)
+
+
+def line_kcr_bound(xy_true, normal, normal_std, corr_length=None):
+    """Lower bound on the covariance of (alpha, C) for points on a line.
+
+    The KCR bound [3]_ [4]_ (H^T R^-1 H)^-1 for normal errors with standard
+    deviations ``normal_std`` and, with ``corr_length``, correlation
+    exp(-d^2 / (4 l^2)) between points at distance d (then the Cramer-Rao
+    bound for those correlated Gaussian errors).
+
+    Parameters
+    ----------
+    xy_true : ndarray, shape (N, 2)
+        True positions of the points on the line, px.
+    normal : ndarray, shape (2,)
+        True unit normal.
+    normal_std : float or ndarray, shape (N,)
+    """
+    xy_true = np.asarray(xy_true, float)
+    alpha = np.arctan2(normal[1], normal[0])
+    h = np.column_stack([-np.sin(alpha) * xy_true[:, 0] + np.cos(alpha) * xy_true[:, 1],
+                         np.ones(len(xy_true))])
+    return _crb(h, np.broadcast_to(np.asarray(normal_std, float), (len(h),)), xy_true, corr_length)
+
+
+def _crb(h, s, xy, corr_length):
+    if corr_length:
+        d = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
+        R = np.exp(-(d * d) / (4 * corr_length ** 2)) * np.outer(s, s)
+        X = np.linalg.solve(R, h)
+        return np.linalg.inv(h.T @ X)
+    hw = h / s[:, None]
+    return np.linalg.inv(hw.T @ hw)
+
+
+# ---------------------------------------------------------------- circle
+
+def _kasa(xy):
+    """Algebraic circle fit (Kasa), the start of the geometric fit."""
+    x, y = xy[:, 0], xy[:, 1]
+    A = np.column_stack([x, y, np.ones(len(x))])
+    sol, *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
+    xc, yc = sol[0] / 2, sol[1] / 2
+    return np.array([xc, yc, np.sqrt(max(sol[2] + xc * xc + yc * yc, 1e-12))])
+
+
+def fit_circle(xy, cov=None, *, corr_length=None, blur=None, max_iter=50, tol=1e-10):
+    """Geometric circle fit (Gauss-Newton on orthogonal distances) [2]_.
+
+    Parameters
+    ----------
+    xy : array_like, shape (N, 2)
+        Points, px (ordered along the circle when ``corr_length`` is given).
+    cov : array_like, shape (N, 2, 2) or (N,), optional
+        Point covariances, px^2, as in :func:`fit_line`.
+    corr_length : float, optional
+        Correlation length of the point errors, px.
+    blur : float, optional
+        Width of the edge profile, px: the fitted radius is increased by
+        blur^2 / (2 r), the smoothing bias of a curved edge (see
+        :func:`fit_ellipse`).
+
+    Returns
+    -------
+    CircleFit
+    """
+    xy = _as_points(xy, 3)
+    if blur:
+        c0 = _kasa(xy)
+        d = xy - c0[:2]
+        xy = xy + (0.5 * blur * blur / c0[2]) * d / np.linalg.norm(d, axis=1)[:, None]
+    p = _kasa(xy)
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        d = xy - p[:2]
+        rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
+        u = d / rho[:, None]
+        r = rho - p[2]
+        s = _normal_std(cov, u) if cov is not None else np.ones(len(xy))
+        h = np.column_stack([-u, -np.ones(len(xy))])
+        hw, rw = h / s[:, None], r / s
+        step, *_ = np.linalg.lstsq(hw, -rw, rcond=None)
+        p = p + step
+        if np.abs(step).max() < tol * max(1.0, p[2]):
+            converged = True
+            break
+    d = xy - p[:2]
+    rho = np.hypot(d[:, 0], d[:, 1])
+    u = d / rho[:, None]
+    r = rho - p[2]
+    h = np.column_stack([-u, -np.ones(len(xy))])
+    if cov is not None:
+        s = _normal_std(cov, u)
+    else:
+        s = np.full(len(xy), max(np.sqrt((r * r).sum() / max(len(xy) - 3, 1)), 1e-12))
+    covp, _, trR2 = _uncertainty(h, s, xy, corr_length)
+    return CircleFit(p, covp, _ci(p, covp), r, s, _consistency(r, s, 3, trR2), converged, it)
+
+
+# ---------------------------------------------------------------- ellipse
+
+def ellipse_points(params, phi):
+    """Points (N, 2) of the ellipse (xc, yc, a, b, theta) at phases phi."""
+    xc, yc, a, b, th = params
+    c, s = np.cos(th), np.sin(th)
+    u, v = a * np.cos(phi), b * np.sin(phi)
+    return np.column_stack([xc + c * u - s * v, yc + s * u + c * v])
+
+
+def _ellipse_start(xy):
+    """Direct algebraic fit (Fitzgibbon / Halir-Flusser, via OpenCV) [5]_."""
+    (cx, cy), (w, h), ang = cv2.fitEllipseDirect(xy.astype(np.float32).reshape(-1, 1, 2))
+    if not (np.isfinite([cx, cy, w, h, ang]).all() and w > 0 and h > 0):
+        p = _kasa(xy)
+        return np.array([p[0], p[1], p[2], p[2] * 0.999, 0.0])
+    # OpenCV: full axis lengths; ang (degrees) rotates the first (width) axis.
+    return _canonical(np.array([cx, cy, w / 2.0, h / 2.0, np.deg2rad(ang)]))
+
+
+def _canonical(p):
+    """a >= b and theta in (-pi/2, pi/2]."""
+    p = np.array(p, float)
+    if p[3] > p[2]:
+        p[2], p[3] = p[3], p[2]
+        p[4] += np.pi / 2
+    p[4] = (p[4] + np.pi / 2) % np.pi - np.pi / 2
+    if p[4] <= -np.pi / 2:
+        p[4] += np.pi
+    return p
+
+
+def _foot_phases(xy, params, phi=None, iters=6):
+    """Phases of the orthogonal foot points (Newton on each, vectorised)."""
+    xc, yc, a, b, th = params
+    c, s = np.cos(th), np.sin(th)
+    dx, dy = xy[:, 0] - xc, xy[:, 1] - yc
+    u, v = c * dx + s * dy, -s * dx + c * dy
+    if phi is None:
+        phi = np.arctan2(v * a, u * b)
+    for _ in range(iters):
+        cp, sp = np.cos(phi), np.sin(phi)
+        ex, ey = a * cp, b * sp
+        tx, ty = -a * sp, b * cp
+        f = (u - ex) * tx + (v - ey) * ty
+        fp = -(tx * tx + ty * ty) - (u - ex) * ex - (v - ey) * ey
+        fp = np.where(np.abs(fp) < 1e-12, -1e-12, fp)
+        phi = phi - f / np.minimum(fp, -1e-12)
+    return phi
+
+
+def _ellipse_geometry(xy, params, phi):
+    """Residuals, outward unit normals and rows h_i at the foot points."""
+    xc, yc, a, b, th = params
+    c, s = np.cos(th), np.sin(th)
+    Q = np.array([[c, -s], [s, c]])
+    cp, sp = np.cos(phi), np.sin(phi)
+    e = ellipse_points(params, phi)
+    # Outward normal in the ellipse frame is (b cos phi, a sin phi).
+    nl = np.column_stack([b * cp, a * sp])
+    nl /= np.linalg.norm(nl, axis=1)[:, None]
+    n = nl @ Q.T
+    r = ((xy - e) * n).sum(axis=1)
+    # d(signed distance)/d(params) = -n . d(x(phi))/d(params); the phase
+    # derivative drops out because dx/dphi is tangent (Schur complement of
+    # the block-diagonal phase part, [2]_ section 4).
+    dxa = np.column_stack([cp, np.zeros_like(cp)]) @ Q.T
+    dxb = np.column_stack([np.zeros_like(sp), sp]) @ Q.T
+    dxt = np.column_stack([-b * sp, a * cp]) @ Q.T  # Q' (a cos, b sin) = Q R90 (...)
+    h = -np.column_stack([n[:, 0], n[:, 1], (n * dxa).sum(1), (n * dxb).sum(1), (n * dxt).sum(1)])
+    return r, n, h
+
+
+def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=1e-9):
+    """Geometric ellipse fit in parametric form (Gander, Golub & Strebel 1994).
+
+    Unknowns are the centre, semi-axes, angle and one phase phi_i per point;
+    the residual of point i is the 2-vector p_i - x(phi_i). Each
+    damped Gauss-Newton step solves the normal equations
+
+        [ D    B ] [dphi]   [g_phi]
+        [ B^T  C ] [du  ] = [g_u  ]
+
+    whose phase block D is diagonal, by eliminating the phases (Schur
+    complement S = C - B^T D^-1 B, a 5x5 system) and back-substituting
+    dphi = D^-1 (g_phi - B du): O(m) per iteration for m points [2]_.
+    Levenberg-Marquardt damping keeps the steps safe far from the solution;
+    the start is the direct algebraic fit [5]_ with each phase at its
+    point's foot point. At convergence dx/dphi_i is tangent, so
+    S = sum_i w_i h_i h_i^T with h_i the derivative of the orthogonal
+    distance, which is what the covariance is computed from.
+
+    Parameters
+    ----------
+    xy : array_like, shape (N, 2), N >= 6
+        Points, px (ordered along the curve when ``corr_length`` is given).
+    cov : array_like, shape (N, 2, 2) or (N,), optional
+        Point covariances, px^2; weights are inverse variances along the
+        ellipse normal at each foot point. Without it, equal weights and a
+        common point uncertainty estimated from the residuals.
+    corr_length : float, optional
+        Correlation length of the point errors along the curve, px.
+    blur : float, optional
+        Width of the edge profile, px (e.g. the median of
+        ``EdgePoints.width`` over the points). Gaussian smoothing moves
+        points on a curve towards the centre of curvature by
+        blur^2 kappa / 2; with ``blur`` each point is moved back by that
+        amount at the fitted curvature and the fit repeated (twice). The
+        residuals returned are those of the corrected points.
+
+    Returns
+    -------
+    EllipseFit
+
+    Notes
+    -----
+    The 5x5 covariance is S^-1 for independent errors, Kanatani's KCR
+    bound at the estimate [3]_ [4]_ (which the geometric fit attains to
+    first order), and the sandwich form of the module docstring with
+    ``corr_length``.
+    """
+    xy = _as_points(xy, 6)
+    fit = _fit_ellipse(xy, cov, corr_length, max_iter, tol)
+    if blur:
+        for _ in range(2):
+            xc, yc, a, b, th = fit.params
+            _, n, _ = _ellipse_geometry(xy, fit.params, fit.phases)
+            sp, cp = np.sin(fit.phases), np.cos(fit.phases)
+            kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
+            shifted = xy + (0.5 * blur * blur * kappa)[:, None] * n
+            fit = _fit_ellipse(shifted, cov, corr_length, max_iter, tol)
+        r = fit.residuals  # residuals are of the corrected points
+        fit = EllipseFit(fit.params, fit.cov, fit.ci95, r, fit.phases, fit.point_std,
+                         fit.consistency, fit.converged, fit.iterations)
+    return fit
+
+
+def _fit_ellipse(xy, cov, corr_length, max_iter, tol):
+    """Gauss-Newton of Gander et al. on fixed points; see fit_ellipse."""
+    n_pts = len(xy)
+    p = _ellipse_start(xy)
+    phi = _foot_phases(xy, p)
+    lam = 1e-3
+    converged = False
+    it = 0
+
+    def weights(p, phi):
+        if cov is None:
+            return np.ones(n_pts)
+        _, n, _ = _ellipse_geometry(xy, p, phi)
+        s = _normal_std(cov, n)
+        return 1.0 / (s * s)
+
+    def cost(p, phi, w):
+        d = xy - ellipse_points(p, phi)
+        return float((w * (d * d).sum(axis=1)).sum())
+
+    w = weights(p, phi)
+    f0 = cost(p, phi, w)
+    for it in range(1, max_iter + 1):
+        step_u, step_phi = _gander_step(xy, p, phi, w, lam)
+        while True:
+            p_new = p + step_u
+            if p_new[2] > 0 and p_new[3] > 0:
+                phi_new = phi + step_phi
+                f1 = cost(p_new, phi_new, w)
+                if f1 <= f0 * (1 + 1e-12):
+                    break
+            lam *= 10
+            if lam > 1e12:
+                break
+            step_u, step_phi = _gander_step(xy, p, phi, w, lam)
+        if lam > 1e12:
+            break
+        # Largest displacement of the curve the step causes, px; a rotation
+        # moves an ellipse by at most (a - b) |dtheta| (nothing for a circle,
+        # whose theta is free).
+        moved = np.abs(step_u[:4]).sum() + abs(p[2] - p[3]) * abs(step_u[4])
+        small = moved < tol * max(1.0, p[2])
+        p, phi = p_new, phi_new
+        w = weights(p, phi)  # the normals moved: re-project the covariances
+        f0 = cost(p, phi, w)
+        lam = max(lam / 10, 1e-9)
+        if small:
+            converged = True
+            break
+    p = _canonical(p)
+    phi = _foot_phases(xy, p, None, iters=20)
+    r, n, h = _ellipse_geometry(xy, p, phi)
+    if cov is not None:
+        s = _normal_std(cov, n)
+    else:
+        s = np.full(n_pts, max(np.sqrt((r * r).sum() / max(n_pts - 5, 1)), 1e-12))
+    covp, _, trR2 = _uncertainty(h, s, xy, corr_length)
+    covp = _theta_gauge(p, h, s, covp)
+    cons = _consistency(r, s, 5, trR2)
+    return EllipseFit(p, covp, _ci(p, covp), r, phi, s, cons, converged, it)
+
+
+def _gander_step(xy, p, phi, w, lam):
+    """One damped Gauss-Newton step of Gander et al. [2]_ with the phases eliminated.
+
+    Residuals rho_i = p_i - x(phi_i; u), weight w_i on both components.
+    The Jacobian has a block-diagonal phase part (one 2-vector j_i per
+    point) and a dense part J_i (2 x 5); the normal equations are solved by
+    the Schur complement of the diagonal phase block, O(m).
+    """
+    xc, yc, a, b, th = p
+    c, s = np.cos(th), np.sin(th)
+    Q = np.array([[c, -s], [s, c]])
+    cp, sp = np.cos(phi), np.sin(phi)
+    rho = xy - ellipse_points(p, phi)
+    # Jacobians of rho (= minus those of x).
+    j = -(np.column_stack([-a * sp, b * cp]) @ Q.T)  # (m, 2)
+    J = np.empty((len(xy), 2, 5))
+    J[:, :, 0] = [-1.0, 0.0]
+    J[:, :, 1] = [0.0, -1.0]
+    J[:, :, 2] = -(np.column_stack([cp, np.zeros_like(cp)]) @ Q.T)
+    J[:, :, 3] = -(np.column_stack([np.zeros_like(sp), sp]) @ Q.T)
+    J[:, :, 4] = -(np.column_stack([-b * sp, a * cp]) @ Q.T)
+    D = w * (j * j).sum(axis=1)
+    B = w[:, None] * (j[:, :, None] * J).sum(axis=1)  # (m, 5)
+    Jw = (J * np.sqrt(w)[:, None, None]).reshape(-1, 5)
+    C = Jw.T @ Jw
+    g_phi = w * (j * rho).sum(axis=1)
+    g_u = Jw.T @ (rho * np.sqrt(w)[:, None]).reshape(-1)
+    D = D * (1.0 + lam)
+    C = C + lam * np.diag(np.diag(C))
+    S = C - (B / D[:, None]).T @ B
+    rhs = -g_u + (B / D[:, None]).T @ g_phi
+    du = np.linalg.lstsq(S, rhs, rcond=1e-14)[0]
+    dphi = (-g_phi - B @ du) / D
+    return du, dphi
+
+
+def _theta_gauge(p, h, s, covp):
+    """Mark theta undetermined when the data cannot tell it (a circle)."""
+    col = h[:, 4] / s
+    others = h[:, :4] / s[:, None]
+    # Part of the theta column not explained by the other four.
+    coef, *_ = np.linalg.lstsq(others, col, rcond=None)
+    resid = np.linalg.norm(col - others @ coef)
+    if resid < 1e-9 * max(np.linalg.norm(others), 1.0):
+        covp = covp.copy()
+        covp[4, :] = covp[:, 4] = 0.0
+        covp[4, 4] = np.inf
+    return covp
+
+
+def ellipse_kcr_bound(params_true, xy_true, normal_std, corr_length=None):
+    """Lower bound on the covariance of (xc, yc, a, b, theta).
+
+    KCR bound [3]_ [4]_ (H^T R^-1 H)^-1 with rows h_i evaluated at the
+    foot points of the true point positions on the true ellipse, for normal
+    errors of standard deviation ``normal_std`` (scalar or (N,)) and, with
+    ``corr_length``, correlation exp(-d^2 / (4 l^2)).
+    """
+    xy_true = np.asarray(xy_true, float)
+    params_true = np.asarray(params_true, float)
+    phi = _foot_phases(xy_true, params_true, None, iters=20)
+    _, _, h = _ellipse_geometry(xy_true, params_true, phi)
+    s = np.broadcast_to(np.asarray(normal_std, float), (len(h),))
+    return _crb(h, s, xy_true, corr_length)

@@ -1,0 +1,299 @@
+"""Synthetic grey images with exact analytic truth, for the 2D vision tests.
+
+Shapes are painted with area-integrated pixels: pixels whose centre lies far
+from every boundary are filled exactly (coverage 0 or 1); pixels within one
+pixel of a boundary get the exact area of a half-plane when one straight side
+crosses them and are supersampled ``ss`` x ``ss`` otherwise (curves,
+polygon vertices; 64 x 64 puts the truth within ~0.005 px). The image is then blurred
+with a Gaussian (the optics), Gaussian noise is added and the result is
+quantised to 8 bits. Pixel coordinates follow OpenCV: the centre of the
+top-left pixel is (0, 0), x to the right, y down.
+
+A shape is a small object with ``sdist(x, y)`` -- a lower bound on the true
+distance to the boundary outside, exact or conservative inside (negative) --
+and ``inside(x, y)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from partinspect.vision.contours import chain_edges
+from partinspect.vision.edges import edge_points
+from partinspect.vision.fitting import ellipse_kcr_bound, fit_ellipse, fit_line, line_kcr_bound
+
+__all__ = ["Disc", "Ellipse", "Polygon", "HalfPlane", "rectangle", "render", "render_clean",
+           "line_draws", "ellipse_draws"]
+
+
+@dataclass(frozen=True)
+class HalfPlane:
+    """The set ``A x + B y + C < 0`` with ``A^2 + B^2 = 1``."""
+
+    A: float
+    B: float
+    C: float
+
+    def sdist(self, x, y):
+        return self.A * x + self.B * y + self.C
+
+    def inside(self, x, y):
+        return self.sdist(x, y) < 0
+
+    def coverage(self, rows, cols, ss):
+        return _halfplane_area(self.A, self.B, self.sdist(cols, rows))
+
+    def distance(self, xy):
+        """Signed distance of points (N, 2) to the boundary line, px."""
+        xy = np.asarray(xy, float)
+        return self.A * xy[:, 0] + self.B * xy[:, 1] + self.C
+
+
+@dataclass(frozen=True)
+class Polygon:
+    """Convex polygon, vertices (K, 2) in counter-clockwise or clockwise order."""
+
+    vertices: tuple
+
+    def _planes(self):
+        v = np.asarray(self.vertices, float)
+        c = v.mean(axis=0)
+        planes = []
+        for p, q in zip(v, np.roll(v, -1, axis=0)):
+            d = q - p
+            n = np.array([d[1], -d[0]]) / np.hypot(*d)
+            C = -n @ p
+            if n @ c + C > 0:  # orient so the interior is negative
+                n, C = -n, -C
+            planes.append((n[0], n[1], C))
+        return planes
+
+    def sdist(self, x, y):
+        return np.max([A * x + B * y + C for A, B, C in self._planes()], axis=0)
+
+    def inside(self, x, y):
+        return self.sdist(x, y) < 0
+
+    def coverage(self, rows, cols, ss):
+        # One side crossing the pixel: exact area; a vertex in it: supersampled.
+        planes = self._planes()
+        d = np.array([A * cols + B * rows + C for A, B, C in planes])
+        near = np.abs(d) < 0.75
+        cov = np.ones(len(rows))
+        for k, (A, B, C) in enumerate(planes):
+            cov *= np.where(near[k], _halfplane_area(A, B, d[k]), (d[k] < 0).astype(float))
+        many = near.sum(axis=0) > 1
+        if many.any():
+            cov[many] = _supersample(self, rows[many], cols[many], max(ss, 64))
+        return cov
+
+    def distance(self, xy):
+        """Exact signed distance of points (N, 2) to the polygon outline, px."""
+        xy = np.asarray(xy, float)
+        v = np.asarray(self.vertices, float)
+        best = np.full(len(xy), np.inf)
+        for p, q in zip(v, np.roll(v, -1, axis=0)):
+            d = q - p
+            t = np.clip(((xy - p) @ d) / (d @ d), 0, 1)
+            best = np.minimum(best, np.hypot(*(xy - p - t[:, None] * d).T))
+        return np.where(self.inside(xy[:, 0], xy[:, 1]), -best, best)
+
+
+def rectangle(cx, cy, w, h, angle=0.0):
+    """Polygon of a w x h rectangle centred at (cx, cy), rotated by angle (rad)."""
+    c, s = np.cos(angle), np.sin(angle)
+    corners = np.array([[-w / 2, -h / 2], [w / 2, -h / 2], [w / 2, h / 2], [-w / 2, h / 2]])
+    R = np.array([[c, -s], [s, c]])
+    return Polygon(tuple(map(tuple, corners @ R.T + [cx, cy])))
+
+
+@dataclass(frozen=True)
+class Ellipse:
+    """Ellipse with centre (xc, yc), semi-axes a, b and angle theta (rad) of the a axis."""
+
+    xc: float
+    yc: float
+    a: float
+    b: float
+    theta: float = 0.0
+
+    def _local(self, x, y):
+        c, s = np.cos(self.theta), np.sin(self.theta)
+        dx, dy = x - self.xc, y - self.yc
+        return c * dx + s * dy, -s * dx + c * dy
+
+    def sdist(self, x, y):
+        # (rho - 1) min(a, b) bounds the distance from below outside and inside,
+        # because rho*E = E + (rho-1)E contains E plus a disc of radius (rho-1)b.
+        u, v = self._local(x, y)
+        rho = np.sqrt((u / self.a) ** 2 + (v / self.b) ** 2)
+        return (rho - 1.0) * min(self.a, self.b)
+
+    def inside(self, x, y):
+        u, v = self._local(x, y)
+        return (u / self.a) ** 2 + (v / self.b) ** 2 < 1.0
+
+    def distance(self, xy):
+        """Signed orthogonal distance of points (N, 2) to the ellipse, px (Newton on the phase)."""
+        xy = np.asarray(xy, float)
+        u, v = self._local(xy[:, 0], xy[:, 1])
+        a, b = self.a, self.b
+        phi = np.arctan2(v * a, u * b)
+        for _ in range(30):
+            ex, ey = a * np.cos(phi), b * np.sin(phi)
+            dx, dy = -a * np.sin(phi), b * np.cos(phi)
+            f = (u - ex) * dx + (v - ey) * dy
+            fp = -(dx * dx + dy * dy) + (u - ex) * (-ex) + (v - ey) * (-ey)
+            phi = phi - f / fp
+        ex, ey = a * np.cos(phi), b * np.sin(phi)
+        d = np.hypot(u - ex, v - ey)
+        return np.where((u / a) ** 2 + (v / b) ** 2 < 1, -d, d)
+
+
+def Disc(xc, yc, r):
+    """A disc is an ellipse with a = b."""
+    return Ellipse(xc, yc, r, r, 0.0)
+
+
+def _halfplane_area(A, B, c):
+    """Exact area of {(u, v) in [-1/2, 1/2]^2 : A u + B v + c < 0}, A^2 + B^2 = 1.
+
+    The CDF of A U + B V for independent uniform U, V (a trapezoidal
+    density), evaluated at -c.
+    """
+    p = np.maximum(abs(A), abs(B)) / 2.0
+    q = np.minimum(abs(A), abs(B)) / 2.0
+    t = -np.asarray(c, float)
+    out = np.where(t >= p + q, 1.0, 0.0)
+    mid = (t > -p + q) & (t < p - q)
+    out = np.where(mid, (t + p) / (2 * p), out)
+    if q > 1e-12:
+        lo = (t > -p - q) & (t <= -p + q)
+        hi = (t >= p - q) & (t < p + q)
+        out = np.where(lo, (t + p + q) ** 2 / (8 * p * q), out)
+        out = np.where(hi, 1.0 - (p + q - t) ** 2 / (8 * p * q), out)
+    return out
+
+
+def _supersample(shape, rows, cols, ss):
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    oy, ox = np.meshgrid(off, off, indexing="ij")
+    out = np.empty(len(rows))
+    for s in range(0, len(rows), 256):  # bounded memory
+        sx = cols[s:s + 256, None] + ox.ravel()[None, :]
+        sy = rows[s:s + 256, None] + oy.ravel()[None, :]
+        out[s:s + 256] = shape.inside(sx, sy).mean(axis=1)
+    return out
+
+
+def _coverage(shape, height, width, ss):
+    """Area fraction (H, W) of each pixel covered by the shape."""
+    y, x = np.mgrid[0:height, 0:width].astype(float)
+    sd = shape.sdist(x, y)
+    cov = (sd < 0).astype(float)
+    band = np.abs(sd) < 0.75  # half the pixel diagonal is 0.707
+    rows, cols = np.nonzero(band)
+    if len(rows):
+        if hasattr(shape, "coverage"):
+            cov[rows, cols] = shape.coverage(rows.astype(float), cols.astype(float), ss)
+        else:
+            cov[rows, cols] = _supersample(shape, rows.astype(float), cols.astype(float), ss)
+    return cov
+
+
+def render_clean(shapes, height, width, background=40.0, ss=64):
+    """Noise-free, unblurred area-integrated image.
+
+    Parameters
+    ----------
+    shapes : list of (shape, value)
+        Painted in order; each covers what lies below it.
+    """
+    img = np.full((height, width), float(background))
+    for shape, value in shapes:
+        c = _coverage(shape, height, width, ss)
+        img = img * (1.0 - c) + value * c
+    return img
+
+
+def render(shapes, height, width, background=40.0, blur=0.6, noise=2.0, seed=0, ss=64,
+           quantise=True, clean=None):
+    """Area-integrated, blurred, noisy, 8-bit image of the shapes.
+
+    Returns
+    -------
+    img : ndarray, shape (H, W), uint8 (float64 if ``quantise`` is False)
+    """
+    if clean is None:
+        clean = render_clean(shapes, height, width, background, ss)
+    img = ndimage.gaussian_filter(clean, blur, mode="nearest") if blur > 0 else clean.copy()
+    rng = np.random.default_rng(seed)
+    img = img + rng.normal(0.0, noise, img.shape)
+    if quantise:
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return img
+
+
+# ------------------------------------------------ repeated-draw experiments
+# Shared by tests/vision/test_fitting.py (few draws) and
+# benchmarks/bench_fitting.py (many draws).
+
+LINE = HalfPlane(np.cos(0.3), np.sin(0.3), -(np.cos(0.3) * 70.3 + np.sin(0.3) * 60.2))
+ELLIPSE = Ellipse(100.3, 95.7, 62.0, 38.0, 0.4)
+
+
+def line_draws(n_draws, noise=2.0, contrast=80.0, seed0=0):
+    """Fit errors of (alpha, C), predicted std, and the KCR bounds."""
+    H, W = 120, 140
+    clean = ndimage.gaussian_filter(render_clean([(LINE, 60 + contrast)], H, W, 60.0), 0.6, mode="nearest")
+    a0, c0 = np.arctan2(LINE.B, LINE.A), LINE.C
+    errs, preds, point_err, resid_mean = [], [], [], []
+    for k in range(n_draws):
+        ep = edge_points(render([], H, W, blur=0, noise=noise, seed=seed0 + k, clean=clean), 1.0)
+        ok = (ep.xy[:, 1] > 12) & (ep.xy[:, 1] < H - 12) & (ep.xy[:, 0] > 12) & (ep.xy[:, 0] < W - 12)
+        xy, cov = ep.xy[ok], ep.cov[ok]
+        xy, cov = xy[np.argsort(xy[:, 1])], cov[np.argsort(xy[:, 1])]
+        f = fit_line(xy, cov, corr_length=ep.sigma)
+        A, B, C = f.params
+        if A * LINE.A + B * LINE.B < 0:
+            A, B, C = -A, -B, -C
+        errs.append([np.arctan2(B, A) - a0, C - c0])
+        preds.append(np.sqrt(np.diag(f.cov_angle_offset)))
+        point_err.append(LINE.distance(xy))
+        resid_mean.append(f.residuals.mean())
+    d = np.concatenate(point_err)
+    s_emp = d.std()
+    xy_true = xy - LINE.distance(xy)[:, None] * np.array([LINE.A, LINE.B])
+    n = np.array([LINE.A, LINE.B])
+    kcr_ind = np.sqrt(np.diag(line_kcr_bound(xy_true, n, s_emp)))
+    kcr_cor = np.sqrt(np.diag(line_kcr_bound(xy_true, n, s_emp, corr_length=1.0)))
+    return np.array(errs), np.array(preds), kcr_ind, kcr_cor, np.array(resid_mean), s_emp
+
+
+def ellipse_draws(n_draws, noise=2.0, contrast=80.0, seed0=0):
+    """Fit errors of (xc, yc, a, b, theta), predicted std, and the KCR bounds."""
+    H, W = 200, 200
+    E = ELLIPSE
+    clean = ndimage.gaussian_filter(render_clean([(E, 60 + contrast)], H, W, 60.0), 0.6, mode="nearest")
+    truth = np.array([E.xc, E.yc, E.a, E.b, E.theta])
+    errs, preds, point_err, resid_mean, conv = [], [], [], [], []
+    for k in range(n_draws):
+        ep = edge_points(render([], H, W, blur=0, noise=noise, seed=seed0 + k, clean=clean), 1.0)
+        c = chain_edges(ep)[0]
+        xy, cov = ep.xy[c.index], ep.cov[c.index]
+        f = fit_ellipse(xy, cov, corr_length=ep.sigma, blur=float(np.median(ep.width[c.index])))
+        e = f.params - truth
+        e[4] = (e[4] + np.pi / 2) % np.pi - np.pi / 2
+        errs.append(e)
+        preds.append(np.sqrt(np.diag(f.cov)))
+        point_err.append(E.distance(xy))
+        resid_mean.append(f.residuals.mean())
+        conv.append(f.converged)
+    d = np.concatenate(point_err)
+    s_emp = d.std()  # spread of the point errors (their mean is the smoothing bias)
+    kcr_ind = np.sqrt(np.diag(ellipse_kcr_bound(truth, xy, s_emp)))
+    kcr_cor = np.sqrt(np.diag(ellipse_kcr_bound(truth, xy, s_emp, corr_length=1.0)))
+    return np.array(errs), np.array(preds), kcr_ind, kcr_cor, np.array(resid_mean), s_emp, np.all(conv)
