@@ -1,0 +1,125 @@
+"""Nominal geometry the tolerances need: distances and angles between edges.
+
+Plain functions on numpy arrays (part frame, mm, radians). The same
+definitions serve the nominal (CAD) and the measured value of a
+characteristic, so what is compared is the same quantity.
+
+Feature records are ``partinspect.cad.features.Feature`` or anything with
+its fields: ``id``, ``kind`` ("line", "circle", "arc"); lines ``start``,
+``end``; circles and arcs ``center``, ``normal``, ``radius``.
+
+References
+----------
+.. [1] ISO 1101:2017, Geometrical product specifications (GPS) --
+       Geometrical tolerancing (the features these quantities belong to).
+.. [2] ISO 2768-1:1989, 4.3: an angle is toleranced by the length of its
+       shorter leg.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = [
+    "line_angle",
+    "angle_shorter_leg",
+    "feature_distance",
+]
+
+# Below this sine two directions count as parallel: CAD directions agree to
+# ~1e-12, so anything above 1e-9 is a real angle.
+_PARALLEL_SIN = 1e-9
+# Lines a distance is toleranced between must be parallel as the CAD module
+# counts parallel (cad.features.DIRECTION_TOL).
+_DISTANCE_PARALLEL_SIN = 1e-6
+
+
+def _vec(v):
+    return np.asarray(v, dtype=float).reshape(3)
+
+
+def _unit(v):
+    v = _vec(v)
+    n = np.linalg.norm(v)
+    if n == 0:
+        raise ValueError("zero-length direction")
+    return v / n
+
+
+def _closest_points(a0, da, b0, db):
+    """Closest points of the infinite lines a0 + s da and b0 + t db (not parallel)."""
+    w = a0 - b0
+    a, b, c = da @ da, da @ db, db @ db
+    d, e = da @ w, db @ w
+    den = a * c - b * b
+    s = (b * e - c * d) / den
+    t = (a * e - b * d) / den
+    return a0 + s * da, b0 + t * db
+
+
+def line_angle(a_start, a_end, b_start, b_end):
+    """The angle between two line segments, in (0, pi) radians.
+
+    The vertex is where the two infinite lines meet (for skew lines, the
+    midpoint of their common perpendicular); each leg is the ray from the
+    vertex towards the segment's endpoint farther from it. Two edges
+    meeting at a corner so give the corner's angle (a 120 degree corner is
+    120 degrees, not 60), whichever way the edges are oriented.
+
+    Raises
+    ------
+    ValueError
+        If the lines are parallel (no vertex; use a distance or a
+        parallelism tolerance instead).
+    """
+    a0, a1, b0, b1 = _vec(a_start), _vec(a_end), _vec(b_start), _vec(b_end)
+    da, db = _unit(a1 - a0), _unit(b1 - b0)
+    if np.linalg.norm(np.cross(da, db)) < _PARALLEL_SIN:
+        raise ValueError("the lines are parallel")
+    pa, pb = _closest_points(a0, da, b0, db)
+    vertex = 0.5 * (pa + pb)
+    ra = max((a0, a1), key=lambda q: float(np.linalg.norm(q - vertex))) - vertex
+    rb = max((b0, b1), key=lambda q: float(np.linalg.norm(q - vertex))) - vertex
+    cosang = float(ra @ rb) / (np.linalg.norm(ra) * np.linalg.norm(rb))
+    return math.acos(max(-1.0, min(1.0, cosang)))
+
+
+def angle_shorter_leg(a_start, a_end, b_start, b_end):
+    """Length of the shorter of the two segments, mm (ISO 2768-1 picks the angle tolerance by it)."""
+    return min(float(np.linalg.norm(_vec(a_end) - _vec(a_start))), float(np.linalg.norm(_vec(b_end) - _vec(b_start))))
+
+
+def feature_distance(fa, fb):
+    """Nominal distance between two features, mm.
+
+    - circle or arc to circle or arc: between the centres;
+    - line to circle or arc: from the centre to the (infinite) line;
+    - line to line: between parallel lines.
+
+    Raises
+    ------
+    ValueError
+        For two lines that are not parallel: their distance is not a size.
+    """
+    def is_line(f):
+        return f.kind == "line"
+
+    if not is_line(fa) and not is_line(fb):
+        return float(np.linalg.norm(_vec(fa.center) - _vec(fb.center)))
+    if is_line(fa) and is_line(fb):
+        da, db = _unit(_vec(fa.end) - _vec(fa.start)), _unit(_vec(fb.end) - _vec(fb.start))
+        sin = float(np.linalg.norm(np.cross(da, db)))
+        if sin > _DISTANCE_PARALLEL_SIN:
+            raise ValueError(f"the lines are not parallel ({math.degrees(math.asin(min(1.0, sin))):.3g} degrees apart)")
+        return _point_line_distance(0.5 * (_vec(fb.start) + _vec(fb.end)), fa)
+    line, other = (fa, fb) if is_line(fa) else (fb, fa)
+    return _point_line_distance(other.center, line)
+
+
+def _point_line_distance(p, line):
+    a = _vec(line.start)
+    d = _unit(_vec(line.end) - a)
+    v = _vec(p) - a
+    return float(np.linalg.norm(v - (v @ d) * d))
