@@ -254,27 +254,36 @@ def _band(xy, corr_length):
     return out
 
 
-def _uncertainty(h, s, xy, corr_length):
-    """Sandwich covariance of a weighted linear regression on rows h.
+def information_matrices(h, s, xy, corr_length):
+    """The two matrices of the sandwich covariance of a weighted regression.
+
+    For residuals ``r_i / s_i`` with Jacobian rows ``h_i / s_i`` and errors
+    correlated along the curve as ``exp(-d^2 / (4 corr_length^2))``, the
+    covariance of the estimate is ``S^-1 M S^-1``.
 
     Parameters
     ----------
     h : ndarray, shape (N, p)
-        d(signed distance_i) / d(params).
+        d(signed distance_i) / d(params), rows ordered along the curve.
     s : ndarray, shape (N,)
         Standard uncertainty of each point along the normal, px.
+    xy : ndarray, shape (N, 2)
+        The points, px, to measure distances along the curve.
+    corr_length : float or None
+        Correlation length of the point errors, px (the edge filter's
+        sigma); None for independent errors.
 
     Returns
     -------
-    cov : ndarray, shape (p, p)
-    sinv : ndarray, shape (p, p)
-        S^-1, the covariance if the errors were independent.
+    S : ndarray, shape (p, p)
+        ``H^T H`` of the weighted rows (the information if independent).
+    M : ndarray, shape (p, p)
+        ``H^T R H`` with R the error correlation matrix.
     trR2 : float
         sum_ij rho_ij^2, for the effective degrees of freedom.
     """
     hw = h / s[:, None]
     S = hw.T @ hw
-    sinv = np.linalg.pinv(S, rcond=1e-13, hermitian=True)
     M = S.copy()
     trR2 = float(len(h))
     for k, rho in _band(xy, corr_length):
@@ -282,6 +291,21 @@ def _uncertainty(h, s, xy, corr_length):
         C = (hw * rho[:, None]).T @ hk
         M += C + C.T
         trR2 += 2.0 * float((rho * rho).sum())
+    return S, M, trR2
+
+
+def _uncertainty(h, s, xy, corr_length):
+    """Sandwich covariance ``S^-1 M S^-1`` (see :func:`information_matrices`).
+
+    Returns
+    -------
+    cov : ndarray, shape (p, p)
+    sinv : ndarray, shape (p, p)
+        S^-1, the covariance if the errors were independent.
+    trR2 : float
+    """
+    S, M, trR2 = information_matrices(h, s, xy, corr_length)
+    sinv = np.linalg.pinv(S, rcond=1e-13, hermitian=True)
     return sinv @ M @ sinv, sinv, trR2
 
 

@@ -1,0 +1,296 @@
+"""3D lines and circles fitted to the edge points of both images at once.
+
+Rather than fitting a 3D primitive to triangulated points (whose errors are
+correlated through the matching, and much larger in depth), the primitive is
+fitted directly to the 2D edge points of both views: each edge point's
+residual is its distance to the projection of the 3D primitive, weighted by
+the point's standard uncertainty across the edge (a two-view bundle
+adjustment of one primitive). Its covariance is first-order propagation from
+pixels to the 3D parameters in one step: ``(J^T W J)^-1`` for independent
+point errors, and the sandwich ``S^-1 M S^-1`` when neighbouring edge points
+share smoothed noise (see :func:`partinspect.vision.fitting.information_matrices`).
+
+Inputs are *ideal* pixel coordinates (distortion removed from the points,
+``K @ [undistort_points(uv), 1]``) in the rig frame convention of
+:mod:`partinspect.vision.calibration`.
+
+References
+----------
+.. [1] Hartley, R., & Zisserman, A. (2004). Multiple View Geometry in
+       Computer Vision, 2nd ed.: sections 4.2.6 (Sampson error), 5.2
+       (covariance by back-propagation), 8.2 (action of a projective camera
+       on conics) and 18.1 (bundle adjustment).
+.. [2] Quan, L. (1996). Conic reconstruction and correspondence from two
+       views. IEEE PAMI 18(2), 151-160.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from partinspect.vision.fitting import information_matrices
+
+__all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic"]
+
+
+@dataclass(frozen=True)
+class View:
+    """Edge points of one feature in one image.
+
+    Attributes
+    ----------
+    xy : ndarray, shape (N, 2)
+        Ideal (undistorted) pixel coordinates.
+    sigma : ndarray, shape (N,)
+        Standard uncertainty of each point across the edge, px.
+    P : ndarray, shape (3, 4)
+        Camera matrix ``K [R | t]`` mapping rig-frame points (mm) to ideal pixels.
+    corr_length : float or None
+        Correlation length of the point errors along the edge, px (the edge
+        filter's sigma: neighbouring edge points share smoothed noise), with
+        the points ordered along the edge; None for independent errors.
+    """
+
+    xy: np.ndarray
+    sigma: np.ndarray
+    P: np.ndarray
+    corr_length: float | None = None
+
+
+@dataclass(frozen=True)
+class Line3D:
+    """A fitted 3D line (rig frame, mm).
+
+    ``point`` is the point of the line nearest to the centroid of the
+    back-projected data; ``covariance`` is its 3x3 covariance (mm^2), whose
+    component along ``direction`` is zero by construction (the gauge).
+    ``direction_cov`` is the 3x3 covariance of the unit direction.
+    ``param_cov`` is the 4x4 covariance of the minimal parameters.
+    """
+
+    point: np.ndarray
+    direction: np.ndarray
+    covariance: np.ndarray
+    direction_cov: np.ndarray
+    param_cov: np.ndarray
+    chi2: float
+    dof: int
+
+
+@dataclass(frozen=True)
+class Circle3D:
+    """A fitted 3D circle (rig frame, mm).
+
+    Attributes
+    ----------
+    center, normal : ndarray, shape (3,)
+    radius : float
+    covariance : ndarray, shape (3, 3)
+        Covariance of the centre, mm^2.
+    normal_cov : ndarray, shape (3, 3)
+        Covariance of the unit normal (rank 2).
+    radius_std : float
+        Standard uncertainty of the radius, mm.
+    param_cov : ndarray, shape (6, 6)
+        Covariance of (centre, normal tilt a, normal tilt b, radius).
+    chi2 : float
+        Weighted sum of squared residuals at the solution.
+    dof : int
+        Number of residuals minus 6.
+    """
+
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+    covariance: np.ndarray
+    normal_cov: np.ndarray
+    radius_std: float
+    param_cov: np.ndarray
+    chi2: float
+    dof: int
+
+
+def _basis(d):
+    """Two unit vectors completing unit ``d`` to an orthonormal frame."""
+    a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 1.0, 0])
+    e1 = np.cross(d, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(d, e1)
+
+
+def _gauss_newton(residuals, theta0, max_iter=50, tol=1e-12):
+    """Minimise ||r(theta)||^2 with numeric Jacobians; returns (theta, J, r)."""
+    theta = np.asarray(theta0, dtype=float)
+    step = 1e-6 * np.maximum(1.0, np.abs(theta))
+    lam = 1e-6
+    r = residuals(theta)
+    cost = r @ r
+    for _ in range(max_iter):
+        J = np.stack([(residuals(theta + e) - residuals(theta - e)) / (2 * h) for e, h in zip(np.diag(step), step)], 1)
+        A, g = J.T @ J, J.T @ r
+        while True:
+            delta = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
+            r_new = residuals(theta + delta)
+            cost_new = r_new @ r_new
+            if cost_new <= cost or lam > 1e8:
+                break
+            lam *= 10
+        if cost_new > cost:
+            break
+        theta, r, lam = theta + delta, r_new, max(lam / 10, 1e-9)
+        converged = cost - cost_new <= tol * max(cost, 1e-300)
+        cost = cost_new
+        if converged:
+            break
+    J = np.stack([(residuals(theta + e) - residuals(theta - e)) / (2 * h) for e, h in zip(np.diag(step), step)], 1)
+    return theta, J, r
+
+
+def _covariance(views, J):
+    """Sandwich covariance of the fit, the views' errors independent of each other.
+
+    ``J`` holds the weighted Jacobian rows of all views stacked in order.
+    """
+    S = np.zeros((J.shape[1], J.shape[1]))
+    M = np.zeros_like(S)
+    start = 0
+    for v in views:
+        n = len(v.xy)
+        h = J[start : start + n] * v.sigma[:, None]  # back to unweighted distance derivatives
+        Sv, Mv, _ = information_matrices(h, v.sigma, v.xy, v.corr_length)
+        S += Sv
+        M += Mv
+        start += n
+    Sinv = np.linalg.inv(S)
+    cov = Sinv @ M @ Sinv
+    return 0.5 * (cov + cov.T)
+
+
+def _line_residuals(views, c0, d0, e1, e2):
+    def residuals(theta):
+        a, b, al, be = theta
+        p = c0 + a * e1 + b * e2
+        d = d0 + al * e1 + be * e2
+        out = []
+        for v in views:
+            x1 = v.P @ np.append(p, 1.0)
+            x2 = v.P @ np.append(p + 100.0 * d, 1.0)
+            line = np.cross(x1, x2)
+            line /= np.hypot(line[0], line[1])
+            out.append((v.xy @ line[:2] + line[2]) / v.sigma)
+        return np.concatenate(out)
+
+    return residuals
+
+
+def fit_line_3d(views, point0, direction0):
+    """Fit a 3D line to the edge points of its images.
+
+    Parameters
+    ----------
+    views : sequence of View
+        Usually the left and right view of one matched line.
+    point0, direction0 : array_like, shape (3,)
+        Initial line, e.g. from triangulated correspondences (rig frame, mm).
+
+    Returns
+    -------
+    Line3D
+    """
+    d0 = np.asarray(direction0, float) / np.linalg.norm(direction0)
+    c0 = np.asarray(point0, float)
+    e1, e2 = _basis(d0)
+    theta, J, r = _gauss_newton(_line_residuals(views, c0, d0, e1, e2), np.zeros(4))
+    cov = _covariance(views, J)
+    a, b, al, be = theta
+    d = d0 + al * e1 + be * e2
+    nd = np.linalg.norm(d)
+    p = c0 + a * e1 + b * e2
+    # Map the parameter covariance to the point and the unit direction.
+    E = np.stack([e1, e2], 1)
+    Jd = (np.eye(3) - np.outer(d, d) / nd**2) / nd @ E
+    d = d / nd
+    # The reported point is p moved along d to the foot of c0 (fixes the gauge).
+    point = p - ((p - c0) @ d) * d
+    Jp = (np.eye(3) - np.outer(d, d)) @ E
+    Jfull = np.zeros((6, 4))
+    Jfull[:3, :2] = Jp
+    Jfull[3:, 2:] = Jd
+    C = Jfull @ cov @ Jfull.T
+    return Line3D(point, d, C[:3, :3], C[3:, 3:], cov, float(r @ r), int(r.size - 4))
+
+
+def circle_image_conic(center, normal, radius, P):
+    """The conic (3x3, symmetric) of a 3D circle's image under camera ``P``.
+
+    Parameters
+    ----------
+    center, normal : array_like, shape (3,)
+    radius : float
+    P : ndarray, shape (3, 4)
+
+    Returns
+    -------
+    C : ndarray, shape (3, 3)
+        ``x^T C x = 0`` for image points x on the ellipse, scaled so that
+        ``C[2, 2]`` is 1 when that is possible.
+    """
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    u, v = _basis(n)
+    H = P @ np.array([[*u, 0], [*v, 0], [*center, 1]]).T  # plane coords (x, y, 1) -> image
+    Hinv = np.linalg.inv(H)
+    C = Hinv.T @ np.diag([1.0, 1.0, -radius * radius]) @ Hinv
+    return C / np.linalg.norm(C)
+
+
+def _circle_residuals(views, n0, e1, e2):
+    hom = [np.c_[v.xy, np.ones(len(v.xy))] for v in views]
+
+    def residuals(theta):
+        c = theta[:3]
+        n = n0 + theta[3] * e1 + theta[4] * e2
+        out = []
+        for v, x in zip(views, hom):
+            C = circle_image_conic(c, n, theta[5], v.P)
+            Cx = x @ C
+            # Sampson distance: algebraic residual over its gradient norm.
+            out.append(np.einsum("ni,ni->n", Cx, x) / (2 * np.hypot(Cx[:, 0], Cx[:, 1])) / v.sigma)
+        return np.concatenate(out)
+
+    return residuals
+
+
+def fit_circle_3d(views, center0, normal0, radius0):
+    """Fit a 3D circle to the edge points of its images.
+
+    Parameters
+    ----------
+    views : sequence of View
+        The left and right view of one matched circle or arc.
+    center0, normal0 : array_like, shape (3,)
+        Initial centre (mm) and normal, e.g. from a plane-and-circle fit to
+        triangulated correspondences.
+    radius0 : float
+        Initial radius, mm.
+
+    Returns
+    -------
+    Circle3D
+        The normal is oriented towards the left camera (``n . c < 0``), since
+        a circle's normal sign is not observable.
+    """
+    n0 = np.asarray(normal0, float) / np.linalg.norm(normal0)
+    e1, e2 = _basis(n0)
+    theta0 = np.r_[np.asarray(center0, float), 0.0, 0.0, float(radius0)]
+    theta, J, r = _gauss_newton(_circle_residuals(views, n0, e1, e2), theta0)
+    cov = _covariance(views, J)
+    n = n0 + theta[3] * e1 + theta[4] * e2
+    nn = np.linalg.norm(n)
+    Jn = (np.eye(3) - np.outer(n, n) / nn**2) / nn @ np.stack([e1, e2], 1)
+    n = n / nn
+    if n @ theta[:3] > 0:
+        n, Jn = -n, -Jn
+    normal_cov = Jn @ cov[3:5, 3:5] @ Jn.T
+    return Circle3D(
+        theta[:3], n, float(theta[5]), cov[:3, :3], normal_cov, float(np.sqrt(cov[5, 5])), cov, float(r @ r), int(r.size - 6)
+    )

@@ -1,0 +1,112 @@
+"""3D lines and circles fitted to both views: accuracy and honest covariances."""
+
+import cv2
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from partinspect.vision.fit3d import View, circle_image_conic, fit_circle_3d, fit_line_3d
+
+K = np.array([[7246.0, 0, 1224], [0, 7246, 1024], [0, 0, 1]])
+R = cv2.Rodrigues(np.array([0.0, -np.radians(17), 0.0]))[0]
+T = -R @ np.array([120.0, 0, 0])
+PS = (K @ np.c_[np.eye(3), np.zeros(3)], K @ np.c_[R, T])
+SIGMA = 0.05  # px, across the edge
+
+
+def proj(P, X):
+    x = np.c_[X, np.ones(len(X))] @ P.T
+    return x[:, :2] / x[:, 2:]
+
+
+def noisy_view(P, X, rng, corr_length=None):
+    """Image points of X with normal noise, optionally correlated along the edge."""
+    x = proj(P, X)
+    t = np.gradient(x, axis=0)
+    nrm = np.c_[-t[:, 1], t[:, 0]] / np.linalg.norm(t, axis=1)[:, None]
+    if corr_length:
+        d = np.linalg.norm(x[:, None] - x[None], axis=2)
+        L = np.linalg.cholesky(np.exp(-d * d / (4 * corr_length**2)) + 1e-9 * np.eye(len(x)))
+        e = SIGMA * (L @ rng.standard_normal(len(x)))
+    else:
+        e = rng.normal(0, SIGMA, len(x))
+    return View(x + nrm * e[:, None], np.full(len(x), SIGMA), P, corr_length)
+
+
+CIRCLE = dict(center=np.array([5.0, -3, 400]), normal=np.array([0.3, -0.6, -0.7]) / np.linalg.norm([0.3, -0.6, -0.7]), radius=6.0)
+
+
+def circle_points(n):
+    c, nrm, r = CIRCLE["center"], CIRCLE["normal"], CIRCLE["radius"]
+    u = np.cross(nrm, [1, 0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(nrm, u)
+    ph = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return c + r * (np.cos(ph)[:, None] * u + np.sin(ph)[:, None] * v)
+
+
+def test_circle_conic_contains_projected_points():
+    X = circle_points(50)
+    for P in PS:
+        C = circle_image_conic(CIRCLE["center"], CIRCLE["normal"], CIRCLE["radius"], P)
+        x = np.c_[proj(P, X), np.ones(50)]
+        Cx = x @ C
+        assert np.abs(np.einsum("ni,ni->n", Cx, x) / (2 * np.hypot(Cx[:, 0], Cx[:, 1]))).max() < 1e-9
+
+
+def test_noiseless_circle_recovered_from_rough_start():
+    X = circle_points(400)
+    views = [View(proj(P, X), np.full(400, SIGMA), P) for P in PS]
+    f = fit_circle_3d(views, CIRCLE["center"] + [0.5, -0.4, 2.0], CIRCLE["normal"] + [0.1, 0.05, 0], 5.5)
+    assert np.abs(f.center - CIRCLE["center"]).max() < 1e-7
+    assert abs(f.radius - CIRCLE["radius"]) < 1e-8
+    assert abs(abs(f.normal @ CIRCLE["normal"]) - 1) < 1e-12
+    assert f.normal @ f.center < 0  # oriented towards the camera
+
+
+@pytest.mark.parametrize("corr", [None, 1.0])
+def test_circle_covariance_is_honest(corr):
+    rng = np.random.default_rng(7 if corr else 8)
+    X = circle_points(680)  # ~1 px apart, as edge points are
+    m, z = [], []
+    for _ in range(80 if corr else 120):
+        f = fit_circle_3d([noisy_view(P, X, rng, corr) for P in PS], CIRCLE["center"], CIRCLE["normal"], 6.0)
+        e = f.center - CIRCLE["center"]
+        m.append(e @ np.linalg.solve(f.covariance, e))
+        z.append((f.radius - CIRCLE["radius"]) / f.radius_std)
+    m, z = np.array(m), np.array(z)
+    assert 0.88 <= np.mean(m < chi2.ppf(0.95, 3)) <= 0.99
+    assert 0.8 <= np.sqrt(m.mean() / 3) <= 1.25
+    assert 0.8 <= np.sqrt((z * z).mean()) <= 1.25
+
+
+def test_ignoring_correlation_would_understate_uncertainty():
+    """The same correlated data fitted as if independent: covariances come out too small."""
+    rng = np.random.default_rng(9)
+    X = circle_points(680)
+    m = []
+    for _ in range(40):
+        views = [noisy_view(P, X, rng, 1.0) for P in PS]
+        views = [View(v.xy, v.sigma, v.P, None) for v in views]
+        f = fit_circle_3d(views, CIRCLE["center"], CIRCLE["normal"], 6.0)
+        e = f.center - CIRCLE["center"]
+        m.append(e @ np.linalg.solve(f.covariance, e))
+    assert np.sqrt(np.mean(m) / 3) > 1.4
+
+
+def test_line_covariance_is_honest_and_depth_is_worst():
+    rng = np.random.default_rng(11)
+    p, d = np.array([-10.0, 5, 395]), np.array([0.8, 0.5, 0.3]) / np.linalg.norm([0.8, 0.5, 0.3])
+    X = p + np.linspace(-20, 20, 800)[:, None] * d
+    m = []
+    for _ in range(120):
+        f = fit_line_3d([noisy_view(P, X, rng) for P in PS], p + [0.2, -0.1, 0.5], d + [0.01, 0, -0.02])
+        e = f.point - p
+        e = e - (e @ f.direction) * f.direction
+        m.append(e @ np.linalg.pinv(f.covariance, rcond=1e-9) @ e)
+    m = np.array(m)
+    assert 0.88 <= np.mean(m < chi2.ppf(0.95, 2)) <= 0.99
+    assert 0.8 <= np.sqrt(m.mean() / 2) <= 1.25
+    assert abs(f.covariance @ f.direction).max() < 1e-12  # the gauge: no uncertainty along the line
+    sd = np.sqrt(np.diag(f.covariance))
+    assert sd[2] > 2 * max(sd[0], sd[1])
