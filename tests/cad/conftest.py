@@ -1,0 +1,89 @@
+"""Fixtures of tests/cad: the sample parts and the NIST STEP files, loaded once."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = REPO.parent / "shared" / "data"
+STEP_DIR = DATA / "step"
+EXAMPLES = REPO / "examples"
+
+# Files whose load + inventory takes over a second or two each (measured on
+# the 2-core CI machine): tested in their own slow parametrisations.
+BIG_NIST = {"nist_ctc_02_asme1_ap242-e2.stp", "nist_ctc_04_asme1_ap242-e1.stp", "nist_ftc_10_asme1_ap242-e2.stp"}
+
+
+def nist_files():
+    """pytest params over every NIST STEP file; the big ones marked slow."""
+    if not STEP_DIR.is_dir():
+        return [pytest.param(None, marks=pytest.mark.skip(reason=f"shared test data not found at {DATA}"))]
+    return [
+        pytest.param(p.name, id=p.stem, marks=[pytest.mark.slow] if p.name in BIG_NIST else [])
+        for p in sorted(STEP_DIR.glob("*.stp"))
+    ]
+
+
+def load_example_module(name):
+    """examples/<name>/make_part.py as a module (its parameters and build())."""
+    path = EXAMPLES / name / "make_part.py"
+    spec = importlib.util.spec_from_file_location(f"make_part_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class _Cache:
+    """Load each STEP file (and make its inventory) at most once per session."""
+
+    def __init__(self):
+        self.shapes, self.inventories = {}, {}
+
+    def shape(self, path):
+        from partinspect.cad.step import load_step
+
+        path = Path(path)
+        if path not in self.shapes:
+            self.shapes[path] = load_step(path)
+        return self.shapes[path]
+
+    def inventory(self, path):
+        from partinspect.cad.features import inventory
+
+        path = Path(path)
+        if path not in self.inventories:
+            self.inventories[path] = inventory(self.shape(path))
+        return self.inventories[path]
+
+
+@pytest.fixture(scope="session")
+def cad_cache():
+    return _Cache()
+
+
+@pytest.fixture(scope="session")
+def step_dir():
+    if not STEP_DIR.is_dir():
+        pytest.skip(f"shared test data not found at {DATA} (expected ../shared/data beside the repository)")
+    return STEP_DIR
+
+
+@pytest.fixture(scope="session")
+def plate_module():
+    return load_example_module("plate")
+
+
+@pytest.fixture(scope="session")
+def bracket_module():
+    return load_example_module("bracket")
+
+
+@pytest.fixture(scope="session")
+def plate_path():
+    return EXAMPLES / "plate" / "part.step"
+
+
+@pytest.fixture(scope="session")
+def bracket_path():
+    return EXAMPLES / "bracket" / "part.step"
