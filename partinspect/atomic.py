@@ -36,6 +36,28 @@ def write_text_atomic(path, text):
     return write_bytes_atomic(path, text.encode("utf-8"))
 
 
+def check_output_dir(path):
+    """Check, without creating anything, that ``path`` can become the output folder.
+
+    Raises
+    ------
+    InputError
+        When it is not a folder, or neither it nor its nearest existing
+        parent is writable.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(path, "output path exists and is not a folder")
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(path, f"cannot create the output folder: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(path, f"output folder is not writable ({existing} refuses writes)")
+    return path
+
+
 def prepare_output_dir(path):
     """Create the output folder if needed and check it is writable.
 

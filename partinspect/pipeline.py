@@ -14,7 +14,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from partinspect.atomic import prepare_output_dir
+from partinspect.atomic import check_output_dir, prepare_output_dir
 from partinspect.errors import InputError
 from partinspect.progress import quiet
 
@@ -129,7 +129,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     part = _check_part_path(part)
     images = Path(images)
     tol_path = find_tolerances(part, tolerances)
-    out_dir = prepare_output_dir(out)
+    check_output_dir(out)
 
     progress("reading calibration and images")
     calib = read_calibration(images)
@@ -198,6 +198,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         },
     }
     progress("writing reports")
+    out_dir = prepare_output_dir(out)
     write_reports(out_dir, report)
     return InspectionResult(verdict, report, out_dir)
 
