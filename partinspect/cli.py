@@ -19,7 +19,7 @@ from partinspect.errors import InputError
 
 EXIT_PASS, EXIT_FAIL, EXIT_ERROR, EXIT_INCONCLUSIVE = 0, 1, 2, 3
 
-SUBCOMMANDS = ("features", "render")
+SUBCOMMANDS = ("features", "render", "calibrate")
 
 MAIN_DESCRIPTION = """\
 Inspect a machined part against its STEP model from one calibrated stereo
@@ -33,6 +33,9 @@ part.step), else ISO 2768-mK general tolerances.
 other commands:
   inspect features PART.step [--json]     list the CAD features and their ids
   inspect render PART.step OUT_DIR [...]  render a synthetic stereo pair with exact ground truth
+  inspect calibrate PAIRS_DIR -o calibration.yaml --board 9x6 --square 25
+                                          calibrate the stereo rig from board image pairs,
+                                          with the parameters' standard uncertainties
   (inspect COMMAND --help for each)
 
 exit codes: 0 pass, 1 fail, 3 inconclusive, 2 the run could not be made."""
@@ -48,7 +51,7 @@ class _Parser(argparse.ArgumentParser):
 def _main_parser():
     p = _Parser(
         prog="inspect",
-        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render} ...",
+        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render,calibrate} ...",
         description=MAIN_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -101,6 +104,92 @@ def _render_parser():
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
+
+
+def _calibrate_parser():
+    p = _Parser(
+        prog="inspect calibrate",
+        description=(
+            "Calibrate the stereo rig from image pairs of a calibration board: writes calibration.yaml "
+            "(with the standard uncertainty of every parameter) and calibration.html beside it. "
+            "PAIRS_DIR holds left*/right* images with matching names (left01.jpg, right01.jpg) "
+            "or left/ and right/ subfolders."
+        ),
+    )
+    p.add_argument("pairs", metavar="PAIRS_DIR")
+    p.add_argument("-o", "--output", metavar="FILE", default="calibration.yaml", help="calibration file to write (default: ./calibration.yaml)")
+    p.add_argument("--board", metavar="COLSxROWS", help="chessboard inner corners, e.g. 9x6")
+    p.add_argument("--square", metavar="MM", type=float, required=True, help="square side in mm (T comes out in mm)")
+    p.add_argument("--charuco", metavar="SQUARES_XxY", help="a ChArUco board of this many squares, e.g. 11x8 (instead of --board)")
+    p.add_argument("--marker", metavar="MM", type=float, help="ChArUco marker side in mm")
+    p.add_argument("--dictionary", metavar="DICT", default="DICT_5X5_100", help="ChArUco dictionary (default DICT_5X5_100)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no summary")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _parse_grid(option, text, minimum):
+    try:
+        a, b = (int(v) for v in text.lower().split("x"))
+        if a < minimum or b < minimum:
+            raise ValueError
+    except ValueError:
+        raise InputError(None, f"{option}: expected COLSxROWS (each at least {minimum}), got {text!r}") from None
+    return a, b
+
+
+def _calibration_board(args):
+    if not args.square > 0:
+        raise InputError(None, f"--square must be a positive length in mm, got {args.square}")
+    if args.charuco:
+        cols, rows = _parse_grid("--charuco", args.charuco, 3)
+        if args.marker is None or not 0 < args.marker < args.square:
+            raise InputError(None, "--charuco needs --marker MM, smaller than --square")
+        import cv2
+
+        if not args.dictionary.startswith("DICT_") or not hasattr(cv2.aruco, args.dictionary):
+            raise InputError(None, f"--dictionary: unknown ArUco dictionary {args.dictionary!r} (e.g. DICT_5X5_100)")
+        from partinspect.vision.stereo_calibration import Board
+
+        return Board("charuco", cols, rows, args.square, args.marker, args.dictionary)
+    if not args.board:
+        raise InputError(None, "give the board: --board COLSxROWS (chessboard inner corners) or --charuco SQUARES_XxY")
+    cols, rows = _parse_grid("--board", args.board, 2)
+    from partinspect.vision.stereo_calibration import Board
+
+    return Board("chessboard", cols, rows, args.square)
+
+
+def _run_calibrate(args):
+    from pathlib import Path
+
+    out = Path(args.output)
+    if out.is_dir():
+        raise InputError(out, "is a folder; -o names the calibration file to write, e.g. calibration.yaml")
+    if not out.parent.is_dir():
+        raise InputError(out, f"output folder {out.parent} does not exist")
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise InputError(out, f"output folder {out.parent} is not writable")
+    board = _calibration_board(args)
+
+    from partinspect.reports.calibration_report import write_calibration_report
+    from partinspect.vision.calibration import write_calibration
+    from partinspect.vision.stereo_calibration import calibrate_stereo
+
+    result = calibrate_stereo(args.pairs, board, progress=_progress(args.quiet))
+    html = out.with_name(out.stem + ".html")
+    write_calibration(out, result.calibration)
+    write_calibration_report(html, result, folder=args.pairs, calibration_file=out)
+    if not args.quiet:
+        for v in result.rejected:
+            print(f"rejected pair {v.name}: {v.rejected}")
+        print(
+            f"calibrated from {len(result.used)} of {len(result.views)} image pairs ({len(result.rejected)} rejected): "
+            f"RMS reprojection error {result.rms:.3f} px, mean epipolar error {result.epipolar_error:.3f} px, "
+            f"baseline {result.calibration.baseline:.2f} mm"
+        )
+        print(f"wrote {out} and {html}")
+    return EXIT_PASS
 
 
 def _progress(quiet):
@@ -173,8 +262,8 @@ def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in SUBCOMMANDS:
         command, rest = argv[0], argv[1:]
-        parser = {"features": _features_parser, "render": _render_parser}[command]()
-        run = {"features": _run_features, "render": _run_render}[command]
+        parser = {"features": _features_parser, "render": _render_parser, "calibrate": _calibrate_parser}[command]()
+        run = {"features": _run_features, "render": _run_render, "calibrate": _run_calibrate}[command]
     else:
         parser, rest, run = _main_parser(), argv, _run_inspect
     args = parser.parse_args(rest)

@@ -558,6 +558,7 @@ def write_calibration(path, calib):
             if name in calib.std:
                 fs.write(key, np.asarray(calib.std[name], dtype=np.float64).reshape(1, -1))
         fs.release()
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; a calibration is meant to be shared
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
