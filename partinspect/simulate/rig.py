@@ -1,0 +1,180 @@
+"""A realistic industrial stereo rig: two 5 MP machine-vision cameras.
+
+The numbers describe a common inspection set-up: 2/3" sensors of 2448 x 2048
+pixels at 3.45 um pitch behind 25 mm lenses, 120 mm apart, converging on a
+point 400 mm in front of the baseline. One pixel then covers about 0.055 mm
+on the part, and the field of view is about 137 x 114 mm.
+
+The two cameras are deliberately not identical (focal lengths differ by
+0.1 %, principal points sit a few pixels off the centre in different
+directions, the right camera is rolled by 0.2 degrees): code that silently
+assumes an ideal rig fails on these images, as it would on a real one.
+
+Frames follow DESIGN.md: OpenCV camera frames, the left camera is the rig
+frame, ``X_right = R @ X_left + T`` in mm.
+"""
+
+import numpy as np
+
+from partinspect.vision.calibration import StereoCalibration
+
+__all__ = [
+    "FULL_SIZE",
+    "PIXEL_PITCH",
+    "FOCAL_LENGTH",
+    "BASELINE",
+    "WORKING_DISTANCE",
+    "default_rig",
+    "fixation_point",
+]
+
+FULL_SIZE = (2448, 2048)
+"""Sensor size in pixels (width, height) the rig numbers refer to."""
+PIXEL_PITCH = 3.45e-3
+"""Pixel pitch, mm."""
+FOCAL_LENGTH = 25.0
+"""Lens focal length, mm."""
+BASELINE = 120.0
+"""Distance between the projection centres, mm."""
+WORKING_DISTANCE = 400.0
+"""Distance from the baseline's midpoint to the fixation point, mm."""
+
+# Per-camera departures from the ideal, at FULL_SIZE. Focal lengths in units
+# of FOCAL_LENGTH / PIXEL_PITCH; principal-point offsets in pixels from the
+# sensor centre (a few pixels is typical of lens mounting).
+_FOCAL_SCALE = (1.0, 1.0011)
+_PP_OFFSET = ((9.7, -6.3), (-12.4, 4.8))
+# Small mounting error of the right camera (roll, pitch about its own axes),
+# radians: real rigs are never perfectly aligned.
+_RIGHT_ROLL = np.deg2rad(0.2)
+_RIGHT_PITCH = np.deg2rad(0.03)
+# OpenCV (k1, k2, p1, p2, k3): a modest barrel distortion of a 25 mm C-mount
+# lens, about 4 px at the image corners, with a small decentring (tangential)
+# part, different for the two lenses.
+_DISTORTION = (
+    (-0.062, 0.135, 2.1e-4, -1.7e-4, -0.41),
+    (-0.055, 0.110, -1.3e-4, 2.4e-4, -0.30),
+)
+
+
+def _rot_x(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _look_at(center, target):
+    """World-to-camera rotation of an OpenCV camera at ``center`` looking at ``target``.
+
+    The camera's y axis (image down) is kept in the plane spanned by the world
+    y axis and the viewing direction, so the image is not rolled.
+    """
+    z = np.asarray(target, float) - np.asarray(center, float)
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def _camera_matrix(index, image_size):
+    w, h = image_size
+    # Scale continuous image coordinates (origin at the top-left corner of the
+    # top-left pixel, i.e. OpenCV's u + 0.5) so the field of view is kept.
+    sx, sy = w / FULL_SIZE[0], h / FULL_SIZE[1]
+    f = FOCAL_LENGTH / PIXEL_PITCH * _FOCAL_SCALE[index] * sx
+    du, dv = _PP_OFFSET[index]
+    cx = (FULL_SIZE[0] / 2 + du) * sx - 0.5
+    cy = (FULL_SIZE[1] / 2 + dv) * sy - 0.5
+    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+
+def default_rig(image_size=FULL_SIZE, distortion=False):
+    """The default stereo calibration of the simulator.
+
+    Parameters
+    ----------
+    image_size : tuple of int
+        ``(width, height)`` in pixels. Sizes other than 2448 x 2048 keep the
+        field of view: focal lengths and principal points are scaled by
+        ``width / 2448`` (and ``height / 2048`` for the vertical principal
+        point), as if the sensor were binned.
+    distortion : bool
+        False: zero distortion vectors. True: realistic radial
+        ``(k1, k2, k3)`` and small tangential ``(p1, p2)`` distortion,
+        different for the two lenses, about 4 px at the corners of a full
+        2448 x 2048 image.
+
+    Returns
+    -------
+    StereoCalibration
+        Exact parameters (``std`` is empty: a simulated rig is known
+        exactly). The cameras sit at ``(-60, 0, 0)`` and ``(60, 0, 0)`` of a
+        frame centred on the baseline and both optical axes pass through
+        ``(0, 0, 400)`` there (the right one to within its 0.03 degree pitch
+        error); everything is expressed in the left camera frame.
+
+    Examples
+    --------
+    >>> rig = default_rig()
+    >>> round(rig.K1[0, 0], 1), round(rig.baseline, 3)
+    (7246.4, 120.0)
+    """
+    w, h = (int(v) for v in image_size)
+    if w <= 0 or h <= 0:
+        raise ValueError(f"image size must be positive, got {w}x{h}")
+    half = BASELINE / 2
+    fix = np.array([0.0, 0.0, WORKING_DISTANCE])
+    c_left, c_right = np.array([-half, 0.0, 0.0]), np.array([half, 0.0, 0.0])
+    r_left = _look_at(c_left, fix)
+    r_right = _rot_x(_RIGHT_PITCH) @ _rot_z(_RIGHT_ROLL) @ _look_at(c_right, fix)
+    # X_w -> X_left: r_left (X_w - c_left); X_right = r_right (X_w - c_right)
+    R = r_right @ r_left.T
+    T = r_right @ (c_left - c_right)
+    zero = np.zeros(5)
+    D1, D2 = (np.array(d, float) for d in _DISTORTION) if distortion else (zero, zero.copy())
+    return StereoCalibration(
+        image_size=(w, h),
+        K1=_camera_matrix(0, (w, h)),
+        D1=D1,
+        K2=_camera_matrix(1, (w, h)),
+        D2=D2,
+        R=R,
+        T=T,
+        std={},
+    )
+
+
+def fixation_point(rig):
+    """The point the two optical axes converge on, in the rig (left camera) frame.
+
+    Parameters
+    ----------
+    rig : StereoCalibration
+
+    Returns
+    -------
+    point : ndarray, shape (3,)
+        Midpoint of the shortest segment between the two optical axes, mm.
+
+    Raises
+    ------
+    ValueError
+        If the optical axes are parallel (a rig that does not converge).
+    """
+    c1, a1 = np.zeros(3), np.array([0.0, 0.0, 1.0])
+    R, T = np.asarray(rig.R, float), np.asarray(rig.T, float)
+    c2, a2 = -R.T @ T, R.T @ a1
+    # Closest points c1 + s a1 and c2 + t a2 of two skew lines.
+    b = a1 @ a2
+    d = c1 - c2
+    denom = 1.0 - b * b
+    if denom < 1e-12:
+        raise ValueError("the optical axes are parallel: the rig has no fixation point")
+    s = (b * (a2 @ d) - (a1 @ d)) / denom
+    t = ((a2 @ d) - b * (a1 @ d)) / denom
+    return 0.5 * ((c1 + s * a1) + (c2 + t * a2))
