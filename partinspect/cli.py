@@ -195,17 +195,35 @@ def _run_calibrate(args):
 def _progress(quiet):
     from partinspect.progress import Progress
 
-    return Progress(enabled=False if quiet else None)
+    # PARTINSPECT_PROGRESS=1 (or 0) overrides the terminal test: a wrapper
+    # reading stderr through a pipe can still follow the stages.
+    forced = {"1": True, "0": False}.get(os.environ.get("PARTINSPECT_PROGRESS", ""))
+    return Progress(enabled=False if quiet else forced)
+
+
+def _silence_stdout():
+    # The reader of stdout is gone: point fd 1 at /dev/null so the final
+    # flush at exit does not print "Exception ignored ... BrokenPipeError".
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 def _run_inspect(args):
     from partinspect.pipeline import run_inspection
 
+    if not args.output:
+        raise InputError(None, "-o: the output folder name is empty")
     result = run_inspection(
         args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet)
     )
     if not args.quiet:
-        print(result.summary_line())
+        try:
+            print(result.summary_line(), flush=True)
+        except BrokenPipeError:
+            # `inspect ... | head -0`: the reports are written and the verdict
+            # stands; a closed pipe must not turn a fail into exit code 0.
+            _silence_stdout()
     return result.exit_code
 
 
@@ -276,6 +294,7 @@ def main(argv=None):
         print("inspect: interrupted; earlier outputs are left as they were", file=sys.stderr)
         return 130
     except BrokenPipeError:
+        _silence_stdout()
         return EXIT_PASS
     except Exception as exc:  # an internal error: still one line, never a half-written report
         if args.debug or os.environ.get("PARTINSPECT_DEBUG"):

@@ -128,6 +128,8 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     # Cheap checks first, so a typo fails before seconds of CAD loading.
     part = _check_part_path(part)
     images = Path(images)
+    if not images.is_dir():  # else read_calibration would take it for a calibration file
+        raise InputError(images, "images folder not found" if not images.exists() else "not a folder (IMAGES_DIR holds left.png, right.png, calibration.yaml)")
     tol_path = find_tolerances(part, tolerances)
     check_output_dir(out)
 
@@ -144,6 +146,8 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     from partinspect.cad.step import load_step
 
     inv = inventory(load_step(part))
+    if not inv.features:
+        raise InputError(part, f"no line or circle edges to measure ({_edges_found(inv)})")
 
     characteristics = []
     spec_info = {"file": None, "general": "ISO2768-mK", "decision_rule": "iso14253"}
@@ -201,6 +205,15 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     out_dir = prepare_output_dir(out)
     write_reports(out_dir, report)
     return InspectionResult(verdict, report, out_dir)
+
+
+def _edges_found(inv):
+    """What a model without features has instead, e.g. "its edges: 1 seam (circle)"."""
+    parts = [f"{n} {kind}" for kind, n in inv.skipped_edges.items()]
+    parts += [f"{n} seam ({kind})" for kind, n in inv.seam_edges.items()]
+    if inv.degenerated_edges:
+        parts.append(f"{inv.degenerated_edges} degenerated")
+    return "its edges: " + ", ".join(parts) if parts else "it has no edges"
 
 
 def decide_verdict(decisions, any_unmeasured=False):

@@ -80,3 +80,41 @@ def test_render_rejects_bad_size(tmp_path, capsys):
     code = main(["render", "part.step", str(tmp_path), "--size", "big"])
     assert code == 2
     assert "--size: expected WIDTHxHEIGHT" in capsys.readouterr().err
+
+
+def test_features_table_and_json(repo, capsys):
+    import json
+
+    step = repo / "examples" / "plate" / "part.step"
+    assert main(["features", str(step)]) == 0
+    table = capsys.readouterr().out
+    assert table.splitlines()[0].split() == ["id", "kind", "geometry", "(part", "frame,", "mm)", "length", "faces"]
+    assert table.rstrip().endswith("10 circles, 21 lines")
+    assert main(["features", str(step), "--json"]) == 0
+    inv = json.loads(capsys.readouterr().out)
+    radii = sorted(f["radius"] for f in inv["features"] if f["kind"] == "circle")
+    assert radii == [2, 2, 3, 3, 4, 4, 5, 5, 6, 6]
+
+
+def test_render_then_inspect_an_unseen_step_file(tmp_path, shared_data, capsys):
+    """The issue's 'done when': render and inspect a real STEP file the project never saw."""
+    import json
+
+    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+    out = tmp_path / "render"
+    assert main(["render", str(step), str(out), "--size", "612x512", "--noise", "1", "--seed", "4", "-q"]) == 0
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["calibration.yaml", "left.png", "right.png"]
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["image_size"] == [612, 512] or truth.get("images", {}).get("width") == 612
+    code = main([str(step), str(out / "images"), "-o", str(tmp_path / "inspection"), "-q"])
+    assert code == 3  # nothing is measured yet, so nothing passes
+    report = json.loads((tmp_path / "inspection" / "report.json").read_text())
+    assert len(report["features"]) == len(truth["features"])
+
+
+def test_render_bad_deviation_is_one_line(repo, tmp_path, capsys):
+    step = repo / "examples" / "plate" / "part.step"
+    code = main(["render", str(step), str(tmp_path / "r"), "--size", "64x64", "--deviate", "circle-99.diameter=0.1"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "circle-99" in err
+    assert not (tmp_path / "r").exists()

@@ -25,6 +25,11 @@ _END = b"END-ISO-10303-21;"
 _HEAD_BYTES = 4096
 _TAIL_BYTES = 4096
 
+# OCCT holds a whole STEP model in memory, several times the file's size;
+# a machined part is a few MB, even a detailed assembly rarely 100 MB. Past
+# this a file is refused before it is read, not after minutes of swapping.
+MAX_STEP_BYTES = 500 * 2**20
+
 # Fixed so that saving the same shape twice gives the same bytes.
 _TIMESTAMP = "2000-01-01T00:00:00"
 
@@ -157,6 +162,10 @@ def _check_file(path):
         raise InputError(path, "is a directory, not a STEP file")
     try:
         size = path.stat().st_size
+        if size > MAX_STEP_BYTES:
+            raise InputError(
+                path, f"STEP file is too large ({size / 2**20:.0f} MB; the limit is {MAX_STEP_BYTES // 2**20} MB)"
+            )
         with open(path, "rb") as f:
             head = f.read(_HEAD_BYTES)
             f.seek(max(0, size - _TAIL_BYTES))

@@ -2,7 +2,7 @@
 
 import json
 
-from partinspect.atomic import write_text_atomic
+from partinspect.atomic import write_files_atomic
 
 REPORT_FILES = ("report.json", "junit.xml", "report.html")
 
@@ -16,12 +16,12 @@ def write_reports(out_dir, report):
     """Render all three outputs first, then write each atomically.
 
     Rendering everything before writing anything means a failure in one
-    renderer leaves the previous reports untouched.
+    renderer leaves the previous reports untouched; the three files are
+    then replaced together (`partinspect.atomic.write_files_atomic`).
     """
     from partinspect.reports.html import render_html
     from partinspect.reports.junit import junit_xml
 
     texts = {"report.json": report_json(report), "junit.xml": junit_xml(report), "report.html": render_html(report)}
-    for name in REPORT_FILES:
-        write_text_atomic(out_dir / name, texts[name])
-    return [out_dir / name for name in REPORT_FILES]
+    # Replaced together: an interrupt never leaves a report.json of this run beside a report.html of the last.
+    return write_files_atomic({out_dir / name: texts[name].encode("utf-8") for name in REPORT_FILES})

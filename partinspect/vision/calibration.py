@@ -442,7 +442,13 @@ def _read_node(fs, path, name, required=True):
         return None
     if node.isInt() or node.isReal():
         return node.real()
-    mat = node.mat()
+    import cv2
+
+    try:
+        mat = node.mat()
+    except (cv2.error, SystemError):
+        # e.g. text among a matrix's numbers: OpenCV's message is a C++ trace.
+        mat = None
     if mat is None:
         _fail(path, f"entry {name!r} is not a number or an OpenCV matrix")
     return mat
