@@ -1,0 +1,239 @@
+"""Point correspondences along matched features, triangulated with 3x3 covariances.
+
+Each left edge point's epipolar line is intersected with the *fitted* right
+curve (line or ellipse), which gives its partner in the right image without
+any search; the pair satisfies the epipolar constraint exactly, so the
+optimal triangulation is the intersection of the two rays. The covariance
+of each 3D point is the first-order propagation (JCGM 100, 5.1) of
+
+- the left point's 2x2 covariance (through the epipolar line into the
+  right partner, and through the left ray), and
+- the right curve's fit covariance (through the partner),
+
+which are the paper's error ellipsoids (its figures 5-7): their long axis
+is the depth, as it observes. The right curve's error is common to all the
+points of one feature, so the points' errors are correlated; the per-point
+3x3 matrices are their marginals. These points initialise the 3D fits of
+:mod:`partinspect.vision.fit3d` and feed the report's figures; the 3D
+features themselves are fitted to the edge points of both images directly.
+
+Everything is vectorised over the points; coordinates are ideal pixels,
+3D points in the rig frame (mm).
+
+References
+----------
+.. [1] Hartley, R., & Zisserman, A. (2004). Multiple View Geometry in
+       Computer Vision, 2nd ed., sections 9.2 (epipolar lines), 12.5
+       (optimal triangulation) and 5.2 (propagation of covariance).
+.. [2] Lindstrom, P. (2010). Triangulation made easy. CVPR 2010.
+.. [3] Quan, L. (1996). Conic reconstruction and correspondence from two
+       views. IEEE PAMI 18(2), 151-160.
+.. [4] JCGM 100:2008, Guide to the expression of uncertainty in
+       measurement, section 5.1.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from partinspect.vision.fitting import _ellipse_geometry
+from partinspect.vision.triangulation import triangulate
+
+__all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred"]
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Corresponding points of one matched feature.
+
+    Attributes
+    ----------
+    left_index : ndarray, shape (N,)
+        Indices into the left feature's points of the points used.
+    left, right : ndarray, shape (N, 2)
+        Corresponding ideal pixel coordinates (the right ones on the right
+        fitted curve).
+    points : ndarray, shape (N, 3)
+        Triangulated points, rig frame, mm.
+    cov : ndarray, shape (N, 3, 3)
+        Their first-order covariances, mm^2 (marginals; see the module notes).
+    dropped : int
+        Left points without a usable partner: their epipolar line misses the
+        right curve or crosses it at less than ``min_angle``.
+    """
+
+    left_index: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    points: np.ndarray
+    cov: np.ndarray
+    dropped: int
+
+    def __len__(self):
+        return len(self.points)
+
+
+def deblurred(xy, fit, blur):
+    """Edge points of an arc moved back by the smoothing bias ``blur^2 kappa / 2``.
+
+    Gaussian smoothing moves points on a curve towards its centre of
+    curvature; the ellipse fit removes that bias from its parameters, and
+    the same correction is applied here to points that go on to other fits.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        Points, px (ideal).
+    fit : EllipseFit
+        Fit to those points.
+    blur : float
+        Width of the edge profile, px.
+
+    Returns
+    -------
+    ndarray, shape (N, 2)
+    """
+    xc, yc, a, b, th = fit.params
+    phi = fit.phases
+    _, n, _ = _ellipse_geometry(xy, fit.params, phi)
+    sp, cp = np.sin(phi), np.cos(phi)
+    kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
+    return xy + (0.5 * blur * blur * kappa)[:, None] * n
+
+
+def intersect_line(lines, params):
+    """Intersections of lines (N, 3) with one line ``A x + B y + C = 0``.
+
+    Returns
+    -------
+    points : ndarray, shape (N, 2)
+    sin_angle : ndarray, shape (N,)
+        Sine of the angle between each line and the fixed one.
+    """
+    h = np.cross(lines, np.asarray(params, float))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pts = h[:, :2] / h[:, 2:]
+    ln = lines[:, :2] / np.hypot(lines[:, 0], lines[:, 1])[:, None]
+    nn = np.asarray(params[:2], float) / np.hypot(params[0], params[1])
+    return pts, np.abs(ln[:, 0] * nn[1] - ln[:, 1] * nn[0])
+
+
+def intersect_ellipse(lines, params):
+    """Both intersections of lines (N, 3) with the ellipse (xc, yc, a, b, theta).
+
+    Returns
+    -------
+    s : ndarray, shape (N, 2)
+        Positions of the two intersections along each line, px, from the
+        foot of the perpendicular from the centre, in the sense of the
+        line's direction ``(l1, -l0)``; NaN where the line misses.
+    foot, direction : ndarray, shape (N, 2)
+        The foot point and the unit direction of each line, so the points
+        are ``foot + s[:, k, None] * direction``.
+    """
+    xc, yc, a, b, th = params
+    ln = lines / np.hypot(lines[:, 0], lines[:, 1])[:, None]
+    d = np.c_[ln[:, 1], -ln[:, 0]]
+    c = np.array([xc, yc])
+    foot = c - (ln[:, :2] @ c + ln[:, 2])[:, None] * ln[:, :2]
+    ct, st = np.cos(th), np.sin(th)
+    # Into the ellipse frame: u = Q^T (p - c).
+    u0 = np.c_[(foot - c) @ np.array([ct, st]), (foot - c) @ np.array([-st, ct])]
+    du = np.c_[d @ np.array([ct, st]), d @ np.array([-st, ct])]
+    w = np.array([1.0 / (a * a), 1.0 / (b * b)])
+    A = (du * du) @ w
+    B = (du * u0) @ w
+    C = (u0 * u0) @ w - 1.0
+    disc = B * B - A * C
+    with np.errstate(invalid="ignore"):
+        r = np.sqrt(disc)
+    s = np.c_[(-B - r) / A, (-B + r) / A]
+    s[disc < 0] = np.nan
+    return s, foot, d
+
+
+def _ellipse_normal_sin(points, direction, params):
+    """|sin| of the angle between a direction and the ellipse's tangent at points on it."""
+    xc, yc, a, b, th = params
+    ct, st = np.cos(th), np.sin(th)
+    q = points - np.array([xc, yc])
+    u = np.c_[q @ np.array([ct, st]), q @ np.array([-st, ct])]
+    g = u / np.array([a * a, b * b])  # gradient of the implicit form, ellipse frame
+    g = np.c_[g[:, 0] * ct - g[:, 1] * st, g[:, 0] * st + g[:, 1] * ct]
+    g /= np.linalg.norm(g, axis=1)[:, None]
+    return np.abs(np.einsum("ni,ni->n", g, direction))
+
+
+def _partners(geo, kind, x, right_params, left_params, rank=None):
+    """Right partners of left points x on the right curve; also the rank used for ellipses."""
+    lines_r = geo.right_lines(x)
+    if kind == "line":
+        y, sin_a = intersect_line(lines_r, right_params)
+        return y, sin_a, None
+    if rank is None:
+        # Which of the two crossings of its epipolar line x is, in the sense
+        # shared by both images (ordering along epipolar lines is kept).
+        s_l, foot_l, d_l = intersect_ellipse(geo.left_lines(x), left_params)
+        t = np.einsum("ni,ni->n", x - foot_l, d_l)
+        rank = np.where(np.abs(t - s_l[:, 0]) < np.abs(t - s_l[:, 1]), 0, 1)
+        rank = np.where(np.isnan(s_l).any(axis=1), np.where(t < 0, 0, 1), rank)
+    s_r, foot_r, d_r = intersect_ellipse(lines_r, right_params)
+    s = np.take_along_axis(s_r, rank[:, None], axis=1)[:, 0]
+    y = foot_r + s[:, None] * d_r
+    return y, _ellipse_normal_sin(y, d_r, right_params), rank
+
+
+def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4):
+    """Triangulated correspondences along a matched pair of image features.
+
+    Parameters
+    ----------
+    left, right : ImageFeature
+        A matched pair (:func:`partinspect.vision.matching.match_features`).
+    geo : EpipolarGeometry
+    min_angle : float
+        Points whose epipolar line crosses the right curve at less than
+        this angle, rad, are dropped (their partner is ill-determined).
+    step : float
+        Relative step of the numerical Jacobians.
+
+    Returns
+    -------
+    Correspondences
+    """
+    kind = left.kind
+    x = left.ideal.xy
+    pr = np.asarray(right.fit.params, float)
+    pl = np.asarray(left.fit.params, float)
+    y, sin_a, rank = _partners(geo, kind, x, pr, pl)
+    keep = np.isfinite(y).all(axis=1) & (sin_a >= np.sin(min_angle))
+    idx = np.flatnonzero(keep)
+    x, y = x[idx], y[idx]
+    if rank is not None:
+        rank = rank[idx]
+    K1, K2, R, T = geo.K1, geo.K2, geo.R, geo.T
+    X = triangulate(x, y, K1, K2, R, T)
+
+    def X_of(xp, pp):
+        yp, _, _ = _partners(geo, kind, xp, pp, pl, rank)
+        return triangulate(xp, yp, K1, K2, R, T)
+
+    # Central-difference Jacobians, vectorised over the points.
+    n = len(idx)
+    Jx = np.empty((n, 3, 2))
+    for k in range(2):
+        h = np.zeros(2)
+        h[k] = step * 10.0  # px
+        Jx[:, :, k] = (X_of(x + h, pr) - X_of(x - h, pr)) / (2 * h[k])
+    Jp = np.empty((n, 3, len(pr)))
+    for k in range(len(pr)):
+        h = np.zeros(len(pr))
+        h[k] = step * max(1.0, abs(pr[k])) if kind == "arc" else step
+        Jp[:, :, k] = (X_of(x, pr + h) - X_of(x, pr - h)) / (2 * h[k])
+    cov_p = np.asarray(right.fit.cov, float)
+    # A near-circle's axis angle is free (infinite variance, zero effect).
+    cov_p = np.where(np.isfinite(cov_p), cov_p, 0.0)
+    cov_x = left.ideal.cov[idx]
+    cov = np.einsum("nij,njk,nlk->nil", Jx, cov_x, Jx) + np.einsum("nij,jk,nlk->nil", Jp, cov_p, Jp)
+    cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+    return Correspondences(idx, x, y, X, cov, int(len(keep) - n))

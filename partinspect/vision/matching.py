@@ -1,0 +1,724 @@
+"""Matching of left and right image features by the epipolar constraint.
+
+Each image's segments (straight lines and elliptical arcs) are first merged
+where several pieces are one edge (collinear lines, co-elliptic arcs: the
+same physical edge interrupted by an occlusion, a specular spot or a corner
+of the segmentation) and refitted in *ideal* pixel coordinates. Left and
+right features are then paired:
+
+- every feature spans a range of epipolar lines, its *band* (a 1-D
+  interval: the signed offset, in ideal left-image pixels at the image
+  centre, of the epipolar line through each of its points); two images of
+  one edge span the same band up to their ends' trimming, so candidates
+  must overlap [2]_;
+- their shapes must agree: the same kind; the same polarity (the grey level
+  rises in the same sense along the epipolar lines, or for arcs on the same
+  side of the ellipse); for arcs, the same 3D radius once each ellipse's
+  size is scaled by its depth (centres triangulated); for lines, similar
+  angles to the epipolar lines and a triangulated middle in front of both
+  cameras;
+- a one-to-one assignment (Hungarian algorithm) minimises the summed cost,
+  with a rejection threshold for pairs too poor to keep.
+
+Nothing is dropped silently: every feature left without a partner is
+returned with its reason. A line nearly parallel to the epipolar lines is
+*degenerate* (its position along them, hence its depth, is undetermined)
+and is reported with its angle rather than matched.
+
+All coordinates are ideal pixels (distortion removed, see
+:mod:`partinspect.vision.ideal`); 3D points are in the rig (left camera)
+frame, mm.
+
+References
+----------
+.. [1] Hartley, R., & Zisserman, A. (2004). Multiple View Geometry in
+       Computer Vision, 2nd ed., chapter 9 (epipolar geometry, the
+       fundamental matrix) and 12 (triangulation).
+.. [2] Paper of this project, reference 2 and section 4: feature matching by
+       epipolar constraint matrices.
+.. [3] Kuhn, H. W. (1955). The Hungarian method for the assignment problem.
+       Naval Research Logistics Quarterly 2, 83-97 (scipy's
+       ``linear_sum_assignment``).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from partinspect.vision.fitting import fit_ellipse, fit_line
+from partinspect.vision.ideal import IdealPoints, ideal_points
+from partinspect.vision.triangulation import fundamental_matrix, triangulate
+
+__all__ = [
+    "EpipolarGeometry",
+    "ImageFeature",
+    "Match",
+    "Unmatched",
+    "Matching",
+    "epipolar_geometry",
+    "image_features",
+    "match_features",
+    "REASONS",
+]
+
+REASONS = {
+    "too_short": "too few edge points to be measured",
+    "degenerate": "line nearly parallel to the epipolar lines: its position along them is undetermined",
+    "no_candidate": "no feature of the other image in its epipolar band",
+    "kind_mismatch": "only features of another kind in its epipolar band",
+    "shape_mismatch": "features in its band disagree in polarity, size or orientation",
+    "ambiguous": "two or more partners fit about equally well",
+    "outcompeted": "its candidates were matched better to other features",
+}
+
+
+# ----------------------------------------------------------- epipolar geometry
+
+
+@dataclass(frozen=True)
+class EpipolarGeometry:
+    """The epipolar geometry of a rig in ideal pixels.
+
+    Attributes
+    ----------
+    F : ndarray, shape (3, 3)
+        Fundamental matrix, ``y^T F x = 0`` for left x, right y.
+    center : ndarray, shape (2,)
+        Principal point of the left camera, px: where band offsets are read.
+    ref_left, ref_right : ndarray, shape (2,)
+        Unit directions along the epipolar lines at the left principal point
+        and at its image in the right camera through the plane
+        ``Z = depth``: a point moving along the epipolar line in the sense of
+        ``ref_left`` in the left image moves in the sense of ``ref_right``
+        in the right image (for points near that depth).
+    epipole_left, epipole_right : ndarray, shape (3,)
+        Homogeneous epipoles (unit vectors): the images of the other
+        camera's centre.
+    K1, K2, R, T : the calibration's pinhole part.
+    """
+
+    F: np.ndarray
+    epipole_left: np.ndarray
+    epipole_right: np.ndarray
+    center: np.ndarray
+    ref_left: np.ndarray
+    ref_right: np.ndarray
+    K1: np.ndarray
+    K2: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+
+    def left_lines(self, x):
+        """Epipolar lines (N, 3) in the left image through left points x (N, 2),
+        normalised and oriented (normal = ``ref_left`` turned by +90 deg)."""
+        return self._orient(np.cross(self.epipole_left, np.c_[x, np.ones(len(x))]), self.ref_left)
+
+    def left_lines_of_right(self, y):
+        """Left epipolar lines (N, 3) of right points y (N, 2), oriented as :meth:`left_lines`."""
+        return self._orient(np.c_[y, np.ones(len(y))] @ self.F, self.ref_left)
+
+    def right_lines(self, x):
+        """Right epipolar lines (N, 3) of left points x (N, 2), oriented by ``ref_right``."""
+        return self._orient(np.c_[x, np.ones(len(x))] @ self.F.T, self.ref_right)
+
+    def right_lines_through(self, y):
+        """Right epipolar lines (N, 3) through right points y (N, 2)."""
+        return self._orient(np.cross(self.epipole_right, np.c_[y, np.ones(len(y))]), self.ref_right)
+
+    @staticmethod
+    def _orient(lines, ref):
+        lines = lines / np.hypot(lines[:, 0], lines[:, 1])[:, None]
+        normal_ref = np.array([-ref[1], ref[0]])
+        sign = np.where(lines[:, :2] @ normal_ref < 0, -1.0, 1.0)
+        return lines * sign[:, None]
+
+    def band_left(self, x):
+        """Band offsets (N,) of left points: signed distance, px, of their
+        epipolar line from the left principal point."""
+        return self._offset(self.left_lines(x))
+
+    def band_right(self, y):
+        """Band offsets (N,) of right points, on the same scale as :meth:`band_left`."""
+        return self._offset(self.left_lines_of_right(y))
+
+    def _offset(self, lines):
+        return -(lines[:, :2] @ self.center + lines[:, 2])
+
+    def directions_left(self, x):
+        """Unit directions (N, 2) along the left epipolar lines at x, in the sense of ``ref_left``."""
+        lines = self.left_lines(x)
+        return np.c_[lines[:, 1], -lines[:, 0]]
+
+    def directions_right(self, y):
+        """Unit directions (N, 2) along the right epipolar lines at y, in the sense of ``ref_right``."""
+        lines = self.right_lines_through(y)
+        return np.c_[lines[:, 1], -lines[:, 0]]
+
+
+def epipolar_geometry(calib, depth=None):
+    """The :class:`EpipolarGeometry` of a calibration.
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+    depth : float, optional
+        Depth (mm, rig frame) of the plane that fixes which sense along the
+        right epipolar lines corresponds to ``ref_left``; default where the
+        two optical axes pass closest, or three baselines if they diverge.
+
+    Returns
+    -------
+    EpipolarGeometry
+
+    Notes
+    -----
+    The sense matters only for polarity and for choosing between the two
+    intersections of an epipolar line with an ellipse; it is the same for
+    all depths unless the scene straddles a camera centre's plane, so any
+    plausible working depth gives it.
+    """
+    K1, K2 = np.asarray(calib.K1, float), np.asarray(calib.K2, float)
+    R, T = np.asarray(calib.R, float), np.asarray(calib.T, float).ravel()
+    F = fundamental_matrix(K1, K2, R, T)
+    if depth is None:
+        depth = _convergence_depth(R, T)
+    center = K1[:2, 2].copy()
+    # The direction at the centre points away from the left epipole (its
+    # sign is only a convention); the right sense follows by transfer.
+    u, _, vt = np.linalg.svd(F)
+    e, e_right = vt[-1], u[:, -1]
+    toward = center * e[2] - e[:2]  # (c - e) scaled by e_w, well defined at infinity
+    line = np.cross(e, np.r_[center, 1.0])
+    d = np.array([line[1], -line[0]])
+    d /= np.linalg.norm(d)
+    if d @ toward < 0:
+        d = -d
+    H = K2 @ (R + np.outer(T, [0.0, 0.0, 1.0 / depth])) @ np.linalg.inv(K1)
+    p0 = H @ np.r_[center, 1.0]
+    p1 = H @ np.r_[center + 1.0 * d, 1.0]
+    dr = p1[:2] / p1[2] - p0[:2] / p0[2]
+    dr /= np.linalg.norm(dr)
+    return EpipolarGeometry(F, e, e_right, center, d, dr, K1, K2, R, T)
+
+
+def _convergence_depth(R, T):
+    c2 = -R.T @ T
+    a2 = R.T @ np.array([0.0, 0.0, 1.0])
+    a1 = np.array([0.0, 0.0, 1.0])
+    # Closest points of the optical axes s a1 and c2 + t a2.
+    A = np.array([[a1 @ a1, -a1 @ a2], [a1 @ a2, -a2 @ a2]])
+    b = np.array([a1 @ c2, a2 @ c2])
+    try:
+        s, _ = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        s = -1.0
+    return float(s) if s > 0 else 3.0 * float(np.linalg.norm(T))
+
+
+# -------------------------------------------------------------- image features
+
+
+@dataclass(frozen=True)
+class ImageFeature:
+    """One edge in one image: one segment or several merged ones.
+
+    Attributes
+    ----------
+    kind : str
+        "line" or "arc" (an elliptical arc, possibly a whole ellipse).
+    segments : tuple of int
+        Indices of the segments (of ``segment_contours``) it is made of.
+    index : ndarray, shape (N,)
+        Indices into the image's EdgePoints of its points (the segments'
+        ``fit_index``), each segment's points in order along the edge.
+    uv : ndarray, shape (N, 2)
+        The points in distorted pixels (as detected).
+    cov_uv : ndarray, shape (N, 2, 2)
+        Their covariances, px^2.
+    ideal : IdealPoints
+        The points in ideal pixels with their covariances.
+    fit : LineFit or EllipseFit
+        Fit to the ideal points (``corr_length`` = the edge filter's sigma),
+        ideal pixels.
+    blur : float
+        Median width of the edge profile, px (for information: the fits
+        are not corrected for the smoothing bias of curved edges).
+    polarity : int
+        Lines: +1 if the grey level rises along ``ref`` of the epipolar
+        geometry, -1 if it falls (0 before matching). Arcs: +1 if brighter
+        outside the ellipse, -1 if brighter inside.
+    """
+
+    kind: str
+    segments: tuple
+    index: np.ndarray
+    uv: np.ndarray
+    cov_uv: np.ndarray
+    ideal: IdealPoints
+    fit: object
+    blur: float
+    polarity: int
+
+    def __len__(self):
+        return len(self.index)
+
+
+def _fit(kind, ideal, corr_length):
+    if kind == "line":
+        return fit_line(ideal.xy, ideal.cov, corr_length=corr_length)
+    # No smoothing-bias correction (fit_ellipse's ``blur``): on rendered
+    # parts the rims of holes are not uniform discs, and the edge points lie
+    # on the true ellipse to 0.01-0.02 px as found, while the correction
+    # pushed them 0.03-0.06 px outwards (measured against the truth).
+    return fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length)
+
+
+def _make_feature(kind, seg_ids, segments, edges, K, D):
+    index = np.concatenate([segments[i].fit_index for i in seg_ids])
+    uv, cov = edges.xy[index], edges.cov[index]
+    ideal = ideal_points(uv, cov, K, D, edges.normal[index])
+    blur = float(np.median(edges.width[index]))
+    fit = _fit(kind, ideal, edges.sigma)
+    if kind == "arc":
+        from partinspect.vision.fitting import _ellipse_geometry
+
+        _, n_out, _ = _ellipse_geometry(ideal.xy, fit.params, fit.phases)
+        # Edge normals point dark to bright.
+        polarity = 1 if np.mean(np.einsum("ni,ni->n", n_out, ideal.normal)) > 0 else -1
+    else:
+        polarity = 0
+    return ImageFeature(kind, tuple(int(i) for i in seg_ids), index, uv, cov, ideal, fit, blur, polarity)
+
+
+def _rms(f):
+    return float(np.sqrt(np.mean(f.fit.residuals ** 2)))
+
+
+def _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
+    """Cheap geometric pre-test before the union is refitted."""
+    if a.kind != b.kind:
+        return False
+    if a.kind == "line":
+        na, nb = a.fit.normal, b.fit.normal
+        if na @ nb < np.cos(max_angle) and -(na @ nb) < np.cos(max_angle):
+            return False
+        if np.mean(np.einsum("ni,i->n", a.ideal.normal, na)) * np.mean(np.einsum("ni,i->n", b.ideal.normal, na)) < 0:
+            return False  # opposite polarity: two edges
+        da = abs(b.fit.centroid @ na + a.fit.params[2])
+        db = abs(a.fit.centroid @ nb + b.fit.params[2])
+        return max(da, db) < max_offset
+    if a.polarity != b.polarity:
+        return False
+    pa, pb = a.fit.params, b.fit.params
+    size = max(pa[2], pb[2])
+    if np.hypot(*(pa[:2] - pb[:2])) > max(max_offset, 0.05 * size):
+        return False
+    return abs(np.log(pa[2] / pb[2])) < max_axis_ratio and abs(np.log(pa[3] / pb[3])) < 2 * max_axis_ratio
+
+
+def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_angle=np.deg2rad(3.0),
+                   max_offset=3.0, max_axis_ratio=0.1, merge_ratio=1.3, max_misfit=0.15):
+    """Image features of one image: its segments, merged where they are one edge.
+
+    Parameters
+    ----------
+    edges : EdgePoints
+        The image's edge points (distorted pixels).
+    segments : list of Segment
+        From :func:`partinspect.vision.contours.segment_contours`.
+    K, D : the camera's matrix and distortion vector.
+    merge : bool
+        Merge collinear lines and co-elliptic arcs (many-to-one).
+    min_fit_points : int
+        Segments with fewer fitted points are skipped.
+    max_angle : float
+        Lines: largest angle between two pieces of one edge, rad.
+    max_offset : float
+        Lines: largest distance of one piece's centroid from the other's
+        line, px; arcs: of the two centres (or 5 % of the major axis).
+    max_axis_ratio : float
+        Arcs: largest ``|log(a1 / a2)|`` (twice that for the minor axes).
+    merge_ratio, max_misfit : float
+        The union is accepted when the RMS of its residuals is at most
+        ``merge_ratio`` times the worse piece's, or at most ``max_misfit``
+        px: two different edges leave a misfit far larger than the noise,
+        while the pieces of one small ellipse may show a few hundredths of
+        a pixel of systematic misfit that a ratio test alone would refuse.
+
+    Returns
+    -------
+    list of ImageFeature
+        In the order of their first segment.
+    """
+    feats = []
+    for i, s in enumerate(segments):
+        if len(s.fit_index) >= min_fit_points:
+            feats.append(_make_feature(s.kind, [i], segments, edges, K, D))
+    if not merge:
+        return feats
+    changed = True
+    while changed:
+        changed = False
+        best = None
+        for i in range(len(feats)):
+            for j in range(i + 1, len(feats)):
+                a, b = feats[i], feats[j]
+                if not _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
+                    continue
+                u = _make_feature(a.kind, a.segments + b.segments, segments, edges, K, D)
+                limit = max(merge_ratio * max(_rms(a), _rms(b)), max_misfit)
+                ratio = _rms(u)
+                if ratio <= limit and (best is None or ratio < best[0]):
+                    best = (ratio, i, j, u)
+        if best is not None:
+            _, i, j, u = best
+            feats = [f for k, f in enumerate(feats) if k not in (i, j)] + [u]
+            feats.sort(key=lambda f: f.segments[0])
+            changed = True
+    return feats
+
+
+# -------------------------------------------------------------------- matching
+
+
+@dataclass(frozen=True)
+class Match:
+    """A left and a right feature taken as images of one edge.
+
+    Attributes
+    ----------
+    left, right : int
+        Indices into the left and right feature lists.
+    cost : float
+        Total matching cost (lower is better; 0 is perfect).
+    band_overlap : float
+        Intersection over union of the two epipolar bands.
+    shape_cost : float
+        The part of the cost from shape disagreement.
+    margin : float
+        How much the total assignment cost rises if this pair is forbidden
+        (large: unambiguous).
+    """
+
+    left: int
+    right: int
+    cost: float
+    band_overlap: float
+    shape_cost: float
+    margin: float
+
+
+@dataclass(frozen=True)
+class Unmatched:
+    """A feature left without a partner.
+
+    Attributes
+    ----------
+    side : str
+        "left" or "right".
+    feature : int
+        Index into that side's feature list.
+    reason : str
+        A key of :data:`REASONS`.
+    detail : str
+        Human-readable specifics (e.g. the angle of a degenerate line, the
+        competing candidates).
+    epipolar_angle : float
+        Lines: angle to the epipolar lines, rad (NaN for arcs).
+    """
+
+    side: str
+    feature: int
+    reason: str
+    detail: str
+    epipolar_angle: float = float("nan")
+
+
+@dataclass(frozen=True)
+class Matching:
+    """Result of :func:`match_features`.
+
+    Attributes
+    ----------
+    matches : tuple of Match
+    unmatched : tuple of Unmatched
+    cost : ndarray, shape (n_left, n_right)
+        The cost matrix (inf: not a candidate).
+    epipolar_angle_left, epipolar_angle_right : ndarray
+        Per feature, the angle between a line and the epipolar lines, rad
+        (NaN for arcs).
+    """
+
+    matches: tuple
+    unmatched: tuple
+    cost: np.ndarray
+    epipolar_angle_left: np.ndarray
+    epipolar_angle_right: np.ndarray
+
+
+def _bands(geo, feats, side):
+    out = np.empty((len(feats), 2))
+    for k, f in enumerate(feats):
+        t = geo.band_left(f.ideal.xy) if side == "left" else geo.band_right(f.ideal.xy)
+        out[k] = t.min(), t.max()
+    return out
+
+
+def _line_angles(geo, feats, side):
+    """Angle (rad, in [0, pi/2]) between each line and the epipolar lines; NaN for arcs."""
+    out = np.full(len(feats), np.nan)
+    for k, f in enumerate(feats):
+        if f.kind != "line":
+            continue
+        c = f.fit.centroid[None]
+        d = geo.directions_left(c)[0] if side == "left" else geo.directions_right(c)[0]
+        out[k] = np.arcsin(min(1.0, abs(d @ f.fit.normal)))
+    return out
+
+
+def _line_polarity(geo, f, side):
+    d = geo.directions_left(f.ideal.xy) if side == "left" else geo.directions_right(f.ideal.xy)
+    return 1 if np.mean(np.einsum("ni,ni->n", d, f.ideal.normal)) > 0 else -1
+
+
+def _signed_line_angle(geo, f, side):
+    c = f.fit.centroid[None]
+    d = geo.directions_left(c)[0] if side == "left" else geo.directions_right(c)[0]
+    t = f.fit.direction
+    if t @ d < 0:
+        t = -t
+    return float(np.arctan2(d[0] * t[1] - d[1] * t[0], d @ t))
+
+
+def _arc_radius(geo, fl, fr):
+    """3D radius seen by each view (depth-scaled major semi-axes) and the centre's depths."""
+    X = triangulate(fl.fit.center[None], fr.fit.center[None], geo.K1, geo.K2, geo.R, geo.T)[0]
+    zl = X[2]
+    zr = (geo.R @ X + geo.T)[2]
+    rl = fl.fit.params[2] * zl / geo.K1[0, 0]
+    rr = fr.fit.params[2] * zr / geo.K2[0, 0]
+    return rl, rr, zl, zr
+
+
+def _line_middle_depth(geo, fl, fr, lo, hi):
+    """Depths (left, right) of the triangulated point of the two lines at band offset (lo + hi) / 2."""
+    t = 0.5 * (lo + hi)
+    # The left epipolar line at offset t: through the centre shifted by t along its normal.
+    n_ref = np.array([-geo.ref_left[1], geo.ref_left[0]])
+    p = geo.center + t * n_ref
+    l_ep = geo.left_lines(p[None])[0]
+    x = np.cross(l_ep, fl.fit.params)
+    if abs(x[2]) < 1e-12:
+        return -1.0, -1.0
+    x = x[:2] / x[2]
+    l_r = geo.right_lines(x[None])[0]
+    y = np.cross(l_r, fr.fit.params)
+    if abs(y[2]) < 1e-12:
+        return -1.0, -1.0
+    y = y[:2] / y[2]
+    X = triangulate(x[None], y[None], geo.K1, geo.K2, geo.R, geo.T)[0]
+    return X[2], (geo.R @ X + geo.T)[2]
+
+
+def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0), band_tolerance=3.0,
+                   min_overlap=0.5, radius_tolerance=0.1, angle_tolerance=np.deg2rad(30.0),
+                   max_cost=1.0, ambiguity_margin=0.1, depth_range=None):
+    """Pair left and right image features one to one.
+
+    Parameters
+    ----------
+    left, right : list of ImageFeature
+        From :func:`image_features` of each image.
+    geo : EpipolarGeometry
+    min_points : int
+        Features with fewer points are reported "too_short".
+    min_angle : float
+        Lines closer than this to the epipolar lines (in either image) are
+        "degenerate", rad.
+    band_tolerance : float
+        Each band is widened by this at both ends, px (the two images trim
+        their segments' ends independently).
+    min_overlap : float
+        Smallest intersection over union of the two (widened) bands for a
+        pair to be a candidate.
+    radius_tolerance : float
+        Arcs: scale of ``|log(r_left / r_right)|`` in the cost, the 3D radii
+        seen by each view (a 10 % disagreement costs 1).
+    angle_tolerance : float
+        Lines: scale of the difference of the signed angles to the epipolar
+        lines in the cost, rad.
+    max_cost : float
+        Pairs costing more are rejected.
+    ambiguity_margin : float
+        A match whose best alternative assignment costs less than this more
+        is "ambiguous" and not kept.
+    depth_range : (float, float), optional
+        Plausible depths of the scene, mm; default only "in front of both
+        cameras".
+
+    Returns
+    -------
+    Matching
+
+    Notes
+    -----
+    A match whose best alternative is within ``ambiguity_margin`` is kept
+    only when the alternative breaks the ordering constraint more often
+    (matched lines keep their order along the epipolar lines).
+
+    The cost of a candidate pair is ``(1 - IoU of the bands) + shape cost``;
+    polarity disagreement, a kind mismatch or a triangulated point outside
+    the depth range exclude the pair. The assignment is solved with dummy
+    rows and columns of cost ``max_cost / 2`` so that leaving both features
+    unmatched is preferred to any pair costing more than ``max_cost``.
+    """
+    nl, nr = len(left), len(right)
+    zmin, zmax = depth_range if depth_range is not None else (0.0, np.inf)
+    band_l, band_r = _bands(geo, left, "left"), _bands(geo, right, "right")
+    ang_l, ang_r = _line_angles(geo, left, "left"), _line_angles(geo, right, "right")
+    usable_l = np.array([len(f) >= min_points and not (ang_l[k] < min_angle) for k, f in enumerate(left)], bool)
+    usable_r = np.array([len(f) >= min_points and not (ang_r[k] < min_angle) for k, f in enumerate(right)], bool)
+    pol_l = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, "left") for f in left]
+    pol_r = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, "right") for f in right]
+    sang_l = [_signed_line_angle(geo, f, "left") if f.kind == "line" else 0.0 for f in left]
+    sang_r = [_signed_line_angle(geo, f, "right") if f.kind == "line" else 0.0 for f in right]
+
+    cost = np.full((nl, nr), np.inf)
+    iou = np.zeros((nl, nr))
+    shape = np.full((nl, nr), np.inf)
+    in_band = np.zeros((nl, nr), bool)
+    same_kind_in_band = np.zeros((nl, nr), bool)
+    for i in np.flatnonzero(usable_l):
+        lo_i, hi_i = band_l[i, 0] - band_tolerance, band_l[i, 1] + band_tolerance
+        for j in np.flatnonzero(usable_r):
+            lo_j, hi_j = band_r[j, 0] - band_tolerance, band_r[j, 1] + band_tolerance
+            inter = min(hi_i, hi_j) - max(lo_i, lo_j)
+            if inter <= 0:
+                continue
+            iou[i, j] = inter / (max(hi_i, hi_j) - min(lo_i, lo_j))
+            if iou[i, j] < min_overlap:
+                continue
+            in_band[i, j] = True
+            fl, fr = left[i], right[j]
+            if fl.kind != fr.kind:
+                continue
+            same_kind_in_band[i, j] = True
+            if pol_l[i] != pol_r[j]:
+                continue
+            if fl.kind == "arc":
+                rl, rr, zl, zr = _arc_radius(geo, fl, fr)
+                if not (zmin < zl < zmax and zmin < zr < zmax) or rl <= 0 or rr <= 0:
+                    continue
+                s = abs(np.log(rl / rr)) / radius_tolerance
+            else:
+                zl, zr = _line_middle_depth(geo, fl, fr, max(lo_i, lo_j), min(hi_i, hi_j))
+                if not (zmin < zl < zmax and zmin < zr < zmax):
+                    continue
+                # Line angles are defined modulo pi.
+                s = abs((sang_l[i] - sang_r[j] + 0.5 * np.pi) % np.pi - 0.5 * np.pi) / angle_tolerance
+            shape[i, j] = s
+            c = (1.0 - iou[i, j]) + s
+            if c <= max_cost:
+                cost[i, j] = c
+
+    pairs, total = _assign(cost, max_cost)
+    matches, taken_l, taken_r, ambiguous = [], set(), set(), {}
+    for i, j in pairs:
+        forbidden = cost.copy()
+        forbidden[i, j] = np.inf
+        alt_pairs, alt_total = _assign(forbidden, max_cost)
+        margin = alt_total - total
+        rivals = [(a, b) for a, b in alt_pairs if (a == i) != (b == j)]
+        if margin < ambiguity_margin and rivals and \
+                _order_violations(geo, left, right, alt_pairs) <= _order_violations(geo, left, right, pairs):
+            ambiguous[("left", i)] = ambiguous[("right", j)] = (
+                f"left {i} / right {j} (cost {cost[i, j]:.2f}) vs "
+                + ", ".join(f"left {a} / right {b} (cost {cost[a, b]:.2f})" for a, b in rivals)
+            )
+            continue
+        matches.append(Match(int(i), int(j), float(cost[i, j]), float(iou[i, j]), float(shape[i, j]), float(margin)))
+        taken_l.add(i)
+        taken_r.add(j)
+
+    unmatched = []
+    for side, feats, usable, angles, taken, band_mask in (
+        ("left", left, usable_l, ang_l, taken_l, (in_band, same_kind_in_band, cost)),
+        ("right", right, usable_r, ang_r, taken_r, (in_band.T, same_kind_in_band.T, cost.T)),
+    ):
+        inb, same, cst = band_mask
+        for k, f in enumerate(feats):
+            if k in taken:
+                continue
+            ang = float(angles[k])
+            if len(f) < min_points:
+                unmatched.append(Unmatched(side, k, "too_short", f"{len(f)} points < {min_points}", ang))
+            elif ang < min_angle:
+                unmatched.append(Unmatched(side, k, "degenerate",
+                                           f"{np.degrees(ang):.1f} deg from the epipolar lines "
+                                           f"(< {np.degrees(min_angle):.1f} deg)", ang))
+            elif (side, k) in ambiguous:
+                unmatched.append(Unmatched(side, k, "ambiguous", ambiguous[(side, k)], ang))
+            elif not inb[k].any():
+                unmatched.append(Unmatched(side, k, "no_candidate", "", ang))
+            elif not same[k].any():
+                unmatched.append(Unmatched(side, k, "kind_mismatch",
+                                           f"{f.kind} with only other kinds in its band", ang))
+            elif not np.isfinite(cst[k]).any():
+                unmatched.append(Unmatched(side, k, "shape_mismatch", "", ang))
+            else:
+                others = np.flatnonzero(np.isfinite(cst[k]))
+                unmatched.append(Unmatched(side, k, "outcompeted",
+                                           "candidates " + ", ".join(str(int(o)) for o in others), ang))
+    return Matching(tuple(matches), tuple(unmatched), cost, ang_l, ang_r)
+
+
+def _order_violations(geo, left, right, pairs):
+    """Pairs of matched lines whose order along the epipolar lines differs between the images.
+
+    Opaque surfaces seen from both cameras keep their order along the
+    epipolar lines (the ordering constraint); it separates parallel edges
+    whose bands and shapes are alike.
+    """
+    lines = [(i, j) for i, j in pairs if left[i].kind == "line"]
+    n_ref = np.array([-geo.ref_left[1], geo.ref_left[0]])
+    bad = 0
+    for a in range(len(lines)):
+        for b in range(a + 1, len(lines)):
+            (i, j), (k, l) = lines[a], lines[b]
+            lo = max(geo.band_left(left[i].ideal.xy).min(), geo.band_left(left[k].ideal.xy).min(),
+                     geo.band_right(right[j].ideal.xy).min(), geo.band_right(right[l].ideal.xy).min())
+            hi = min(geo.band_left(left[i].ideal.xy).max(), geo.band_left(left[k].ideal.xy).max(),
+                     geo.band_right(right[j].ideal.xy).max(), geo.band_right(right[l].ideal.xy).max())
+            if hi <= lo:
+                continue
+            ep = geo.left_lines((geo.center + 0.5 * (lo + hi) * n_ref)[None])
+            xi = np.cross(ep[0], left[i].fit.params)
+            xk = np.cross(ep[0], left[k].fit.params)
+            xi, xk = xi[:2] / xi[2], xk[:2] / xk[2]
+            er = geo.right_lines(xi[None])[0]
+            yj = np.cross(er, right[j].fit.params)
+            yl = np.cross(er, right[l].fit.params)
+            yj, yl = yj[:2] / yj[2], yl[:2] / yl[2]
+            if np.sign((xk - xi) @ geo.ref_left) != np.sign((yl - yj) @ geo.ref_right):
+                bad += 1
+    return bad
+
+
+def _assign(cost, max_cost):
+    """Optimal one-to-one pairs under ``cost`` with the option of leaving features unmatched."""
+    nl, nr = cost.shape
+    if nl == 0 or nr == 0:
+        return [], 0.0
+    big = 1e6
+    half = 0.5 * max_cost
+    A = np.full((nl + nr, nr + nl), big)
+    A[:nl, :nr] = np.where(np.isfinite(cost), cost, big)
+    # Left i unmatched -> its dummy column nr + i; right j unmatched -> dummy row nl + j.
+    A[np.arange(nl), nr + np.arange(nl)] = half
+    A[nl + np.arange(nr), np.arange(nr)] = half
+    A[nl:, nr:] = 0.0
+    rows, cols = linear_sum_assignment(A)
+    total = float(A[rows, cols].sum())
+    pairs = [(int(r), int(c)) for r, c in zip(rows, cols) if r < nl and c < nr and A[r, c] < big]
+    return pairs, total

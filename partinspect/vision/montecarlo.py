@@ -1,0 +1,165 @@
+"""Monte Carlo check of the 3D features' first-order covariances (JCGM 101).
+
+The input quantities are drawn from their stated distributions and the
+matching-free part of the chain is repeated for every draw: the matched
+features' edge points (distorted pixels) are displaced across the edge by
+Gaussian errors with their standard uncertainties and the along-edge
+correlation of smoothed noise (``exp(-d^2 / (4 l^2))`` between points at
+distance d, l the edge filter's sigma, as the sandwich covariances assume);
+the calibration parameters with a standard uncertainty are drawn
+independently; the points are mapped to ideal pixels again and the
+two-view 3D fit redone from the nominal solution. The covariance of the
+outputs over the draws is the Monte Carlo covariance, set beside the
+first-order one.
+
+References
+----------
+.. [1] JCGM 101:2008, Evaluation of measurement data -- Supplement 1 to the
+       GUM: propagation of distributions using a Monte Carlo method.
+.. [2] JCGM 100:2008, Guide to the expression of uncertainty in
+       measurement.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from partinspect.vision.fit3d import fit_circle_3d, fit_line_3d
+from partinspect.vision.stereo import calibration_parameters, feature_views, perturbed_calibration
+
+__all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors"]
+
+
+@dataclass(frozen=True)
+class MonteCarloFeature:
+    """Monte Carlo and first-order uncertainty of one 3D feature.
+
+    Attributes
+    ----------
+    feature : int
+        Index into ``StereoResult.features``.
+    kind : str
+    draws : int
+        Number of Monte Carlo trials that converged.
+    samples : ndarray, shape (draws, 6) or (draws, 7)
+        The parameters of each trial: (point, direction) or (center,
+        normal, radius), rig frame, mm.
+    mean : ndarray
+        Their mean.
+    cov_mc : ndarray
+        Their covariance (the Monte Carlo covariance).
+    cov_first_order : ndarray
+        ``Feature3D.param_cov`` (image noise, plus the calibration when it
+        has standard uncertainties), for comparison.
+    std_ratio : ndarray
+        ``sqrt(diag(cov_mc) / diag(cov_first_order))`` (NaN where the
+        first-order variance is zero).
+    """
+
+    feature: int
+    kind: str
+    draws: int
+    samples: np.ndarray
+    mean: np.ndarray
+    cov_mc: np.ndarray
+    cov_first_order: np.ndarray
+    std_ratio: np.ndarray
+
+
+def correlated_normal_errors(xy, corr_length, size, rng):
+    """Standard normal errors correlated along an edge.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        The points, px.
+    corr_length : float or None
+        Correlation length l, px: correlation ``exp(-d^2 / (4 l^2))``.
+    size : int
+        Number of independent draws.
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray, shape (size, N)
+    """
+    n = len(xy)
+    z = rng.standard_normal((size, n))
+    if not corr_length:
+        return z
+    d2 = ((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
+    C = np.exp(-d2 / (4.0 * corr_length * corr_length))
+    w, V = np.linalg.eigh(C)
+    # Eigen-decomposition rather than Cholesky: C is numerically
+    # semi-definite for densely spaced points.
+    A = V * np.sqrt(np.clip(w, 0.0, None))
+    return z @ A.T
+
+
+def _params(fit, kind, ref):
+    if kind == "line":
+        d = fit.direction if fit.direction @ ref[3:6] >= 0 else -fit.direction
+        return np.r_[fit.point, d]
+    n = fit.normal if fit.normal @ ref[3:6] >= 0 else -fit.normal
+    return np.r_[fit.center, n, fit.radius]
+
+
+def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=True, calibration=True):
+    """Monte Carlo covariances of 3D features of a stereo measurement.
+
+    Parameters
+    ----------
+    result : StereoResult
+        From :func:`partinspect.vision.stereo.measure_stereo`.
+    calib : StereoCalibration
+        The calibration used (its ``std`` is drawn from when
+        ``calibration``).
+    features : sequence of int, optional
+        Indices into ``result.features``; default all.
+    draws : int
+        Monte Carlo trials per feature.
+    seed : int
+        Seed of ``numpy.random.default_rng``.
+    image_noise, calibration : bool
+        Which inputs to draw.
+
+    Returns
+    -------
+    list of MonteCarloFeature
+    """
+    rng = np.random.default_rng(seed)
+    corr_length = result.left.edges.sigma
+    cal_params = calibration_parameters(calib) if calibration else []
+    out = []
+    for k in range(len(result.features)) if features is None else features:
+        f3 = result.features[k]
+        fl, fr = result.left.features[f3.left], result.right.features[f3.right]
+        kind = "line" if f3.kind == "line" else "arc"
+        ref = f3.params
+        noises = []
+        for f, edges in ((fl, result.left.edges), (fr, result.right.edges)):
+            normal = edges.normal[f.index]
+            s = np.sqrt(np.einsum("ni,nij,nj->n", normal, f.cov_uv, normal))
+            z = correlated_normal_errors(f.uv, corr_length, draws, rng) if image_noise else np.zeros((draws, len(f.uv)))
+            noises.append((z * s)[:, :, None] * normal[None])
+        samples = []
+        for t in range(draws):
+            cal = calib
+            if cal_params:
+                cal = perturbed_calibration(calib, {(g, i): s * rng.standard_normal() for g, i, s in cal_params})
+            views = feature_views(fl, fr, corr_length, cal, uv=(fl.uv + noises[0][t], fr.uv + noises[1][t]))
+            try:
+                if kind == "line":
+                    fit = fit_line_3d(views, f3.point, f3.direction)
+                else:
+                    fit = fit_circle_3d(views, f3.center, f3.normal, f3.radius)
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+            samples.append(_params(fit, kind, ref))
+        samples = np.array(samples)
+        cov = np.cov(samples, rowvar=False)
+        fo = f3.param_cov
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.sqrt(np.diag(cov) / np.diag(fo))
+        out.append(MonteCarloFeature(int(k), f3.kind, len(samples), samples, samples.mean(axis=0), cov, fo, ratio))
+    return out

@@ -1,0 +1,114 @@
+"""The whole stereo chain on rendered sample parts, against the truth."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from partinspect.vision.ideal import camera_matrices
+from partinspect.vision.stereo import measure_stereo
+from tests.vision import stereo_scenes as S
+
+SEEDS = (0, 1)
+CAL_STD = {"intrinsics1": np.r_[0.5, 0.5, 0.3, 0.3, np.zeros(5)],
+           "intrinsics2": np.r_[0.5, 0.5, 0.3, 0.3, np.zeros(5)],
+           "extrinsics": np.r_[2e-5, 2e-5, 2e-5, 0.005, 0.005, 0.005]}
+_RESULTS = {}
+
+
+def measured(seed, distortion=False):
+    key = (seed, distortion)
+    if key not in _RESULTS:
+        rig, pose, L, R = S.render("plate", 2.0, seed, distortion)
+        _RESULTS[key] = (rig, measure_stereo(L, R, rig))
+    return _RESULTS[key]
+
+
+def errors(seed, distortion=False):
+    """Per measured feature: (kind, id, error vector, covariance, radius error, radius std)."""
+    rig, res = measured(seed, distortion)
+    truths = {t["id"]: t for t in S.truth_in_rig("plate", distortion)}
+    P1, _ = camera_matrices(rig)
+    out = []
+    for f in res.features:
+        lab = S.label_image_feature(res.left.features[f.left].ideal.xy, list(truths.values()), P1)
+        assert lab is not None
+        t = truths[lab]
+        if f.kind == "line":
+            out.append(("line", lab, S.line_point_error(f.point, f.direction, t), f.covariance, 0.0, 0.0))
+        else:
+            out.append((f.kind, lab, f.center - t["center"], f.covariance, f.radius - t["radius"], f.radius_std))
+    return out
+
+
+def test_result_structure_and_nothing_dropped():
+    rig, res = measured(0)
+    m = res.matching
+    assert len(res.features) + len(res.failed) == len(m.matches) >= 15
+    n_l = len(res.left.features)
+    seen = {x.left for x in m.matches} | {u.feature for u in m.unmatched if u.side == "left"}
+    assert seen == set(range(n_l))
+    for f in res.features:
+        assert np.all(np.linalg.eigvalsh(f.covariance) >= -1e-15)
+        assert len(f.correspondences) > 5
+        if f.kind == "line":
+            assert np.linalg.norm(f.end - f.start) > 1.0
+        else:
+            assert 0 < f.angle_end - f.angle_start <= 2 * np.pi + 1e-9
+
+
+def test_lines_accurate_and_honest():
+    z = []
+    for seed in SEEDS:
+        for kind, lab, e, C, _, _ in errors(seed):
+            if kind != "line":
+                continue
+            assert np.linalg.norm(e) < 0.03, (lab, e)  # mm
+            z.append(e @ np.linalg.pinv(C, rcond=1e-10) @ e / 2)  # chi2(2) / 2
+    # Normalised errors: mean chi2/dof near 1 (neither much too large nor too small).
+    assert 0.4 < np.mean(z) < 2.5, np.mean(z)
+
+
+def test_circles_accurate_depth_worst():
+    E, dr = [], []
+    for seed in SEEDS:
+        for kind, lab, e, C, r, u in errors(seed):
+            if kind == "circle":
+                E.append(e)
+                dr.append(r)
+    E, dr = np.array(E), np.array(dr)
+    assert len(E) >= 6
+    assert np.abs(E).max() < 0.05 and np.abs(dr).max() < 0.03  # mm
+    rms = np.sqrt((E**2).mean(axis=0))
+    assert rms[2] > rms[0] and rms[2] > rms[1]  # the paper's observation: depth is worst
+
+
+@pytest.mark.xfail(reason="known: rendered hole rims give circle centres a 10-25 um depth bias and radii "
+                          "+3-12 um, 5-10 standard uncertainties; lines are unbiased (see the report)", strict=False)
+def test_circles_honest():
+    z = []
+    for seed in SEEDS:
+        for kind, lab, e, C, r, u in errors(seed):
+            if kind == "circle":
+                z.append(e @ np.linalg.inv(C) @ e / 3)
+    assert 0.4 < np.mean(z) < 2.5, np.mean(z)
+
+
+def test_distorted_images_measured_through_ideal_pixels():
+    errs = errors(0, distortion=True)
+    assert len(errs) >= 12
+    for kind, lab, e, C, r, u in errs:
+        assert np.linalg.norm(e) < 0.05, (lab, e)
+
+
+def test_calibration_uncertainty_is_added():
+    rig, res = measured(0)
+    rig_std = replace(rig, std=CAL_STD)
+    _, _, L, R = S.render("plate", 2.0, 0)
+    res2 = measure_stereo(L, R, rig_std)
+    assert res2.calibration_included and not res.calibration_included
+    for a, b in zip(res.features, res2.features):
+        assert np.allclose(a.params, b.params)
+        assert np.allclose(b.param_cov, b.param_cov_image + b.param_cov_calibration)
+        assert np.all(np.linalg.eigvalsh(b.param_cov_calibration) > -1e-12)
+        assert np.trace(b.covariance) > 2 * np.trace(a.covariance)
