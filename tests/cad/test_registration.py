@@ -1,0 +1,191 @@
+"""Registration of synthetic measured features to the sample parts' CAD models."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from partinspect.cad.features import inventory
+from partinspect.cad.registration import Registration, RegistrationError, pose_error, register
+from partinspect.errors import InputError
+from partinspect.simulate.measured import facing_feature_ids, measure_features
+from partinspect.simulate.pose import default_pose
+from partinspect.simulate.rig import default_rig
+
+from tests.cad.conftest import EXAMPLES
+
+
+@pytest.fixture(scope="module", params=["plate", "bracket"])
+def scene(request):
+    """(inventory, true pose, visible ids) of a sample part at the renderer's default pose."""
+    from partinspect.cad.step import load_step
+
+    shape = load_step(EXAMPLES / request.param / "part.step")
+    inv = inventory(shape)
+    T = default_pose(shape, default_rig())
+    truth = json.loads((EXAMPLES / request.param / "truth.json").read_text())
+    # the rendered truth was made at the same default pose; its visibility is the renderer's
+    assert np.allclose(T, truth["part_to_camera"], atol=1e-6)
+    ids = [f["id"] for f in truth["features"] if f["visible_both"]]
+    return request.param, inv, T, ids
+
+
+def _correct_assignment(reg, m):
+    return all(reg.assignment["circle"].get(i) == cid for i, cid in enumerate(m.circle_ids)) and all(
+        reg.assignment["line"].get(j) == lid for j, lid in enumerate(m.line_ids)
+    )
+
+
+def test_recovers_pose_and_assignment(scene):
+    name, inv, T, ids = scene
+    m = measure_features(inv, T, ids, np.random.default_rng(3), n_points=0)
+    reg = register(m.circles, m.lines, inv)
+    assert isinstance(reg, Registration)
+    e = pose_error(reg.part_to_camera, T)
+    assert np.rad2deg(np.linalg.norm(e[:3])) < 0.01
+    assert np.linalg.norm(e[3:]) < 0.005
+    assert _correct_assignment(reg, m)
+    assert reg.unmatched == {"circle": (), "line": ()}
+    assert reg.pose_cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(reg.pose_cov) > 0)
+    assert 0.5 < reg.weighted_rms < 1.6
+    assert 0 < reg.rms < 0.02
+    assert set(reg.datums) == set(ids)
+
+
+def test_pose_hint_skips_search(scene):
+    _, inv, T, ids = scene
+    m = measure_features(inv, T, ids, np.random.default_rng(4), n_points=0)
+    hint = T.copy()
+    hint[:3, 3] += [0.2, -0.1, 0.15]
+    reg = register(m.circles, m.lines, inv, pose_hint=hint)
+    assert reg.n_hypotheses == 1
+    assert _correct_assignment(reg, m)
+    assert np.linalg.norm(pose_error(reg.part_to_camera, T)[3:]) < 0.005
+
+
+def test_pose_covariance_is_honest(scene):
+    _, inv, T, ids = scene
+    rng = np.random.default_rng(11)
+    z, d2 = [], []
+    for _ in range(60):
+        m = measure_features(inv, T, ids, rng, n_points=0)
+        reg = register(m.circles, m.lines, inv, pose_hint=T)
+        e = pose_error(reg.part_to_camera, T)
+        z.append(e / reg.pose_std)
+        d2.append(e @ np.linalg.solve(reg.pose_cov, e))
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    assert np.all((rms > 0.7) & (rms < 1.35)), rms
+    coverage = np.mean(np.array(d2) <= stats.chi2.ppf(0.95, 6))
+    assert 0.85 <= coverage <= 1.0
+
+
+def test_line_fallback_without_circles(scene):
+    name, inv, T, ids = scene
+    m = measure_features(inv, T, ids, np.random.default_rng(5), n_points=0)
+    reg = register([], m.lines, inv)
+    e = pose_error(reg.part_to_camera, T)
+    assert np.rad2deg(np.linalg.norm(e[:3])) < 0.02
+    assert np.linalg.norm(e[3:]) < 0.01
+    assert all(reg.assignment["line"][j] == lid for j, lid in enumerate(m.line_ids))
+
+
+def test_part_frame_features_carry_pose_covariance(scene):
+    _, inv, T, ids = scene
+    m = measure_features(inv, T, ids, np.random.default_rng(6), n_points=5)
+    reg = register(m.circles, m.lines, inv, datums=[i for i in ids if i.startswith("line")])
+    feats = reg.features_in_part_frame()
+    assert len(feats) == len(m.circles) + len(m.lines)
+    for pf in feats:
+        f = inv[pf.cad_id]
+        if pf.kind == "circle":
+            assert np.linalg.norm(pf.center - f.center) < 0.05
+            assert abs(abs(pf.normal @ f.normal) - 1) < 1e-4
+            assert not pf.datum
+            own = reg.rotation.T @ m.circles[pf.index].covariance @ reg.rotation
+            # a non-datum feature: its own covariance plus the pose's, never less
+            assert np.all(np.linalg.eigvalsh(pf.covariance - own) > -1e-15)
+            assert pf.points.shape == (5, 3) and pf.point_covs.shape == (5, 3, 3)
+        else:
+            assert pf.datum
+            v = pf.point - f.start
+            assert np.linalg.norm(v - (v @ f.direction) * f.direction) < 0.05
+        w = np.linalg.eigvalsh(pf.param_cov)
+        assert w.min() > -1e-8 * w.max()  # PSD up to rounding (lines are rank-deficient along themselves)
+    a, b = feats[0], feats[1]
+    assert reg.cross_covariance(a, b).shape == (7, 7)
+
+
+def test_part_frame_covariance_is_honest(scene):
+    """Non-datum circle centres in the part frame: error / std over draws, pose included."""
+    _, inv, T, ids = scene
+    datums = [i for i in ids if i.startswith("line")]
+    rng = np.random.default_rng(12)
+    z = []
+    for _ in range(40):
+        m = measure_features(inv, T, ids, rng, n_points=0)
+        reg = register(m.circles, m.lines, inv, datums=datums, pose_hint=T)
+        for pf in reg.features_in_part_frame():
+            if pf.kind == "circle":
+                e = pf.center - inv[pf.cad_id].center
+                w, V = np.linalg.eigh(pf.covariance)
+                z.extend((V.T @ e) / np.sqrt(w))
+    rms = np.sqrt(np.mean(np.square(z)))
+    assert 0.8 < rms < 1.25
+
+
+def test_deviated_hole_excluded_by_datums_does_not_drag_pose():
+    from partinspect.cad.step import load_step
+
+    shape = load_step(EXAMPLES / "plate" / "part.step")
+    inv = inventory(shape)
+    T = default_pose(shape, default_rig())
+    ids = [f["id"] for f in json.loads((EXAMPLES / "plate" / "truth.json").read_text())["features"] if f["visible_both"]]
+    shift = {"circle-4": np.array([0.1, 0.0, 0.0])}
+    m = measure_features(inv, T, ids, np.random.default_rng(7), n_points=0, shifts=shift)
+    free = register(m.circles, m.lines, inv)
+    datums = [i for i in ids if i != "circle-4"]
+    held = register(m.circles, m.lines, inv, datums=datums)
+    e_held = pose_error(held.part_to_camera, T)
+    assert np.linalg.norm(e_held[3:]) < 0.005
+    assert np.rad2deg(np.linalg.norm(e_held[:3])) < 0.01
+    assert "circle-4" not in held.datums and held.assignment["circle"][m.circle_ids.index("circle-4")] == "circle-4"
+    # with the moved hole among the datums the fit is pulled and the chi-square shows it
+    assert free.weighted_rms > 3 * held.weighted_rms
+    # the moved hole measures 0.1 mm off in the part frame when it is not a datum
+    pf = [p for p in held.features_in_part_frame() if p.cad_id == "circle-4"][0]
+    assert abs((pf.center - inv["circle-4"].center)[0] - 0.1) < 0.01
+
+
+def _square_plate():
+    import cadquery as cq
+
+    return cq.Workplane("XY").box(60, 60, 8, centered=(True, True, False)).faces(">Z").workplane().rarray(30, 30, 2, 2).hole(8).val()
+
+
+def test_symmetric_part_is_ambiguous():
+    shape = _square_plate()
+    inv = inventory(shape)
+    T = default_pose(shape, default_rig())
+    m = measure_features(inv, T, facing_feature_ids(inv, T), np.random.default_rng(8), n_points=0)
+    with pytest.raises(RegistrationError, match="alignment is ambiguous") as info:
+        register(m.circles, m.lines, inv)
+    assert isinstance(info.value, InputError)
+
+
+def test_too_few_constraints(scene):
+    _, inv, T, ids = scene
+    m = measure_features(inv, T, ids, np.random.default_rng(9), n_points=0)
+    circle = m.circle_ids[0]
+    with pytest.raises(RegistrationError, match="ambiguous"):
+        register(m.circles, m.lines, inv, datums=[circle], pose_hint=T)
+    with pytest.raises(RegistrationError, match="ambiguous"):
+        register(m.circles[:1], [], inv)
+
+
+def test_unknown_datum():
+    from partinspect.cad.step import load_step
+
+    inv = inventory(load_step(EXAMPLES / "plate" / "part.step"))
+    with pytest.raises(RegistrationError, match="circle-99"):
+        register([], [], inv, datums=["circle-99"])

@@ -1,0 +1,167 @@
+"""Characteristic values and uncertainties against the truth over repeated noise draws."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from partinspect.cad.features import inventory
+from partinspect.cad.registration import register
+from partinspect.simulate.measured import measure_features
+from partinspect.simulate.pose import default_pose
+from partinspect.simulate.rig import default_rig
+from partinspect.tolerances.evaluate import evaluate, monte_carlo, propagate, true_position
+from partinspect.tolerances.form import circularity, straightness
+from partinspect.tolerances.geometry import feature_distance, line_angle
+from partinspect.tolerances.resolve import Characteristic
+from partinspect.tolerances.spec import characteristics_for, load_spec
+
+from tests.cad.conftest import EXAMPLES
+
+N_DRAWS = 60
+
+
+@pytest.fixture(scope="module")
+def plate():
+    from partinspect.cad.step import load_step
+
+    shape = load_step(EXAMPLES / "plate" / "part.step")
+    inv = inventory(shape)
+    T = default_pose(shape, default_rig())
+    ids = [f["id"] for f in json.loads((EXAMPLES / "plate" / "truth.json").read_text())["features"] if f["visible_both"]]
+    return inv, T, ids
+
+
+def C(cid, ctype, feats, nominal=0.0, lo=None, up=1.0, unit="mm"):
+    return Characteristic(cid, ctype, tuple(feats), nominal, lo, up, "test", unit=unit)
+
+
+def _z_rms(chars, truths, plate, n_points=0, shifts=None, datums=None, seed=0):
+    """RMS of (measured - truth) / u per characteristic over noise draws; and the values."""
+    inv, T, ids = plate
+    rng = np.random.default_rng(seed)
+    z, vals = [], []
+    for draw in range(N_DRAWS):
+        m = measure_features(inv, T, ids, rng, n_points=n_points, shifts=shifts)
+        reg = register(m.circles, m.lines, inv, datums=datums, pose_hint=T)
+        ev = evaluate(chars, reg, inv, seed=draw, n_mc=1000)
+        z.append([(e.measured - t) / e.standard_uncertainty for e, t in zip(ev, truths)])
+        vals.append([e.measured for e in ev])
+    return np.sqrt(np.mean(np.square(z), axis=0)), np.array(vals)
+
+
+def test_pose_invariant_characteristics_are_consistent(plate):
+    inv = plate[0]
+    chars = [
+        C("d", "diameter", ["circle-4"], 12.0, 11.9, 12.1),
+        C("r", "radius", ["circle-6"], 2.0, 1.9, 2.1),
+        C("cc", "distance", ["circle-2", "circle-4"], feature_distance(inv["circle-2"], inv["circle-4"]), 0, 100),
+        C("cl", "distance", ["circle-2", "line-5"], feature_distance(inv["circle-2"], inv["line-5"]), 0, 100),
+        C("ll", "distance", ["line-5", "line-8"], 60.0, 59, 61),
+        C("a", "angle", ["line-5", "line-1"], math.pi / 2, 1.5, 1.6, unit="rad"),
+    ]
+    truths = [c.nominal for c in chars]
+    assert abs(line_angle(inv["line-5"].start, inv["line-5"].end, inv["line-1"].start, inv["line-1"].end) - math.pi / 2) < 1e-12
+    rms, _ = _z_rms(chars, truths, plate)
+    assert np.all((rms > 0.65) & (rms < 1.4)), rms
+
+
+def test_position_of_moved_hole_and_profile_of_moved_edge(plate):
+    inv, T, ids = plate
+    shifts = {"circle-4": np.array([0.1, 0.0, 0.0]), "line-5": np.array([0.0, 0.05, 0.0])}
+    datums = [i for i in ids if i not in shifts]
+    chars = [C("p4", "position", ["circle-4"], up=0.1), C("pl", "profile", ["line-5"], up=0.1), C("p2", "position", ["circle-8"], up=0.1)]
+    # truths: 2 x 0.1 mm in the hole's plane, 2 x 0.05 mm offset of the edge, 0 for an unmoved hole
+    rms, vals = _z_rms(chars, [0.2, 0.1, 0.0], plate, shifts=shifts, datums=datums, seed=1)
+    assert abs(vals[:, 0].mean() - 0.2) < 0.005
+    # the profile is a maximum over the stretch: biased up by about one u, which u covers
+    assert 0.1 < vals[:, 1].mean() < 0.115
+    assert np.all((rms[:2] > 0.65) & (rms[:2] < 1.4)), rms
+    # at zero the Monte Carlo u (RMS about the estimate) still matches the Rice-distributed error
+    assert 0.6 < rms[2] < 1.5, rms
+
+
+def test_position_uncertainty_includes_pose(plate):
+    inv, T, ids = plate
+    m = measure_features(inv, T, ids, np.random.default_rng(2), n_points=0)
+    reg = register(m.circles, m.lines, inv, datums=[i for i in ids if i.startswith("line")], pose_hint=T)
+    (e,) = evaluate([C("p", "position", ["circle-4"])], reg, inv)
+    pf = [p for p in reg.features_in_part_frame() if p.cad_id == "circle-4"][0]
+    R = reg.rotation
+    own = R.T @ m.circles[m.circle_ids.index("circle-4")].covariance @ R
+    nominal = inv["circle-4"]
+    v, u = true_position(pf.center, pf.covariance, nominal.center, nominal.normal, np.random.default_rng(99))
+    assert e.measured == pytest.approx(v) and e.standard_uncertainty == pytest.approx(u, rel=0.05)
+    # the pose (estimated from the lines only) adds to the in-plane covariance of the hole's centre
+    P = np.eye(3) - np.outer(nominal.normal, nominal.normal)
+    B = pf.pose_jacobian[:3]
+    pose_part = np.trace(P @ B @ reg.pose_cov @ B.T @ P)
+    assert pose_part > 0.05 * np.trace(P @ own @ P)
+    assert np.trace(P @ pf.covariance @ P) == pytest.approx(np.trace(P @ own @ P) + pose_part, rel=1e-9)
+    assert "pose" in e.method
+
+
+def test_form_noise_bias_is_removed(plate):
+    chars = [C("s", "straightness", ["line-5"]), C("k", "circularity", ["circle-4"])]
+    inv, T, ids = plate
+    rng = np.random.default_rng(3)
+    raw, val, u = [], [], []
+    for draw in range(N_DRAWS):
+        m = measure_features(inv, T, ids, rng, n_points=60)
+        reg = register(m.circles, m.lines, inv, pose_hint=T)
+        ev = evaluate(chars, reg, inv, seed=draw)
+        raw.append([e.details["raw"] for e in ev])
+        val.append([e.measured for e in ev])
+        u.append([e.standard_uncertainty for e in ev])
+    raw, val, u = map(np.array, (raw, val, u))
+    # uncorrected, noise alone looks like several sigma of form; corrected, about zero
+    assert np.all(raw.mean(0) > 3 * u.mean(0))
+    assert np.all(np.abs(val.mean(0)) < 0.5 * u.mean(0))
+    rms = np.sqrt(np.mean((val / u) ** 2, axis=0))
+    assert np.all((rms > 0.65) & (rms < 1.4)), rms
+
+
+def test_true_form_is_measured():
+    rng = np.random.default_rng(4)
+    s = np.linspace(0, 40, 80)
+    ideal = np.c_[s, 0.03 * np.sin(np.pi * s / 40), np.zeros_like(s)] + [0, 0, 300]
+    covs = np.array([np.diag([0.002, 0.002, 0.008]) ** 2] * len(s))
+    truth = straightness(ideal, np.zeros_like(covs), rng, n_draws=5).raw  # noise-free LS zone
+    r = straightness(ideal + rng.standard_normal(ideal.shape) * [0.002, 0.002, 0.008], covs, rng)
+    # corrected value: not above the truth by more than noise, low by at most the bias
+    assert truth - r.noise_bias - 3 * r.u < r.value < truth + 3 * r.u
+    assert r.raw > r.value
+    th = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    rad = 5 + 0.01 * np.cos(3 * th)
+    ring = np.c_[rad * np.cos(th), rad * np.sin(th), np.full_like(th, 300)]
+    k0 = circularity(ring, np.zeros((90, 3, 3)), rng, n_draws=5).raw
+    assert abs(k0 - 0.02) < 1e-3
+    k = circularity(ring + rng.standard_normal(ring.shape) * 0.002, np.array([np.eye(3) * 0.002**2] * 90), rng)
+    assert k0 - k.noise_bias - 3 * k.u < k.value < k0 + 3 * k.u
+
+
+def test_propagation_helpers():
+    v, u = propagate(lambda x: x[0] * 3 - x[1], np.array([1.0, 2.0]), np.diag([0.01, 0.04]))
+    assert v == pytest.approx(1.0) and u == pytest.approx(math.sqrt(0.09 + 0.04), rel=1e-6)
+    v, u = monte_carlo(lambda x: x.sum(1), np.zeros(2), np.eye(2), np.random.default_rng(0), 20000)
+    assert v == 0 and u == pytest.approx(math.sqrt(2), rel=0.03)
+
+
+def test_spec_characteristics_and_unmeasured(plate):
+    inv, T, ids = plate
+    path = EXAMPLES / "plate" / "part.tol.yaml"
+    chars = characteristics_for(load_spec(path), inv, path)
+    m = measure_features(inv, T, ids, np.random.default_rng(5), n_points=40)
+    reg = register(m.circles, m.lines, inv)
+    ev = evaluate(chars, reg, inv)
+    assert [e.id for e in ev] == [c.id for c in chars]
+    by_id = {e.id: e for e in ev}
+    hidden = by_id["circle-1.diameter"]
+    assert hidden.measured is None and "circle-1 not measured" in hidden.reason
+    d = by_id["circle-4.diameter"]
+    assert abs(d.measured - 12.0) < 0.02 and d.expanded_uncertainty == pytest.approx(2 * d.standard_uncertainty)
+    assert d.to_dict()["measured"] == pytest.approx(d.measured)
+    # reproducible: same inputs, same numbers
+    again = evaluate(chars, reg, inv)
+    assert [e.measured for e in again] == [e.measured for e in ev]
