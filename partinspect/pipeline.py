@@ -1,9 +1,15 @@
 """One inspection run: load -> measure -> register -> evaluate -> report.
 
-The measurement stages (2D edges and fits, stereo 3D, registration,
-characteristics) plug in here as they land. Until a stage exists the run
-says so: features not measured are listed as "not measured", their
-characteristics are inconclusive, and no number is ever invented.
+Stages: the STEP model's feature inventory and the tolerance spec
+(:mod:`partinspect.tolerances`); the stereo chain from both images to 3D
+lines and circles with covariances (:func:`partinspect.vision.stereo.measure_stereo`);
+registration of those to the CAD model, with the pose's covariance
+(:func:`partinspect.cad.registration.register`); which CAD edges the
+cameras can see at that pose (:mod:`partinspect.cad.visibility`); each
+characteristic's value and uncertainty (:mod:`partinspect.tolerances.evaluate`)
+and its ISO 14253-1 decision (:mod:`partinspect.tolerances.decision`); the
+reports. A feature that was not measured says why, its characteristics
+are inconclusive, and no number is ever invented.
 """
 
 from __future__ import annotations
@@ -13,6 +19,8 @@ import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from partinspect.atomic import check_output_dir, prepare_output_dir
 from partinspect.errors import InputError
@@ -48,8 +56,10 @@ class InspectionResult:
         return (
             f"{self.verdict.upper()}: {counts['pass']} pass, {counts['fail']} fail, "
             f"{counts['inconclusive']} inconclusive of {counts['characteristics']} characteristics; "
-            f"{counts['features_measured']} of {counts['features']} features measured; "
-            f"report: {self.out_dir / 'report.html'}"
+            f"{counts['features_measured']} of {counts['features']} features measured"
+            + (f", {counts['not_inspected']} general-tolerance characteristics of edges out of view not inspected; "
+               if counts.get("not_inspected") else "; ")
+            + f"report: {self.out_dir / 'report.html'}"
         )
 
 
@@ -145,32 +155,54 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     from partinspect.cad.features import inventory
     from partinspect.cad.step import load_step
 
-    inv = inventory(load_step(part))
+    shape = load_step(part)
+    inv = inventory(shape)
     if not inv.features:
         raise InputError(part, f"no line or circle edges to measure ({_edges_found(inv)})")
 
-    characteristics = []
-    spec_info = {"file": None, "general": "ISO2768-mK", "decision_rule": "iso14253"}
     if tol_path is not None:
         progress(f"reading tolerances {tol_path.name}")
-    characteristics, spec_info = _characteristics(inv, tol_path, spec_info)
+    resolved, characteristics = _characteristics(inv, tol_path)
+    spec_info = {
+        "file": None if tol_path is None else str(tol_path),
+        "general": resolved.general,
+        "decision_rule": resolved.decision_rule,
+    }
 
-    # No measurement stage has landed yet: every feature is reported as not
-    # measured and every characteristic stays inconclusive for that reason.
-    features = [
-        {
-            "id": f.id,
-            "kind": f.kind,
-            "nominal": nominal_geometry(f),
-            "measured": None,
-            "status": "not measured",
-            "reason": "the stereo measurement chain is not implemented yet",
-        }
-        for f in inv.features
-    ]
+    from partinspect.vision.stereo import measure_stereo
+
+    stereo = measure_stereo(left, right, calib, progress=progress)
+    progress(f"registering {len(stereo.features)} measured features to the CAD model")
+    registration = _register(stereo, inv, resolved, images)
+
+    progress("checking which edges the cameras see")
+    from partinspect.cad.visibility import visibility
+
+    seen = visibility(shape, inv, calib, registration.part_to_camera)
+
+    progress(f"evaluating {len(characteristics)} characteristics")
+    from partinspect.tolerances.decision import decide_all
+    from partinspect.tolerances.evaluate import evaluate
+
+    # General tolerances cover the whole part, but a stereo pair sees one side
+    # of it: general characteristics of edges out of view are listed as not
+    # inspected (with the reason) rather than judged; a characteristic the
+    # spec names explicitly is always judged, inconclusive when unseen.
+    judged, not_inspected = [], []
     for c in characteristics:
-        c.update(measured=None, deviation=None, standard_uncertainty=None, expanded_uncertainty=None)
-        c.update(decision="inconclusive", reason="not measured")
+        hidden = [fid for fid in c.features if not seen[fid].in_view]
+        if hidden and c.source.endswith("(general tolerance)") and not _measured_any(registration, c.features):
+            not_inspected.append({**c.to_dict(), "reason": "; ".join(f"{fid} {seen[fid].reason()}" for fid in hidden)})
+        else:
+            judged.append(c)
+    decisions = decide_all(evaluate(judged, registration, inv), resolved.decision_rule)
+    characteristics = [_characteristic_entry(d) for d in decisions]
+
+    features = feature_entries(inv, stereo, registration, seen, decisions, calib)
+    why = {f["id"]: f["reason"] for f in features if f["measured"] is None}
+    for c in characteristics:
+        if c["measured"] is None:
+            c["reason"] = "not measured: " + "; ".join(f"{fid}: {why[fid]}" for fid in c["features"] if fid in why)
 
     inputs = [{"role": "part", "path": str(part), "sha256": sha256_file(part)}]
     for role, path in (("left image", images / IMAGE_NAMES[0]), ("right image", images / IMAGE_NAMES[1])):
@@ -180,7 +212,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     if tol_path is not None:
         inputs.append({"role": "tolerances", "path": str(tol_path), "sha256": sha256_file(tol_path)})
 
-    verdict = decide_verdict([c["decision"] for c in characteristics], any_unmeasured=True)
+    verdict = decide_verdict([c["decision"] for c in characteristics])
     report = {
         "schema": "report/1",
         "part": part.name,
@@ -190,20 +222,22 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         "inputs": inputs,
         "images": {"width": left.shape[1], "height": left.shape[0], "bit_depth": bit_depth},
         "tolerances": spec_info,
-        "registration": None,
+        "registration": registration_entry(registration),
         "features": features,
         "characteristics": characteristics,
+        "not_inspected": not_inspected,
         "skipped_edges": inv.to_dict().get("skipped", {}),
         "summary": {
             "features": len(features),
             "features_measured": sum(f["measured"] is not None for f in features),
             "characteristics": len(characteristics),
+            "not_inspected": len(not_inspected),
             **{d: sum(c["decision"] == d for c in characteristics) for d in ("pass", "fail", "inconclusive")},
         },
     }
     progress("writing reports")
     out_dir = prepare_output_dir(out)
-    write_reports(out_dir, report)
+    write_reports(out_dir, report, figure_data(left, right, calib, inv, stereo, registration, features))
     return InspectionResult(verdict, report, out_dir)
 
 
@@ -245,16 +279,198 @@ def nominal_geometry(feature):
     return g
 
 
-def _characteristics(inv, tol_path, spec_info):
-    """Characteristic definitions from the spec plus ISO 2768 general tolerances."""
+def _characteristics(inv, tol_path):
+    """The resolved spec (or the ISO 2768-mK default) and every characteristic to evaluate."""
+    from partinspect.tolerances import spec as spec_mod
+    from partinspect.tolerances.resolve import general_characteristics, resolve_spec
+
+    spec = spec_mod.load_spec(tol_path) if tol_path is not None else spec_mod.default_spec()
+    resolved = resolve_spec(spec, inv, tol_path)
+    return resolved, list(resolved.characteristics) + general_characteristics(inv, resolved)
+
+
+# ----------------------------------------------------------------- stages
+
+
+class _Record:
+    """A Feature3D as :func:`partinspect.cad.registration.register` reads it, with its edge points."""
+
+    def __init__(self, f):
+        self.feature = f
+        self.points = f.correspondences.points
+        self.point_covs = f.correspondences.cov
+
+    def __getattr__(self, name):
+        return getattr(self.feature, name)
+
+
+def _register(stereo, inv, resolved, images):
+    """Pose of the part and which CAD feature each measured one is."""
+    from partinspect.cad.registration import RegistrationError, register
+
+    circles = [_Record(f) for f in stereo.features if f.kind != "line"]
+    lines = [_Record(f) for f in stereo.features if f.kind == "line"]
+    datums = None if resolved.spec.datums is None else list(resolved.datums)
     try:
-        from partinspect.tolerances import spec as spec_mod
-    except ImportError:  # the tolerance module has not landed
-        return [], spec_info
-    if tol_path is not None:
-        spec = spec_mod.load_spec(tol_path)
-    else:
-        spec = spec_mod.default_spec()
-    chars = spec_mod.characteristics_for(spec, inv, tol_path)
-    info = {"file": None if tol_path is None else str(tol_path), "general": spec.general, "decision_rule": spec.decision_rule}
-    return [c.to_dict() for c in chars], info
+        return register(circles, lines, inv, datums=datums)
+    except RegistrationError as e:
+        raise InputError(images, f"cannot align the CAD model to the images: {e.problem}") from None
+
+
+def _measured_any(registration, feature_ids):
+    ids = set(registration.assignment["circle"].values()) | set(registration.assignment["line"].values())
+    return any(fid in ids for fid in feature_ids)
+
+
+def _characteristic_entry(decision):
+    d = decision.to_dict()
+    # One "reason" a reader can act on: why it is not measured, else why it was decided so.
+    d["reason"] = d.get("reason") or decision.reason
+    return d
+
+
+def _vec(v, digits=9):
+    return [round(float(x), digits) + 0.0 for x in v]
+
+
+def _mat(m, digits=15):
+    return [[float(f"{x:.{digits}g}") for x in row] for row in np.asarray(m, float)]
+
+
+def registration_entry(reg):
+    """report.json's "registration": the pose, its uncertainty and fit statistics."""
+    std = reg.pose_std
+    return {
+        "part_to_camera": _mat(reg.part_to_camera, 12),
+        "rms": round(float(reg.rms), 9),
+        "weighted_rms": round(float(reg.weighted_rms), 6),
+        "chi2": round(float(reg.chi2), 6),
+        "dof": int(reg.dof),
+        "datums": list(reg.datums),
+        "pose_covariance": _mat(reg.pose_cov),
+        "rotation_std_deg": _vec(np.degrees(std[:3]), 9),
+        "translation_std": _vec(std[3:], 9),
+        "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
+    }
+
+
+def _image_feature_reasons(stereo):
+    """(side, image feature index) -> why it was not matched, in words."""
+    from partinspect.vision.matching import REASONS
+
+    out = {(u.side, u.feature): REASONS.get(u.reason, u.reason) + (f" ({u.detail})" if u.detail else "")
+           for u in stereo.matching.unmatched}
+    for m, why in stereo.failed:
+        out[("left", m.left)] = out[("right", m.right)] = f"matched, but {why}"
+    return out
+
+
+def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons):
+    """Why a CAD feature has no measurement: out of view, or what became of its edge in the images."""
+    if not vis.in_view:
+        return "not visible: " + vis.reason()
+    from scipy.spatial import cKDTree
+
+    from partinspect.simulate.truth import feature_geometry, sample_edge
+    from partinspect.vision.calibration import project_points
+
+    pts, _ = sample_edge(feature.kind, feature_geometry(feature))
+    R, t = pose[:3, :3], pose[:3, 3]
+    found = []
+    for side, K, D, Rc, tc in (("left", calib.K1, calib.D1, np.eye(3), np.zeros(3)), ("right", calib.K2, calib.D2, calib.R, calib.T)):
+        uv = project_points(pts @ R.T + t, K, D, Rc, tc)
+        tree = cKDTree(uv[np.isfinite(uv).all(axis=1)])
+        feats = (stereo.left if side == "left" else stereo.right).features
+        near = [i for i, f in enumerate(feats) if len(f.uv) and np.median(tree.query(f.uv)[0]) < 2.0]
+        reasons = [unmatched_reasons[(side, i)] for i in near if (side, i) in unmatched_reasons]
+        if not near:
+            found.append(f"no edge found along it in the {side} image")
+        elif reasons:
+            found.append(f"{side} image: {reasons[0]}")
+    return "; ".join(found) if found else "seen in both images but not matched to the CAD model"
+
+
+def feature_entries(inv, stereo, registration, seen, decisions, calib):
+    """report.json's "features": nominal and measured geometry (part frame) with covariances."""
+    parts = {p.cad_id: p for p in registration.features_in_part_frame() if p.cad_id is not None}
+    index = {"circle": [f for f in stereo.features if f.kind != "line"], "line": [f for f in stereo.features if f.kind == "line"]}
+    worst = {}
+    rank = {"pass": 0, "inconclusive": 1, "fail": 2}
+    for d in decisions:
+        for fid in d.evaluation.characteristic.features:
+            if rank[d.decision] >= rank.get(worst.get(fid), -1):
+                worst[fid] = d.decision
+    reasons = _image_feature_reasons(stereo)
+    out = []
+    for f in inv.features:
+        entry = {"id": f.id, "kind": f.kind, "nominal": nominal_geometry(f), "visibility": {
+            "left": round(seen[f.id].seen[0], 3), "right": round(seen[f.id].seen[1], 3)}}
+        p = parts.get(f.id)
+        if p is None:
+            entry.update(measured=None, status="not measured",
+                         reason=_unmeasured_reason(f, seen[f.id], calib, registration.part_to_camera, stereo, reasons))
+        else:
+            f3 = index[p.kind][p.index]
+            if p.kind == "circle":
+                m = {"center": _vec(p.center), "normal": _vec(p.normal), "radius": round(p.radius, 9),
+                     "covariance": _mat(p.covariance), "radius_std": float(f"{p.radius_std:.6g}")}
+            else:
+                m = {"point": _vec(p.point), "direction": _vec(p.direction), "start": _vec(p.start), "end": _vec(p.end),
+                     "covariance": _mat(p.covariance)}
+            m.update(n_points=int(len(f3.correspondences)), datum=bool(p.datum), measured_as=f3.kind)
+            entry.update(measured=m, status=worst.get(f.id, "measured"))
+        out.append(entry)
+    return out
+
+
+
+def _curve_3d(f, n=96):
+    """Points along a measured Feature3D (rig frame, mm) for drawing."""
+    if f.kind == "line":
+        return f.start + np.linspace(0.0, 1.0, n)[:, None] * (f.end - f.start)
+    from partinspect.cad.features import reference_direction
+
+    e1 = reference_direction(f.normal)
+    e2 = np.cross(f.normal, e1)
+    a = np.linspace(f.angle_start, f.angle_end, n)
+    return f.center + f.radius * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+
+
+def figure_data(left, right, calib, inv, stereo, registration, features):
+    """The data behind the report's figures (:mod:`partinspect.reports.figures`).
+
+    Images as recorded; overlays in distorted pixels (each measured feature
+    is its 3D fit projected back through the lens model, so the overlay
+    shows the reconstruction, not just the detected edge); 3D data in the
+    part frame.
+    """
+    from partinspect.simulate.truth import feature_geometry, sample_edge
+    from partinspect.vision.calibration import project_points
+
+    status = {e["id"]: e["status"] for e in features}
+    cad_of = {}
+    for kind, key in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
+        measured = [f for f in stereo.features if key(f)]
+        for i, cid in registration.assignment[kind].items():
+            cad_of[id(measured[i])] = cid
+    cams = {"left": (calib.K1, calib.D1, np.eye(3), np.zeros(3)), "right": (calib.K2, calib.D2, calib.R, calib.T)}
+    overlays, residuals, used = [], [], {"left": set(), "right": set()}
+    for f in stereo.features:
+        label = cad_of.get(id(f), "")
+        X = _curve_3d(f)
+        for side, index in (("left", f.left), ("right", f.right)):
+            used[side].add(index)
+            K, D, R, t = cams[side]
+            overlays.append({"image": side, "xy": project_points(X, K, D, R, t), "kind": f.kind, "label": label,
+                             "status": status.get(label, "measured") if label else "unmatched"})
+            fit = (stereo.left if side == "left" else stereo.right).features[index].fit
+            residuals.append({"label": label or f"unregistered {f.kind}", "image": side, "residuals": np.asarray(fit.residuals),
+                              "sigma": float(np.median(fit.point_std))})
+    for side in ("left", "right"):
+        for i, imf in enumerate((stereo.left if side == "left" else stereo.right).features):
+            if i not in used[side]:
+                overlays.append({"image": side, "xy": imf.uv, "kind": imf.kind, "label": "", "status": "unmatched"})
+    points3d = [{"label": p.cad_id, "points": p.points, "covs": p.point_covs, "status": status.get(p.cad_id, "measured")}
+                for p in registration.features_in_part_frame() if p.cad_id is not None and p.points is not None]
+    cad_edges = [{"label": f.id, "polyline": sample_edge(f.kind, feature_geometry(f), n=120)[0]} for f in inv.features]
+    return {"left": left, "right": right, "overlays": overlays, "residuals": residuals, "points3d": points3d, "cad_edges": cad_edges}

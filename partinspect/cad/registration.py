@@ -931,6 +931,11 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
         hyps = _circle_hypotheses(meas, cad)
         if not hyps:
             hyps = _line_hypotheses(meas, cad)
+        if not hyps and not lines and _coaxial(circles):
+            raise RegistrationError(
+                f"alignment is ambiguous: the {len(circles)} measured circles share one axis and no line was "
+                "measured, so the rotation about that axis is undetermined (a rotationally symmetric view)"
+            )
         if not hyps:
             raise RegistrationError(
                 "alignment is ambiguous: no pair of measured circles or lines matches the CAD model "
@@ -995,6 +1000,23 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
         _lines=lines,
         _fit={"J": r["J"], "rows": r["rows"]},
     )
+
+
+def _coaxial(circles, rel=0.1, angle=np.deg2rad(10.0)):
+    """True when the circles look coaxial: centres within ``rel`` of the largest
+    radius (at least ``MATCH_GATE``) of the first one's axis, normals within ``angle``.
+
+    Loose on purpose: it only chooses the wording of an error, and short arcs
+    of a symmetric part are measured poorly."""
+    if not circles:
+        return False
+    tol = max(MATCH_GATE, rel * max(float(c.radius) for c in circles))
+    c0, n0 = np.asarray(circles[0].center, float), _unit(np.asarray(circles[0].normal, float))
+    for c in circles[1:]:
+        d = np.asarray(c.center, float) - c0
+        if np.linalg.norm(d - (d @ n0) * n0) > tol or abs(_unit(np.asarray(c.normal, float)) @ n0) < np.cos(angle):
+            return False
+    return True
 
 
 def _same_pose(R1, t1, R2, t2):

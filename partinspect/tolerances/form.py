@@ -120,15 +120,16 @@ def _circle_zone(P):
     return float(rho.max() - rho.min())
 
 
-def _noise(covs, rng):
+def _noise_factors(covs):
+    """Square roots ``L`` with ``L L^T = cov`` per point (eigen-form: semi-definite covariances allowed)."""
     w, V = np.linalg.eigh(covs)
-    L = V * np.sqrt(np.clip(w, 0, None))[:, None, :]
-    return np.einsum("nij,nj->ni", L, rng.standard_normal((len(covs), 3)))
+    return V * np.sqrt(np.clip(w, 0, None))[:, None, :]
 
 
 def _corrected(P, covs, zone, ideal, rng, n_draws):
     raw = zone(P)
-    sims = np.array([zone(ideal + _noise(covs, rng)) for _ in range(n_draws)])
+    L = _noise_factors(covs)  # once: the draws differ only in their normal deviates
+    sims = np.array([zone(ideal + np.einsum("nij,nj->ni", L, rng.standard_normal((len(covs), 3)))) for _ in range(n_draws)])
     b, s = float(sims.mean()), float(sims.std(ddof=1))
     return FormResult(raw - b, s, raw, b, len(P))
 

@@ -274,12 +274,33 @@ def _fit(kind, ideal, corr_length):
     return fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length)
 
 
+OUTLIER_Z = 5.0
+"""Edge points farther than this many of their own standard uncertainties
+from their feature's fit are outliers (for Gaussian noise one in 1.7
+million is): corner-rounded ends, a neighbouring edge's smoothing."""
+MAX_OUTLIER_FRACTION = 0.1
+"""At most this fraction of a feature's points is rejected: more means the
+model (line / ellipse) is wrong, which the segmentation's test must see."""
+
+
 def _make_feature(kind, seg_ids, segments, edges, K, D):
     index = np.concatenate([segments[i].fit_index for i in seg_ids])
-    uv, cov = edges.xy[index], edges.cov[index]
-    ideal = ideal_points(uv, cov, K, D, edges.normal[index])
+    # A single displaced point (a corner-rounded end that passed the
+    # segmentation's trim) would otherwise enter the 3D points and make a
+    # straight edge look out of straightness by tenths of a mm: points
+    # inconsistent with the fit are rejected, worst first, and the fit redone.
+    budget = int(MAX_OUTLIER_FRACTION * len(index))
+    while True:
+        uv, cov = edges.xy[index], edges.cov[index]
+        ideal = ideal_points(uv, cov, K, D, edges.normal[index])
+        fit = _fit(kind, ideal, edges.sigma)
+        z = np.abs(fit.residuals) / np.maximum(fit.point_std, 1e-12)
+        worst = int(np.argmax(z))
+        if z[worst] <= OUTLIER_Z or budget == 0:
+            break
+        index = np.delete(index, worst)
+        budget -= 1
     blur = float(np.median(edges.width[index]))
-    fit = _fit(kind, ideal, edges.sigma)
     if kind == "arc":
         from partinspect.vision.fitting import _ellipse_geometry
 

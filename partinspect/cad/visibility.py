@@ -1,0 +1,113 @@
+"""Which CAD edges the cameras can see with the part at a given pose.
+
+A feature that was not measured is either out of view (outside an image,
+or hidden behind the part itself) or seen but not measurable (too short,
+unmatched, degenerate). The report must say which: the first is a matter of
+fixturing, the second of the measurement. Visibility here is geometric:
+CAD edges sampled densely, projected with the lens model, and a ray cast
+from each camera centre towards every sample through the tessellated part.
+
+Frames: part frame (STEP), mm; ``part_to_camera`` maps it into the left
+camera (rig) frame.
+
+References
+----------
+.. [1] Hartley, R., & Zisserman, A. (2004). Multiple View Geometry in
+       Computer Vision, 2nd ed., section 6.1 (projective camera).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["FeatureVisibility", "SEEN_FRACTION", "visibility"]
+
+SEEN_FRACTION = 0.5
+"""A feature with less than this fraction of its length in view in either
+image counts as out of view."""
+
+MESH_TOLERANCE = 0.05
+"""Chord error of the mesh the sight lines are cast through, mm (about a
+pixel's footprint on the part for the rigs the project targets)."""
+
+
+@dataclass(frozen=True)
+class FeatureVisibility:
+    """How much of one CAD edge each camera sees.
+
+    Attributes
+    ----------
+    in_image : tuple of float
+        Fraction of the edge projecting inside the left and right image.
+    unoccluded : tuple of float
+        Fraction whose line of sight from the left / right camera is free.
+    seen : tuple of float
+        Fraction both inside the image and unoccluded, per camera.
+    """
+
+    in_image: tuple
+    unoccluded: tuple
+    seen: tuple
+
+    @property
+    def in_view(self):
+        """True when both cameras see at least ``SEEN_FRACTION`` of the edge."""
+        return min(self.seen) >= SEEN_FRACTION
+
+    def reason(self):
+        """Why the edge is out of view, in words ("" when it is in view)."""
+        if self.in_view:
+            return ""
+        names = ("left", "right")
+        out = []
+        for i, name in enumerate(names):
+            if self.seen[i] >= SEEN_FRACTION:
+                continue
+            if self.in_image[i] < SEEN_FRACTION:
+                out.append(f"outside the {name} image ({100 * self.in_image[i]:.0f} % inside)")
+            else:
+                out.append(f"hidden by the part in the {name} image ({100 * self.unoccluded[i]:.0f} % in sight)")
+        return "; ".join(out)
+
+
+def visibility(shape, inventory, calib, part_to_camera, *, mesh=None):
+    """Visibility of every feature of an inventory in both cameras.
+
+    Parameters
+    ----------
+    shape : cadquery.Shape
+        The part, for tessellation (ignored when ``mesh`` is given).
+    inventory : partinspect.cad.features.Inventory
+    calib : partinspect.vision.calibration.StereoCalibration
+    part_to_camera : ndarray, shape (4, 4)
+        ``x_rig = R @ X_part + t``, mm.
+    mesh : trimesh.Trimesh, optional
+        A tessellation of ``shape`` with ``face_attributes["cad_face"]``.
+
+    Returns
+    -------
+    dict of str to FeatureVisibility
+        Keyed by feature id.
+    """
+    from partinspect.cad.mesh import tessellate
+    from partinspect.simulate.render import build_scene
+    from partinspect.simulate.truth import edge_visibility, feature_geometry, sample_edge
+
+    # A coarse mesh: occlusion is decided to a pixel or so, and the exact
+    # renderer's 5 um chord error would cost a minute on a large part.
+    if mesh is None:
+        mesh = tessellate(shape, tolerance=MESH_TOLERANCE, angular_tolerance=0.2, inventory=inventory)
+    rs = build_scene(mesh)
+    out = {}
+    for f in inventory.features:
+        pts, tan = sample_edge(f.kind, feature_geometry(f))
+        fr = {"in_image": [], "unoccluded": [], "seen": []}
+        for index in (0, 1):
+            v = edge_visibility(rs, calib, index, part_to_camera, pts, tan)
+            fr["in_image"].append(float(np.mean(v["in_image"])))
+            fr["unoccluded"].append(float(np.mean(v["unoccluded"])))
+            fr["seen"].append(float(np.mean(v["in_image"] & v["unoccluded"])))
+        out[f.id] = FeatureVisibility(*(tuple(fr[k]) for k in ("in_image", "unoccluded", "seen")))
+    return out
