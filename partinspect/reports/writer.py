@@ -12,7 +12,7 @@ def report_json(report):
     return json.dumps(report, indent=2, ensure_ascii=False, allow_nan=False) + "\n"
 
 
-def write_reports(out_dir, report):
+def write_reports(out_dir, report, figures=None):
     """Render all three outputs first, then write each atomically.
 
     Rendering everything before writing anything means a failure in one
