@@ -59,6 +59,14 @@ def _main_parser():
     p.add_argument("images", metavar="IMAGES_DIR", help="folder with left.png, right.png, calibration.yaml")
     p.add_argument("-o", "--output", metavar="OUT", default="inspection", help="output folder (default: ./inspection)")
     p.add_argument("--tolerances", metavar="FILE", help="tolerance spec (YAML); default PART.tol.yaml beside the STEP file")
+    p.add_argument(
+        "--uncertainty",
+        choices=("first-order", "montecarlo"),
+        default="first-order",
+        help="how the 3D features' covariances are obtained: first-order propagation (default) or a "
+        "Monte Carlo of the edge points and calibration (JCGM 101; slower)",
+    )
+    p.add_argument("--draws", metavar="N", type=int, default=200, help="Monte Carlo draws per feature (default 200)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help="show a traceback on internal errors")
     p.add_argument("--version", action="version", version=f"partinspect {__version__}")
@@ -214,8 +222,11 @@ def _run_inspect(args):
 
     if not args.output:
         raise InputError(None, "-o: the output folder name is empty")
+    if args.draws < 10:
+        raise InputError(None, f"--draws {args.draws}: a Monte Carlo needs at least 10 draws")
     result = run_inspection(
-        args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet)
+        args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet),
+        uncertainty=args.uncertainty, draws=args.draws,
     )
     if not args.quiet:
         try:

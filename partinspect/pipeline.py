@@ -105,7 +105,8 @@ def _report_time():
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
 
 
-def run_inspection(part, images, out="inspection", *, tolerances=None, progress=quiet):
+def run_inspection(part, images, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
+                   draws=200):
     """Inspect a part from a stereo pair and write the reports.
 
     Parameters
@@ -121,6 +122,15 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         Tolerance spec; default PART.tol.yaml beside the STEP file.
     progress : callable
         ``progress(message)`` for each stage.
+    uncertainty : {"first-order", "montecarlo"}
+        How the 3D features' covariances are obtained. "montecarlo"
+        replaces each first-order covariance by the covariance of ``draws``
+        repetitions of the 3D fits with the edge points (and calibration,
+        when it states uncertainties) drawn from their distributions
+        (JCGM 101); the first-order standard uncertainties are kept in the
+        report beside them.
+    draws : int
+        Monte Carlo draws per feature.
 
     Returns
     -------
@@ -172,6 +182,12 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     from partinspect.vision.stereo import measure_stereo
 
     stereo = measure_stereo(left, right, calib, progress=progress)
+    uncertainty_info = {"method": "first-order propagation (JCGM 100)", "coverage_factor": 2.0}
+    if uncertainty == "montecarlo":
+        progress(f"Monte Carlo: {draws} draws for each of {len(stereo.features)} features")
+        stereo, ratios = _monte_carlo(stereo, calib, draws)
+        uncertainty_info = {"method": "Monte Carlo (JCGM 101)", "draws": draws, "seed": 0, "coverage_factor": 2.0,
+                            "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None}
     progress(f"registering {len(stereo.features)} measured features to the CAD model")
     registration = _register(stereo, inv, resolved, images)
 
@@ -222,6 +238,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         "inputs": inputs,
         "images": {"width": left.shape[1], "height": left.shape[0], "bit_depth": bit_depth},
         "tolerances": spec_info,
+        "uncertainty": uncertainty_info,
         "registration": registration_entry(registration),
         "features": features,
         "characteristics": characteristics,
@@ -302,6 +319,26 @@ class _Record:
 
     def __getattr__(self, name):
         return getattr(self.feature, name)
+
+
+def _monte_carlo(stereo, calib, draws):
+    """The stereo result with Monte Carlo covariances in place of the first-order ones.
+
+    Returns the new result and the ratios of Monte Carlo to first-order
+    standard uncertainties over all parameters (for the report).
+    """
+    from dataclasses import replace
+
+    from partinspect.vision.montecarlo import monte_carlo
+
+    feats, ratios = list(stereo.features), []
+    for mc in monte_carlo(stereo, calib, draws=draws, seed=0):
+        f = feats[mc.feature]
+        C = 0.5 * (mc.cov_mc + mc.cov_mc.T)
+        extra = {"radius_std": float(np.sqrt(C[6, 6]))} if f.kind != "line" else {}
+        feats[mc.feature] = replace(f, param_cov=C, covariance=C[:3, :3], axis_cov=C[3:6, 3:6], **extra)
+        ratios.extend(r for r in mc.std_ratio if np.isfinite(r))
+    return replace(stereo, features=tuple(feats)), np.array(ratios)
 
 
 def _register(stereo, inv, resolved, images):

@@ -106,12 +106,19 @@ def test_black_image_is_refused(workdir, tmp_path, capsys):
     assert "all black" in capsys.readouterr().err
 
 
-def test_deviated_hole_fails_and_nothing_else_does(repo, tmp_path, capsys):
-    """A plate made 0.1 mm oversize at circle-4 (limits 0 / +0.05) fails on that characteristic alone."""
+@pytest.fixture(scope="module")
+def deviated(repo, tmp_path_factory):
+    """The plate made 0.1 mm oversize at circle-4 and with circle-2 moved, rendered at half size."""
     step = repo / "examples" / "plate" / "part.step"
-    render = tmp_path / "render"
+    render = tmp_path_factory.mktemp("deviated") / "render"
     assert main(["render", str(step), str(render), "--size", "1224x1024", "--seed", "3", "-q",
                  "--deviate", "circle-4.diameter=0.1", "--deviate", "circle-2.center=0.08,0,0"]) == 0
+    return step, render
+
+
+def test_deviated_hole_fails_and_nothing_else_does(deviated, tmp_path, capsys):
+    """circle-4 (limits 0 / +0.05) made 0.1 mm oversize fails on that characteristic alone."""
+    step, render = deviated
     out = tmp_path / "inspection"
     code = main([str(step), str(render / "images"), "-o", str(out), "-q"])
     assert code == 1, capsys.readouterr().err
@@ -125,3 +132,18 @@ def test_deviated_hole_fails_and_nothing_else_does(repo, tmp_path, capsys):
             assert c["reason"].startswith("not measured: ") and len(c["reason"]) > len("not measured: ")
     junit = (out / "junit.xml").read_text()
     assert "circle-4.diameter" in junit and "<failure" in junit
+
+
+def test_monte_carlo_uncertainty_agrees_with_first_order(deviated, tmp_path):
+    from partinspect.pipeline import run_inspection
+
+    step, render = deviated
+    mc = run_inspection(step, render / "images", tmp_path / "mc", uncertainty="montecarlo", draws=40).report
+    fo = run_inspection(step, render / "images", tmp_path / "fo").report
+    assert mc["uncertainty"]["method"].startswith("Monte Carlo") and mc["uncertainty"]["draws"] == 40
+    assert fo["uncertainty"]["method"].startswith("first-order")
+    # 40 draws estimate a standard deviation to about +-11 %: the median ratio is far tighter.
+    assert 0.85 < mc["uncertainty"]["std_ratio_median"] < 1.15
+    u_fo = {c["id"]: c["standard_uncertainty"] for c in fo["characteristics"] if c["type"] == "diameter" and c["measured"]}
+    u_mc = {c["id"]: c["standard_uncertainty"] for c in mc["characteristics"] if c["id"] in u_fo}
+    assert u_fo and all(0.6 < u_mc[k] / u_fo[k] < 1.5 for k in u_fo), (u_fo, u_mc)
