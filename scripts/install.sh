@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
 # Install everything partinspect needs on a fresh Debian machine:
-# the system library Open3D loads (libusb-1.0-0), then the Python package
-# with its dependencies (editable, with the test extras).
-# Usage: bash scripts/install.sh [--browser]   (--browser: also Chromium, for the report's browser test)
+# the system library Open3D loads (libusb-1.0-0), Chromium for the HTML
+# report's browser test, then the Python package with its dependencies
+# (editable, with the test extras).
+# Usage: bash scripts/install.sh [--no-browser | --browser-only]
+#   --no-browser    skip Chromium (the report's browser test is then skipped)
+#   --browser-only  install only Chromium (what tests/reports/test_browser.py runs when it is missing)
+#   --browser       accepted for compatibility: Chromium is installed by default
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
@@ -26,9 +30,30 @@ apt_install() {
     fi
 }
 
+browser=yes
+case "${1:-}" in
+    --no-browser) browser=no ;;
+    --browser-only) browser=only ;;
+    --browser|"") ;;
+    *) echo "install: unknown option $1 (use --no-browser or --browser-only)" >&2; exit 2 ;;
+esac
+
+install_browser() {
+    # Chromium is only needed by the report's browser test: failing to get it is
+    # a warning (that test then skips and says why), never a failed install.
+    if ! apt_install /usr/bin/chromium chromium; then
+        echo "install: without Chromium, tests/reports/test_browser.py will be skipped" >&2
+        return 1
+    fi
+}
+
+if [ "$browser" = only ]; then
+    install_browser
+    exit $?
+fi
 apt_install libusb-1.0.so.0 libusb-1.0-0
-if [ "${1:-}" = "--browser" ]; then
-    apt_install /usr/bin/chromium chromium
+if [ "$browser" = yes ]; then
+    install_browser || true
 fi
 
 # Re-install when pyproject.toml changed since the last install by this Python.

@@ -15,6 +15,11 @@ def report_json(report):
 def write_reports(out_dir, report, figures=None):
     """Render all three outputs first, then write each atomically.
 
+    ``figures`` is the optional dict of run data for the HTML report's
+    figures (images, overlays, residuals, 3D points, CAD edges; the exact
+    interface is in :mod:`partinspect.reports.figures`); it does not change
+    report.json or junit.xml.
+
     Rendering everything before writing anything means a failure in one
     renderer leaves the previous reports untouched; the three files are
     then replaced together (`partinspect.atomic.write_files_atomic`).
@@ -22,6 +27,10 @@ def write_reports(out_dir, report, figures=None):
     from partinspect.reports.html import render_html
     from partinspect.reports.junit import junit_xml
 
-    texts = {"report.json": report_json(report), "junit.xml": junit_xml(report), "report.html": render_html(report)}
+    texts = {
+        "report.json": report_json(report),
+        "junit.xml": junit_xml(report),
+        "report.html": render_html(report, figures),
+    }
     # Replaced together: an interrupt never leaves a report.json of this run beside a report.html of the last.
     return write_files_atomic({out_dir / name: texts[name].encode("utf-8") for name in REPORT_FILES})

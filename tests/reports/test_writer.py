@@ -1,6 +1,7 @@
 """report.json against its schema, junit.xml structure, HTML escaping, atomic writes."""
 
 import json
+import re
 import xml.etree.ElementTree as ET
 from importlib import resources
 
@@ -107,3 +108,157 @@ def test_failed_render_leaves_previous_reports(tmp_path):
         write_reports(tmp_path, broken)
     assert {n: (tmp_path / n).read_bytes() for n in REPORT_FILES} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(REPORT_FILES)
+
+
+# --- JUnit schema, ordering, escaping, units, registration (synthetic run of tests/reports/synthetic.py)
+
+import math  # noqa: E402
+
+import xmlschema  # noqa: E402
+
+from partinspect.reports.html import registration_summary, sort_characteristics, tolerance_bar  # noqa: E402
+from tests.reports import synthetic  # noqa: E402
+
+JUNIT_XSD = xmlschema.XMLSchema(str(resources.files("partinspect.reports").joinpath("schemas/junit.xsd")))
+
+
+def test_junit_validates_against_the_xsd():
+    nasty = 'a<b>&"c\'\x7f'
+    reports = [
+        synthetic.make_report(),
+        make_report(CHARS),
+        make_report([], verdict="inconclusive"),
+        synthetic.make_report([synthetic.char(f"{nasty}.diameter", "fail", 12.2, reason=nasty)], part=nasty),
+    ]
+    for report in reports:
+        JUNIT_XSD.validate(junit_xml(report))
+    # The schema is not a rubber stamp: the old root's skipped count, a case without name, a word count are refused.
+    for bad in ('<testsuites skipped="1"/>', '<testsuites><testsuite name="a" tests="1" failures="0" errors="0">'
+                '<testcase classname="x"/></testsuite></testsuites>',
+                '<testsuites><testsuite name="a" tests="one" failures="0" errors="0"/></testsuites>'):
+        assert not JUNIT_XSD.is_valid(bad), bad
+
+
+def test_junit_messages_carry_numbers_units_and_reasons():
+    root = ET.fromstring(junit_xml(synthetic.make_report()))
+    suite = root.find("testsuite")
+    cases = {c.get("name"): c for c in suite.findall("testcase")}
+    fail = cases["circle-3.diameter"].find("failure")
+    assert fail.get("message").startswith("circle-3.diameter: measured 12.2100 +- 0.0100 (U, k=2), nominal 12.0000, "
+                                          "limits [12.0000, 12.0500] mm: fail")
+    assert "deviation +0.2100 mm" in fail.text and "tolerance from part.tol.yaml line 9" in fail.text
+    skipped = cases["circle-3.position"].find("skipped").get("message")
+    assert "measured 0.0950 +- 0.0120" in skipped and "straddles a specification limit" in skipped
+    assert cases["circle-5.diameter"].find("skipped").get("message").startswith("circle-5.diameter: not measured;")
+    assert "limits [89.5000, 90.5000] deg" in junit_xml(synthetic.make_report(
+        [synthetic.char("line-1.angle", "fail", 91.0, 90.0, 89.5, 90.5, 0.04, unit="deg")]))
+    props = {p.get("name"): p.get("value") for p in suite.find("properties")}
+    assert props == {"verdict": "fail", "part": "part.step", "schema": "report/1"}
+    assert suite.find("system-out").text.startswith("FAIL: 4 pass, 1 fail, 2 inconclusive of 7")
+    assert root.get("skipped") is None and suite.get("skipped") == "2"
+
+
+def test_characteristics_fail_first_then_inconclusive_then_pass_in_report_order():
+    ordered = sort_characteristics(synthetic.CHARS)
+    decisions = [c["decision"] for c in ordered]
+    assert decisions == ["fail", "inconclusive", "inconclusive", "pass", "pass", "pass", "pass"]
+    assert [c["id"] for c in ordered if c["decision"] == "pass"] == [
+        c["id"] for c in synthetic.CHARS if c["decision"] == "pass"]
+    html = render_html(synthetic.make_report())
+    rows = re.findall(r'<tr class="(\w+)" data-decision="\w+">\s*<td><span class="mono id">([^<]+)</span>', html)
+    assert [d for d, _ in rows] == decisions and [i for _, i in rows] == [c["id"] for c in ordered]
+
+
+def test_every_user_string_is_escaped():
+    nasty = '<script>alert("x")</script>'
+    report = synthetic.make_report(part=nasty)
+    report["inputs"][1]["path"] = f"/data/{nasty}/left.png"
+    report["features"][0]["id"] = nasty
+    report["features"][1]["reason"] = nasty
+    report["characteristics"][0]["reason"] = nasty
+    report["characteristics"][0]["rule"] = nasty
+    report["tolerances"]["file"] = nasty
+    report["registration"]["datums"] = [nasty]
+    report["not_inspected"][0]["reason"] = nasty
+    html = render_html(report)
+    assert nasty not in html and "<script>alert" not in html
+    assert html.count("&lt;script&gt;alert(&#34;x&#34;)&lt;/script&gt;") >= 9
+    assert html.count("<script") == 1  # the report's own, hash-pinned by the page's CSP
+    csp = re.search(r'http-equiv="Content-Security-Policy" content="([^"]+)"', html).group(1)
+    rules = dict(d.strip().split(" ", 1) for d in csp.split(";"))
+    assert rules["default-src"] == "'none'" and re.fullmatch(r"'sha256-[A-Za-z0-9+/]{43}='", rules["script-src"])
+
+
+def test_angles_are_shown_in_degrees():
+    from partinspect.tolerances.evaluate import Evaluation
+    from partinspect.tolerances.resolve import Characteristic
+
+    c = Characteristic("angle(line-1,line-2)", "angle", ("line-1", "line-2"), math.radians(90), math.radians(89.5),
+                       math.radians(90.5), "spec", "part.tol.yaml line 20", unit="rad")
+    d = Evaluation(c, math.radians(90.02), math.radians(0.02), math.radians(0.01), math.radians(0.02)).to_dict()
+    d.update(decision="pass", reason=None)
+    assert d["unit"] == "deg" and math.isclose(d["measured"], 90.02) and math.isclose(d["upper_limit"], 90.5)
+    html = render_html(synthetic.make_report([d]))
+    row = re.search(r'<tr class="pass".*?</tr>', html, flags=re.S).group(0)
+    assert ">90.0200<" in row and "89.5000<br>90.5000" in row and ">deg<" in row and "+0.0200" in row
+    jsonschema.validate(synthetic.make_report([d]), SCHEMA)
+
+
+def test_tolerance_bar_places_the_measured_value_inside_or_outside_the_zone():
+    def xs(svg):
+        zone = [float(v) for v in re.findall(r'<line x1="([0-9.]+)" x2="\1" y1="2"', svg)]
+        dot = float(re.search(r'<circle cx="([0-9.]+)"', svg).group(1)) if "<circle" in svg else None
+        return zone, dot
+
+    zone, dot = xs(str(tolerance_bar(synthetic.char("c.diameter", "pass", 12.01, 12.0, 11.95, 12.05, 0.006))))
+    assert len(zone) == 2 and zone[0] < dot < zone[1]
+    zone, dot = xs(str(tolerance_bar(synthetic.char("c.diameter", "fail", 12.2, 12.0, 11.95, 12.05, 0.01))))
+    assert dot > zone[1]
+    one_sided = str(tolerance_bar(synthetic.char("l.straightness", "pass", 0.004, 0.0, None, 0.02, 0.003)))
+    zone, dot = xs(one_sided)
+    assert len(zone) == 1 and dot < zone[0]
+    unmeasured = str(tolerance_bar(synthetic.char("c.diameter", "inconclusive", None)))
+    assert "not measured" in unmeasured and "<circle" not in unmeasured
+    assert str(tolerance_bar({"decision": "pass", "nominal": None, "lower_limit": None, "upper_limit": None,
+                              "measured": None})) == ""
+    ET.fromstring(one_sided)  # well-formed
+
+
+def test_registration_summary_and_section():
+    s = registration_summary(synthetic.make_report()["registration"])
+    assert math.isclose(s["rms"], 0.0042) and s["datums"] == ["line-1", "line-2", "circle-3"]
+    assert math.isclose(s["rotation_deg"], 160.05, abs_tol=0.01) and s["translation"] == [-40.0, 25.0, 420.0]
+    html = render_html(synthetic.make_report())
+    assert 'id="registration"' in html and "0.0042 mm" in html and "χ² 12.60 on 11 degrees of freedom" in html
+    assert registration_summary(None) is None
+    assert 'id="registration"' not in render_html(synthetic.make_report(registration=False))
+
+
+def test_synthetic_report_and_extended_schema():
+    report = synthetic.make_report()
+    jsonschema.validate(report, SCHEMA)
+    jsonschema.Draft202012Validator.check_schema(SCHEMA)
+    bad = synthetic.make_report()
+    bad["not_inspected"][0].pop("reason")
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, SCHEMA)
+    bad = synthetic.make_report()
+    bad["characteristics"][0]["unit"] = "rad"  # angles are reported in degrees
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, SCHEMA)
+    bad = synthetic.make_report()
+    bad["registration"]["dof"] = -1
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, SCHEMA)
+
+
+def test_write_reports_with_figures_keeps_json_and_junit_unchanged(tmp_path):
+    report = synthetic.make_report()
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    write_reports(tmp_path / "a", report)
+    write_reports(tmp_path / "b", report, synthetic.make_figures(seed=5, width=612, height=512, n_pts=30))
+    for name in ("report.json", "junit.xml"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    assert 'id="fig-images"' in (tmp_path / "b" / "report.html").read_text()
+    assert 'id="figures"' not in (tmp_path / "a" / "report.html").read_text()
