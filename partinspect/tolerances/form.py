@@ -120,6 +120,37 @@ def _circle_zone(P):
     return float(rho.max() - rho.min())
 
 
+def _line_zones(Ps):
+    """``_line_zone`` of a stack of point sets (D, M, 3) at once: (D,)."""
+    v = Ps - Ps.mean(axis=1, keepdims=True)
+    _, V = np.linalg.eigh(np.einsum("dmi,dmj->dij", v, v))
+    d = V[:, :, -1]  # the largest principal axis: the orthogonal LS line
+    r = v - np.einsum("dm,di->dmi", np.einsum("dmi,di->dm", v, d), d)
+    return 2.0 * np.sqrt((r * r).sum(2).max(1))
+
+
+def _circle_zones(Ps):
+    """``_circle_zone`` of a stack of point sets (D, M, 3) at once: (D,)."""
+    c0 = Ps.mean(axis=1, keepdims=True)
+    v = Ps - c0
+    _, V = np.linalg.eigh(np.einsum("dmi,dmj->dij", v, v))
+    E = V[:, :, 1:][:, :, ::-1]  # the plane's two largest axes, (D, 3, 2)
+    xy = np.einsum("dmi,dik->dmk", v, E)
+    # Kasa, then Gauss-Newton on the geometric distance, as fit_circle_points.
+    A = np.concatenate([2 * xy, np.ones(xy.shape[:2] + (1,))], axis=2)
+    sol = np.linalg.solve(np.einsum("dmi,dmj->dij", A, A), np.einsum("dmi,dm->di", A, (xy * xy).sum(2))[..., None])[..., 0]
+    a, b = sol[:, 0], sol[:, 1]
+    r = np.sqrt(sol[:, 2] + a * a + b * b)
+    for _ in range(3):
+        dx, dy = xy[:, :, 0] - a[:, None], xy[:, :, 1] - b[:, None]
+        rho = np.hypot(dx, dy)
+        J = np.stack([-dx / rho, -dy / rho, -np.ones_like(rho)], axis=2)
+        step = np.linalg.solve(np.einsum("dmi,dmj->dij", J, J), np.einsum("dmi,dm->di", J, -(rho - r[:, None]))[..., None])[..., 0]
+        a, b, r = a + step[:, 0], b + step[:, 1], r + step[:, 2]
+    rho = np.hypot(xy[:, :, 0] - a[:, None], xy[:, :, 1] - b[:, None])
+    return rho.max(1) - rho.min(1)
+
+
 def _noise_factors(covs):
     """Square roots ``L`` with ``L L^T = cov`` per point (eigen-form: semi-definite covariances allowed)."""
     w, V = np.linalg.eigh(covs)
@@ -129,7 +160,8 @@ def _noise_factors(covs):
 def _corrected(P, covs, zone, ideal, rng, n_draws):
     raw = zone(P)
     L = _noise_factors(covs)  # once: the draws differ only in their normal deviates
-    sims = np.array([zone(ideal + np.einsum("nij,nj->ni", L, rng.standard_normal((len(covs), 3)))) for _ in range(n_draws)])
+    z = np.stack([rng.standard_normal((len(covs), 3)) for _ in range(n_draws)])
+    sims = (_line_zones if zone is _line_zone else _circle_zones)(ideal + np.einsum("nij,dnj->dni", L, z))
     b, s = float(sims.mean()), float(sims.std(ddof=1))
     return FormResult(raw - b, s, raw, b, len(P))
 
