@@ -60,6 +60,12 @@ def _main_parser():
     p.add_argument("-o", "--output", metavar="OUT", default="inspection", help="output folder (default: ./inspection)")
     p.add_argument("--tolerances", metavar="FILE", help="tolerance spec (YAML); default PART.tol.yaml beside the STEP file")
     p.add_argument(
+        "--pose-hint",
+        metavar="POSE",
+        help="the part's approximate pose, to skip the search or settle a symmetric part: a JSON file with "
+        "part_to_camera (a render's truth.json, a plan's best_pose.json) or RX,RY,RZ,TX,TY,TZ as inspect render",
+    )
+    p.add_argument(
         "--uncertainty",
         choices=("first-order", "montecarlo"),
         default="first-order",
@@ -226,7 +232,7 @@ def _run_inspect(args):
         raise InputError(None, f"--draws {args.draws}: a Monte Carlo needs at least 10 draws")
     result = run_inspection(
         args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet),
-        uncertainty=args.uncertainty, draws=args.draws,
+        uncertainty=args.uncertainty, draws=args.draws, pose_hint=args.pose_hint,
     )
     if not args.quiet:
         try:

@@ -106,7 +106,7 @@ def _report_time():
 
 
 def run_inspection(part, images, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
-                   draws=200):
+                   draws=200, pose_hint=None):
     """Inspect a part from a stereo pair and write the reports.
 
     Parameters
@@ -131,6 +131,12 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         report beside them.
     draws : int
         Monte Carlo draws per feature.
+    pose_hint : str, Path or ndarray (4, 4), optional
+        An approximate ``part_to_camera`` (a JSON file holding it, or
+        ``RX,RY,RZ,TX,TY,TZ`` as ``inspect render --pose`` takes), close
+        enough that each feature lies within half a millimetre of its place:
+        the pose search is skipped, which also settles parts that look
+        symmetric to the cameras.
 
     Returns
     -------
@@ -169,6 +175,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     inv = inventory(shape)
     if not inv.features:
         raise InputError(part, f"no line or circle edges to measure ({_edges_found(inv)})")
+    hint = _pose_hint(pose_hint, shape, calib)
 
     if tol_path is not None:
         progress(f"reading tolerances {tol_path.name}")
@@ -189,7 +196,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         uncertainty_info = {"method": "Monte Carlo (JCGM 101)", "draws": draws, "seed": 0, "coverage_factor": 2.0,
                             "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None}
     progress(f"registering {len(stereo.features)} measured features to the CAD model")
-    registration = _register(stereo, inv, resolved, images)
+    registration = _register(stereo, inv, resolved, images, hint)
 
     progress("checking which edges the cameras see")
     from partinspect.cad.visibility import visibility
@@ -341,7 +348,18 @@ def _monte_carlo(stereo, calib, draws):
     return replace(stereo, features=tuple(feats)), np.array(ratios)
 
 
-def _register(stereo, inv, resolved, images):
+def _pose_hint(pose_hint, shape, calib):
+    if pose_hint is None or isinstance(pose_hint, np.ndarray):
+        return pose_hint
+    from partinspect.simulate.pose import parse_pose
+
+    try:
+        return parse_pose(pose_hint, shape, calib)
+    except InputError as e:
+        raise InputError(e.path, e.problem.replace("--pose", "--pose-hint")) from None
+
+
+def _register(stereo, inv, resolved, images, pose_hint=None):
     """Pose of the part and which CAD feature each measured one is."""
     from partinspect.cad.registration import RegistrationError, register
 
@@ -349,7 +367,7 @@ def _register(stereo, inv, resolved, images):
     lines = [_Record(f) for f in stereo.features if f.kind == "line"]
     datums = None if resolved.spec.datums is None else list(resolved.datums)
     try:
-        return register(circles, lines, inv, datums=datums)
+        return register(circles, lines, inv, datums=datums, pose_hint=pose_hint)
     except RegistrationError as e:
         raise InputError(images, f"cannot align the CAD model to the images: {e.problem}") from None
 

@@ -147,3 +147,22 @@ def test_monte_carlo_uncertainty_agrees_with_first_order(deviated, tmp_path):
     u_fo = {c["id"]: c["standard_uncertainty"] for c in fo["characteristics"] if c["type"] == "diameter" and c["measured"]}
     u_mc = {c["id"]: c["standard_uncertainty"] for c in mc["characteristics"] if c["id"] in u_fo}
     assert u_fo and all(0.6 < u_mc[k] / u_fo[k] < 1.5 for k in u_fo), (u_fo, u_mc)
+
+
+def test_pose_hint_gives_the_searched_pose_and_a_wrong_hint_is_refused(deviated, tmp_path, capsys):
+    step, render = deviated
+    truth = render / "truth.json"
+    out = tmp_path / "hinted"
+    assert main([str(step), str(render / "images"), "-o", str(out), "-q", "--pose-hint", str(truth)]) == 1
+    T = np.array(json.loads((out / "report.json").read_text())["registration"]["part_to_camera"])
+    T_true = np.array(json.loads(truth.read_text())["part_to_camera"])
+    assert np.allclose(T[:3, :3], T_true[:3, :3], atol=2e-4) and np.allclose(T[:3, 3], T_true[:3, 3], atol=0.05)
+    # A hint 5 mm off matches nothing: the run says so rather than measuring against a wrong pose.
+    wrong = tmp_path / "wrong.json"
+    T_true[:3, 3] += [5.0, 0.0, 0.0]
+    wrong.write_text(json.dumps({"part_to_camera": T_true.tolist()}))
+    capsys.readouterr()
+    code = main([str(step), str(render / "images"), "-o", str(tmp_path / "w"), "-q", "--pose-hint", str(wrong)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "align" in err, err
+    assert not (tmp_path / "w").exists()
