@@ -19,7 +19,7 @@ from partinspect.errors import InputError
 
 EXIT_PASS, EXIT_FAIL, EXIT_ERROR, EXIT_INCONCLUSIVE = 0, 1, 2, 3
 
-SUBCOMMANDS = ("features", "render", "calibrate")
+SUBCOMMANDS = ("features", "render", "calibrate", "plan")
 
 MAIN_DESCRIPTION = """\
 Inspect a machined part against its STEP model from one calibrated stereo
@@ -36,6 +36,9 @@ other commands:
   inspect calibrate PAIRS_DIR -o calibration.yaml --board 9x6 --square 25
                                           calibrate the stereo rig from board image pairs,
                                           with the parameters' standard uncertainties
+  inspect plan PART.step --rig calibration.yaml [--pose POSE] [--ratio 0.25]
+                                          predict each characteristic's U before measuring,
+                                          and search the fixture pose where all are decidable
   (inspect COMMAND --help for each)
 
 exit codes: 0 pass, 1 fail, 3 inconclusive, 2 the run could not be made."""
@@ -51,7 +54,7 @@ class _Parser(argparse.ArgumentParser):
 def _main_parser():
     p = _Parser(
         prog="inspect",
-        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render,calibrate} ...",
+        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render,calibrate,plan} ...",
         description=MAIN_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -140,6 +143,68 @@ def _calibrate_parser():
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no summary")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
+
+
+def _plan_parser():
+    p = _Parser(
+        prog="inspect plan",
+        description=(
+            "Before measuring: predict, for every toleranced characteristic, the expanded uncertainty U "
+            "(k = 2) the rig would achieve with the part in a pose, from the measurement chain's own error "
+            "model (edge noise -> fits -> triangulation -> registration); then search the part's rotation and "
+            "tilt on the fixture for a pose where every characteristic is decidable (U <= RATIO x tolerance). "
+            "Prints a table; writes OUT/plan.html, OUT/plan.json and OUT/best_pose.json. "
+            "Exit code 0: every characteristic decidable in the proposed pose; 3: some are not in any pose tried; "
+            "2: bad input."
+        ),
+    )
+    p.add_argument("part", metavar="PART.step")
+    p.add_argument("--rig", metavar="CALIBRATION", required=True,
+                   help="the rig's calibration.yaml (or a folder holding it); must give the image size")
+    p.add_argument("--tolerances", metavar="FILE", help="tolerance spec (YAML); default PART.tol.yaml beside the STEP file")
+    p.add_argument("--pose", metavar="POSE",
+                   help="starting pose: RX,RY,RZ[,TX,TY,TZ] (degrees, mm, as inspect render) or a JSON file with "
+                   "part_to_camera (a render's truth.json, a plan's best_pose.json); default the simulator's pose")
+    p.add_argument("--ratio", metavar="R", type=float, default=0.25,
+                   help="decidable when U <= R x tolerance (default 0.25)")
+    p.add_argument("-o", "--output", metavar="OUT", default="plan", help="output folder (default: ./plan)")
+    p.add_argument("--noise", metavar="SIGMA", type=float, default=2.0, help="image noise, grey levels (default 2)")
+    p.add_argument("--contrast", metavar="GREY", type=float,
+                   help="grey-level step at every edge (default: from the shading of the faces)")
+    p.add_argument("--blur", metavar="PX", type=float, default=0.6, help="optical blur (Gaussian sigma), px (default 0.6)")
+    p.add_argument("--no-search", action="store_true", help="predict the starting pose only")
+    p.add_argument("--rotation", metavar="DEG", type=float, default=180.0,
+                   help="search rotations about the fixture axis within +-DEG (default 180: a full turn)")
+    p.add_argument("--max-tilt", metavar="DEG", type=float, default=30.0,
+                   help="search tilts about the fixture's X and Y axes up to DEG (default 30; 0: no tilt)")
+    p.add_argument("--step", metavar="DEG", type=float, default=30.0, help="coarse rotation step (default 30)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no table")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _run_plan(args):
+    if not args.output:
+        raise InputError(None, "-o: the output folder name is empty")
+    from partinspect.atomic import check_output_dir
+
+    check_output_dir(args.output)
+    from partinspect.planning.edge_model import DetectorModel
+    from partinspect.planning.plan import run_plan
+    from partinspect.planning.report import plan_table, write_plan
+
+    model = DetectorModel(noise=args.noise, blur=args.blur, contrast=args.contrast)
+    result = run_plan(args.part, args.rig, tolerances=args.tolerances, pose=args.pose, max_ratio=args.ratio,
+                      model=model, search=not args.no_search, rotation=args.rotation, max_tilt=args.max_tilt,
+                      step=args.step, progress=_progress(args.quiet))
+    out = write_plan(args.output, result)
+    if not args.quiet:
+        try:
+            print(plan_table(result))
+            print(f"\n{result.summary_line()}; report: {out / 'plan.html'}", flush=True)
+        except BrokenPipeError:
+            _silence_stdout()
+    return result.exit_code
 
 
 def _parse_grid(option, text, minimum):
@@ -297,8 +362,10 @@ def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in SUBCOMMANDS:
         command, rest = argv[0], argv[1:]
-        parser = {"features": _features_parser, "render": _render_parser, "calibrate": _calibrate_parser}[command]()
-        run = {"features": _run_features, "render": _run_render, "calibrate": _run_calibrate}[command]
+        parser = {"features": _features_parser, "render": _render_parser, "calibrate": _calibrate_parser,
+                  "plan": _plan_parser}[command]()
+        run = {"features": _run_features, "render": _run_render, "calibrate": _run_calibrate,
+               "plan": _run_plan}[command]
     else:
         parser, rest, run = _main_parser(), argv, _run_inspect
     args = parser.parse_args(rest)

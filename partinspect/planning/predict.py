@@ -1,0 +1,797 @@
+"""Predicted uncertainty of every characteristic for the part in a given pose.
+
+Nothing is rendered and nothing is measured: the CAD edges are projected
+into both cameras at the pose, turned into the edge points the detector
+would give (one per pixel of the dominant image axis, where the edge is in
+the image, unoccluded and shows contrast, with the standard uncertainty of
+:func:`partinspect.planning.edge_model.edge_point_std`), and those points,
+lying exactly on the true edges, go through the measurement chain's *own*
+code from the 2D fits on:
+
+1. :func:`partinspect.vision.ideal.ideal_points` (distortion removed, with
+   covariances) and the 2D line / ellipse fits of
+   :mod:`partinspect.vision.fitting` (correlated-noise sandwich);
+2. :func:`partinspect.vision.correspondences.correspond` (triangulated
+   correspondences with their 3x3 covariances, the points that form
+   characteristics use);
+3. the two-view 3D fits of :mod:`partinspect.vision.fit3d` through
+   :func:`partinspect.vision.stereo.feature_views` (covariance at the true
+   geometry, since the points are noise-free; for rims of holes including
+   the chain's Type B uncertainty of points beside shaded surfaces, fed
+   with the shading the detector would read there, :func:`background_terms`)
+   and, when the calibration carries standard uncertainties,
+   :func:`partinspect.vision.stereo.calibration_covariance`;
+4. :func:`partinspect.cad.registration.register` with the true pose as hint
+   (the pose covariance from the datum features);
+5. :func:`partinspect.tolerances.evaluate.evaluate` (each characteristic's
+   ``u`` and ``U = k u``).
+
+Because every step is first-order propagation evaluated at the true
+geometry, the result is the uncertainty ``inspect`` would report for a
+part that is exactly nominal, seen in that pose, *if the chain keeps every
+visible edge point*: where its segmentation drops part of a hole's rim
+(which it does on some renders), it reports a larger u than predicted. What cannot be measured
+at all is said with the reason: not visible in both images (occluded,
+outside the image, no contrast, or a tangent edge), a straight edge within
+``EPIPOLAR_MIN_ANGLE`` of the epipolar lines (the matcher rejects it: its
+depth is undetermined), a circle seen within ``90 - EDGE_ON_ANGLE`` degrees
+of edge-on.
+
+Frames: part frame (STEP) for CAD geometry, rig frame (left camera) for
+measured features, as everywhere in the package; mm, radians inside.
+
+References
+----------
+.. [1] JCGM 100:2008 (GUM), 5.1 (law of propagation of uncertainty), 6.2
+       (expanded uncertainty, k = 2).
+.. [2] Hartley, R., & Zisserman, A. (2004). Multiple View Geometry in
+       Computer Vision, 2nd ed., 5.2 (covariance by back-propagation).
+.. [3] ISO 14253-1:2017: with the conformance zone shrunk by U at both
+       limits, a characteristic can only be decided when U is small against
+       its tolerance; U <= T / 4 is the customary 4:1 rule of thumb
+       (the ``--ratio`` sets another).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+
+from partinspect.planning.edge_model import DetectorModel, detector_parameters, edge_point_std, profile_width
+
+__all__ = [
+    "EPIPOLAR_MIN_ANGLE",
+    "EDGE_ON_ANGLE",
+    "DEFAULT_RATIO",
+    "ViewSamples",
+    "FeaturePrediction",
+    "CharacteristicPrediction",
+    "PosePrediction",
+    "ChainRecord",
+    "tolerance_width",
+    "sample_view",
+    "background_terms",
+    "predict_feature",
+    "predict_pose",
+]
+
+EPIPOLAR_MIN_ANGLE = np.deg2rad(8.0)
+"""A line closer than this to the epipolar lines is not matched
+(:func:`partinspect.vision.matching.match_features`' ``min_angle``)."""
+EDGE_ON_ANGLE = np.deg2rad(80.0)
+"""A circle seen more than this off its axis is taken as edge-on: its image
+is an ellipse of axis ratio below cos 80 = 0.17, which the segmentation
+does not keep as one ellipse."""
+OBLIQUE_ANGLE = np.deg2rad(60.0)
+"""Beyond this a circle's view is named as a cause of a large uncertainty."""
+NARROW_EPIPOLAR_ANGLE = np.deg2rad(20.0)
+"""Below this a line's angle to the epipolar lines is named as a cause."""
+LOW_CONTRAST = 40.0
+"""Grey levels; a median contrast below this is named as a cause."""
+FLAT_ELLIPSE = 0.5
+"""A circle whose image is an ellipse flatter than this (minor / major axis)
+is measurable in principle, but the chain's segmentation often breaks such
+an ellipse into pieces too short to match (seen on the bracket's wall
+holes at 65 degrees, axis ratio 0.42): such characteristics carry a warning."""
+DEFAULT_RATIO = 0.25
+"""A characteristic is decidable when U <= ratio x its tolerance."""
+_CONTRAST_OFFSET = 1.5  # px either side of the edge where the faces' greys are read (as truth.py)
+_DENSE_PER_PX = 4  # dense samples per pixel of image length before placing the detector's points
+
+
+# ---------------------------------------------------------------------------
+# records
+
+
+@dataclass(frozen=True, eq=False)
+class ViewSamples:
+    """The predicted edge points of one feature in one image.
+
+    Attributes
+    ----------
+    uv : ndarray, shape (N, 2)
+        Distorted pixel positions (on the true edge's image), in order along it.
+    normal : ndarray, shape (N, 2)
+        Unit normals of the projected edge.
+    contrast : ndarray, shape (N,)
+        Grey-level step across the edge.
+    std : ndarray, shape (N,)
+        Standard uncertainty of each point across the edge, px.
+    n_sampled : int
+        Detector points the whole edge would give if fully visible.
+    fractions : dict
+        ``in_image``, ``unoccluded``, ``contrast`` and ``visible`` fractions
+        of those points (as :func:`partinspect.simulate.truth.edge_visibility`).
+    background_bound, background_std : ndarray, shape (N,) or None
+        Curved edges: what :func:`partinspect.vision.edges.background_gradients`
+        would report for the shading beside each point (``W^2 |g_b - g_d| / h``,
+        px) and the noise of the first-order background shift, px (see
+        :func:`background_terms`); None for lines.
+    """
+
+    uv: np.ndarray
+    normal: np.ndarray
+    contrast: np.ndarray
+    std: np.ndarray
+    n_sampled: int
+    fractions: dict
+    background_bound: np.ndarray | None = None
+    background_std: np.ndarray | None = None
+
+    def __len__(self):
+        return len(self.uv)
+
+
+class ChainRecord:
+    """A measured 3D feature as registration and evaluation read it.
+
+    Wraps a :class:`partinspect.vision.stereo.Feature3D` (every attribute is
+    the feature's) and adds ``points`` / ``point_covs``: its triangulated
+    correspondences and their 3x3 covariances, rig frame, which the form
+    characteristics (straightness, circularity) are evaluated on.
+    """
+
+    def __init__(self, feature):
+        self.feature = feature
+        self.points = feature.correspondences.points
+        self.point_covs = feature.correspondences.cov
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["feature"], name)
+
+
+@dataclass(frozen=True, eq=False)
+class FeaturePrediction:
+    """What the chain would make of one CAD feature in this pose.
+
+    Attributes
+    ----------
+    id, kind : str
+    status : str
+        "measured", or why not: "hidden", "degenerate" (a line along the
+        epipolar lines), "edge-on" (a circle), "failed".
+    reason : str or None
+        In words, naming the feature.
+    record : ChainRecord or None
+        The predicted measured feature (rig frame) with its covariances.
+    left, right : ViewSamples or None
+    epipolar_angle : float or None
+        Lines: smallest angle between the line's image and the epipolar
+        lines over both images, rad.
+    view_angle : float or None
+        Circles and arcs: largest angle between the circle's axis and the
+        line of sight to its centre over both cameras, rad.
+    axis_ratio : float or None
+        Circles and arcs: smallest minor / major axis ratio of the
+        predicted image ellipses.
+    """
+
+    id: str
+    kind: str
+    status: str
+    reason: str | None = None
+    record: object = None
+    left: ViewSamples | None = None
+    right: ViewSamples | None = None
+    epipolar_angle: float | None = None
+    view_angle: float | None = None
+    axis_ratio: float | None = None
+
+    @property
+    def measured(self):
+        return self.status == "measured"
+
+    @property
+    def visible_fraction(self):
+        if self.left is None or self.right is None:
+            return 0.0
+        return min(self.left.fractions["visible"], self.right.fractions["visible"])
+
+    @property
+    def median_contrast(self):
+        vals = [np.median(v.contrast) for v in (self.left, self.right) if v is not None and len(v)]
+        return float(min(vals)) if vals else float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class CharacteristicPrediction:
+    """Predicted uncertainty of one characteristic.
+
+    Attributes
+    ----------
+    characteristic : Characteristic
+    u, U : float
+        Standard and expanded (k = 2) uncertainty, the characteristic's
+        unit; ``inf`` when it cannot be measured in this pose.
+    tolerance : float or None
+        Width of the specification zone (upper - lower limit, or the
+        zone of a geometrical tolerance); None without limits.
+    ratio : float
+        ``U / tolerance`` (inf when not measurable, nan without a tolerance).
+    decidable : bool
+        ``U <= max_ratio * tolerance``.
+    reason : str or None
+        Why not decidable, naming the feature and the cause.
+    method : str
+        How ``u`` was evaluated (evaluate()'s wording).
+    warning : str or None
+        A risk the first-order prediction does not carry (a flat ellipse
+        the segmentation may break up).
+    inspected : bool
+        False for a general-tolerance characteristic whose edges are all out
+        of view in this pose: ``inspect`` lists those as not inspected
+        rather than judging them, so they do not count against a pose.
+    """
+
+    characteristic: object
+    u: float
+    U: float
+    tolerance: float | None
+    ratio: float
+    decidable: bool
+    reason: str | None = None
+    method: str = ""
+    inspected: bool = True
+    warning: str | None = None
+
+    @property
+    def id(self):
+        return self.characteristic.id
+
+    def to_dict(self):
+        c = self.characteristic
+        conv = math.degrees if c.unit == "rad" else float
+
+        def num(x):
+            return None if x is None or not math.isfinite(x) else round(conv(x), 9)
+
+        return {
+            "id": c.id,
+            "type": c.type,
+            "features": list(c.features),
+            "unit": "deg" if c.unit == "rad" else c.unit,
+            "tolerance": num(self.tolerance),
+            "standard_uncertainty": num(self.u),
+            "expanded_uncertainty": num(self.U),
+            "ratio": None if not math.isfinite(self.ratio) else round(self.ratio, 6),
+            "decidable": bool(self.decidable),
+            "inspected": bool(self.inspected),
+            "reason": self.reason,
+            "warning": self.warning,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrediction:
+    """Everything predicted for one pose.
+
+    Attributes
+    ----------
+    part_to_camera : ndarray, shape (4, 4)
+    features : dict of str to FeaturePrediction
+    characteristics : list of CharacteristicPrediction
+        In the order given.
+    registration : Registration or None
+    registration_error : str or None
+    max_ratio : float
+    """
+
+    part_to_camera: np.ndarray
+    features: dict
+    characteristics: list
+    registration: object = None
+    registration_error: str | None = None
+    max_ratio: float = DEFAULT_RATIO
+    label: str = ""
+    angles: tuple = field(default=())
+
+    @property
+    def n_decidable(self):
+        return sum(c.decidable for c in self.characteristics)
+
+    @property
+    def all_decidable(self):
+        """Every inspected characteristic decidable (see ``CharacteristicPrediction.inspected``)."""
+        return all(c.decidable or not c.inspected for c in self.characteristics)
+
+    def undecidable(self):
+        """The inspected characteristics that are not decidable."""
+        return [c for c in self.characteristics if c.inspected and not c.decidable]
+
+    def not_inspected(self):
+        return [c for c in self.characteristics if not c.inspected]
+
+    @property
+    def n_measurable(self):
+        return sum(math.isfinite(c.U) for c in self.characteristics)
+
+    def score(self):
+        """Sort key, larger is better.
+
+        The count of decidable characteristics, then of measurable ones (a
+        characteristic measured too coarsely is closer to decidable than one
+        not measured at all), then the worst ratio ``U / tolerance`` when all
+        are decidable, then the summed log ratio of the measurable ones.
+        """
+        r = np.array([c.ratio for c in self.characteristics if math.isfinite(c.ratio)] or [1.0])
+        worst = max((c.ratio for c in self.characteristics if math.isfinite(c.ratio)), default=0.0)
+        return (self.n_decidable, self.n_measurable, -worst if self.all_decidable else 0.0,
+                -float(np.log(np.maximum(r, 1e-9)).sum()))
+
+
+# ---------------------------------------------------------------------------
+# sampling one camera
+
+
+def _edge_function(kind, geometry):
+    """(t0, t1, X(t), T(t)) of an edge: points and unit tangents, part frame."""
+    from partinspect.cad.features import reference_direction
+
+    if kind == "line":
+        a, b = np.asarray(geometry["start"], float), np.asarray(geometry["end"], float)
+        L = float(np.linalg.norm(b - a))
+        d = (b - a) / L
+        return 0.0, L, (lambda t: a + t[:, None] * d), (lambda t: np.repeat(d[None], len(t), 0))
+    c, n, r = np.asarray(geometry["center"], float), np.asarray(geometry["normal"], float), float(geometry["radius"])
+    x = reference_direction(n)
+    y = np.cross(n, x)
+    t0, t1 = (0.0, 2 * np.pi) if kind == "circle" else (float(geometry["angle_start"]), float(geometry["angle_end"]))
+
+    def X(t):
+        return c + r * (np.cos(t)[:, None] * x + np.sin(t)[:, None] * y)
+
+    def T(t):
+        return -np.sin(t)[:, None] * x + np.cos(t)[:, None] * y
+
+    return t0, t1, X, T
+
+
+def _trim_runs(mask, uv, trim, closed):
+    """Drop points within ``trim`` px (along the image curve) of the ends of each visible run."""
+    n = len(mask)
+    if trim <= 0 or n == 0 or not mask.any():
+        return mask
+    if closed and mask.all():
+        return mask
+    order = np.arange(n)
+    if closed:
+        # start the sequence at a gap so no run wraps around
+        first_gap = int(np.flatnonzero(~mask)[0])
+        order = np.roll(order, -first_gap)
+    m = mask[order]
+    step = np.linalg.norm(np.diff(uv[order], axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(np.where(np.isfinite(step), step, 0.0))]  # points off the image have no uv
+    keep = m.copy()
+    edges = np.flatnonzero(np.diff(np.r_[0, m.astype(int), 0]))
+    for i0, i1 in zip(edges[::2], edges[1::2] - 1):
+        run = slice(i0, i1 + 1)
+        keep[run] &= (s[run] - s[i0] >= trim) & (s[i1] - s[run] >= trim)
+    out = np.zeros(n, bool)
+    out[order] = keep
+    return out
+
+
+def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shading=None):
+    """The edge points the detector would give for one edge in one image.
+
+    Parameters
+    ----------
+    scene : partinspect.simulate.render.RaycastScene
+        The part (for occlusion and shading).
+    calib : StereoCalibration
+    index : int
+        0 left, 1 right.
+    part_to_camera : ndarray, shape (4, 4)
+    kind : {"line", "circle", "arc"}
+    geometry : dict
+        :func:`partinspect.simulate.truth.feature_geometry` of the edge.
+    model : DetectorModel
+    shading : Shading, optional
+        Default the renderer's.
+
+    Returns
+    -------
+    ViewSamples
+        Only the points that would be detected: in the image, unoccluded,
+        with contrast (the truth's visibility rules), minus ``model.end_trim``
+        px at the ends of each visible stretch.
+    """
+    from partinspect.simulate.render import DEFAULT_SHADING, camera_in_part, cast, pixel_rays, shade
+    from partinspect.simulate.truth import edge_visibility
+    from partinspect.vision.calibration import project_points
+
+    shading = shading or DEFAULT_SHADING
+    K, D, R, t = camera_in_part(calib, index, part_to_camera)
+    t0, t1, X, T = _edge_function(kind, geometry)
+    coarse = np.linspace(t0, t1, 65)
+    uvc = project_points(X(coarse), K, D, R, t)
+    if not np.isfinite(uvc).all():
+        return ViewSamples(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), 0,
+                           {"in_image": 0.0, "unoccluded": 0.0, "contrast": 0.0, "visible": 0.0})
+    length = float(np.abs(np.diff(uvc, axis=0)).max(axis=1).sum())
+    dense = np.linspace(t0, t1, max(int(_DENSE_PER_PX * length) + 2, 16))
+    tp = detector_parameters(dense, project_points(X(dense), K, D, R, t))
+    if len(tp) == 0:
+        return ViewSamples(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), 0,
+                           {"in_image": 0.0, "unoccluded": 0.0, "contrast": 0.0, "visible": 0.0})
+    P, Tg = X(tp), T(tp)
+    vis = edge_visibility(scene, calib, index, part_to_camera, P, Tg, shading)
+    every = vis["in_image"] & vis["unoccluded"] & vis["contrast"]
+    fractions = {k: float(np.mean(vis[k])) for k in ("in_image", "unoccluded", "contrast")}
+    fractions["visible"] = float(np.mean(every))
+    keep = _trim_runs(every, vis["uv"], model.end_trim, kind == "circle")
+    uv, normal = vis["uv"][keep], vis["normal_uv"][keep]
+    if model.contrast is not None:
+        contrast = np.full(len(uv), float(model.contrast))
+    elif len(uv):
+        light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
+        q = np.concatenate([uv - _CONTRAST_OFFSET * normal, uv + _CONTRAST_OFFSET * normal])
+        o, d = pixel_rays(q, K, D, R, t)
+        g = shade(scene, cast(scene, o, d), d, light, shading).astype(float)
+        contrast = np.abs(g[len(uv):] - g[: len(uv)])
+    else:
+        contrast = np.zeros(0)
+    std = edge_point_std(contrast, model.pixel_noise, model.blur, model.sigma)
+    bound = bstd = None
+    if kind != "line" and len(uv) and model.systematic:
+        bound, bstd = background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading)
+    return ViewSamples(uv, normal, contrast, np.atleast_1d(std), len(tp), fractions, bound, bstd)
+
+
+_BACKGROUND_DISTANCES = (3.0, 3.5, 4.0)  # px, as partinspect.vision.edges.BACKGROUND_DISTANCES
+
+
+def background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading):
+    """The shading beside an edge, as the detector's background test would read it.
+
+    The grey-level gradient of each side's surface is taken by central
+    differences (1 px apart) of the noiseless shading at 3, 3.5 and 4 px
+    from the edge along its normal, and averaged, as
+    :func:`partinspect.vision.edges.background_gradients` reads the filtered
+    image there. Then ``bound = W^2 |g_b - g_d| / h`` and the noise of the
+    first-order background shift ``W^2 sqrt(BACKGROUND_NOISE) s_g / h`` with
+    ``s_g`` the gradient noise of the filter (W the profile width, h the
+    contrast): the chain's Type B uncertainty of a rim point is a multiple
+    of ``bound`` (:func:`partinspect.vision.stereo.feature_views`).
+
+    Returns
+    -------
+    bound, std : ndarray, shape (N,)
+        px.
+    """
+    from partinspect.simulate.render import cast, pixel_rays, shade
+    from partinspect.vision import edges as edges_mod
+
+    light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
+    n = len(uv)
+    steps = np.array([[0.5, 0.0], [-0.5, 0.0], [0.0, 0.5], [0.0, -0.5]])
+    grads = []
+    for sign in (1.0, -1.0):
+        q = (uv[:, None, None, :] + sign * np.asarray(_BACKGROUND_DISTANCES)[None, :, None, None] * normal[:, None, None, :]
+             + steps[None, None, :, :]).reshape(-1, 2)
+        o, d = pixel_rays(q, K, D, R, t)
+        g = shade(scene, cast(scene, o, d), d, light, shading).astype(float).reshape(n, len(_BACKGROUND_DISTANCES), 4)
+        grads.append(np.stack([g[..., 0] - g[..., 1], g[..., 2] - g[..., 3]], axis=-1).mean(axis=1))
+    W = profile_width(model.blur, model.sigma)
+    h = np.maximum(np.abs(contrast), 1e-9)
+    bound = W * W * np.linalg.norm(grads[0] - grads[1], axis=1) / h
+    s_g = edges_mod.gradient_noise_std(model.pixel_noise, model.sigma)
+    std = W * W * np.sqrt(getattr(edges_mod, "BACKGROUND_NOISE", 1.28)) * s_g / h
+    return bound, std
+
+
+# ---------------------------------------------------------------------------
+# one feature through the chain
+
+
+def _image_feature(kind, view, K, D, model):
+    """An ImageFeature (as :mod:`partinspect.vision.matching` makes them) of predicted points."""
+    from partinspect.vision.edges import ALONG_EDGE_VARIANCE
+    from partinspect.vision.fitting import fit_ellipse, fit_line
+    from partinspect.vision.ideal import ideal_points
+    from partinspect.vision.matching import ImageFeature
+
+    n, s = view.normal, view.std
+    tg = np.c_[-n[:, 1], n[:, 0]]
+    cov = (s * s)[:, None, None] * n[:, :, None] * n[:, None, :] + ALONG_EDGE_VARIANCE * tg[:, :, None] * tg[:, None, :]
+    ideal = ideal_points(view.uv, cov, K, D, n)
+    fit = (fit_line if kind == "line" else fit_ellipse)(ideal.xy, ideal.cov, corr_length=model.sigma)
+    base = dict(kind=kind, segments=(0,), index=np.arange(len(view.uv)), uv=view.uv, cov_uv=cov, ideal=ideal, fit=fit,
+                blur=profile_width(model.blur, model.sigma), polarity=0)
+    extra = {}
+    if kind == "arc" and view.background_bound is not None:
+        # The points lie on the true edge: nothing to correct (offset 0), but the
+        # chain's Type B uncertainty of rim points applies as it would.
+        extra = dict(background_offset=np.zeros((len(view.uv), 2)), background_bound=view.background_bound,
+                     background_std=view.background_std)
+    from partinspect.vision import stereo
+
+    cls = getattr(stereo, "EdgeFeature", None)
+    if cls is not None and extra:
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**base, **{k: v for k, v in extra.items() if k in names})
+    return ImageFeature(**base)
+
+
+def _hidden_reason(fid, feature, views):
+    if getattr(feature, "smooth", False):
+        return f"{fid} shows no edge: its faces meet tangentially"
+    worst = min(views, key=lambda nv: len(nv[1]))
+    name, v = worst
+    fr = v.fractions
+    if v.n_sampled == 0:
+        return f"{fid} is not in the {name} image"
+    causes = []
+    if fr["in_image"] < 0.999:
+        causes.append(f"{100 * (1 - fr['in_image']):.0f} % outside the image")
+    if fr["unoccluded"] < 0.999:
+        causes.append(f"{100 * (1 - fr['unoccluded']):.0f} % hidden behind the part")
+    if fr["contrast"] < 0.999:
+        causes.append(f"{100 * (1 - fr['contrast']):.0f} % without contrast")
+    detail = ", ".join(causes) or "too short"
+    return f"{fid} is not visible in the {name} image ({detail}; {len(v)} edge points)"
+
+
+def _epipolar_angle(geo, fl, fr):
+    """Smallest angle between the images of a line and the epipolar lines, rad, and the image it occurs in."""
+    out = []
+    for name, f, dirs in (("left", fl, geo.directions_left), ("right", fr, geo.directions_right)):
+        c = f.fit.centroid[None]
+        e = dirs(c)[0]
+        d = f.fit.direction
+        out.append((float(np.arccos(min(1.0, abs(float(d @ e))))), name))
+    return min(out)
+
+
+def _view_angle(calib, part_to_camera, geometry):
+    """Largest angle between a circle's axis and the line of sight to its centre, rad, and the camera."""
+    P = np.asarray(part_to_camera, float)
+    c = P[:3, :3] @ np.asarray(geometry["center"], float) + P[:3, 3]
+    n = P[:3, :3] @ np.asarray(geometry["normal"], float)
+    out = []
+    for index, name in ((0, "left"), (1, "right")):
+        R, T = calib.camera(index)[2:]
+        origin = -np.asarray(R, float).T @ np.asarray(T, float).ravel()
+        ray = c - origin
+        out.append((float(np.arccos(min(1.0, abs(float(n @ ray)) / np.linalg.norm(ray)))), name))
+    return max(out)
+
+
+def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shading=None):
+    """Run one CAD feature through the measurement chain's covariance code.
+
+    Parameters
+    ----------
+    feature : partinspect.cad.features.Feature
+    scene : RaycastScene
+    calib : StereoCalibration
+    part_to_camera : ndarray, shape (4, 4)
+    model : DetectorModel
+    geo : EpipolarGeometry, optional
+        Of ``calib`` (computed when not given).
+    shading : Shading, optional
+
+    Returns
+    -------
+    FeaturePrediction
+    """
+    from partinspect.simulate.truth import feature_geometry
+    from partinspect.vision.correspondences import correspond
+    from partinspect.vision.matching import epipolar_geometry
+    from partinspect.vision.stereo import (
+        _make_feature3d, calibration_covariance, calibration_parameters, feature_views, fit_feature)
+
+    geo = geo if geo is not None else epipolar_geometry(calib)
+    fid, kind = feature.id, feature.kind
+    g = feature_geometry(feature)
+    views = [(name, sample_view(scene, calib, i, part_to_camera, kind, g, model, shading))
+             for i, name in enumerate(("left", "right"))]
+    vl, vr = views[0][1], views[1][1]
+    base = dict(id=fid, kind=kind, left=vl, right=vr)
+    view_angle = None
+    if kind != "line":
+        view_angle, cam = _view_angle(calib, part_to_camera, g)
+        base["view_angle"] = view_angle
+        if view_angle > EDGE_ON_ANGLE:
+            return FeaturePrediction(status="edge-on", reason=(
+                f"{fid} is seen nearly edge-on ({np.rad2deg(view_angle):.0f} deg from its axis in the {cam} camera)"), **base)
+    if min(len(vl), len(vr)) < model.min_points:
+        return FeaturePrediction(status="hidden", reason=_hidden_reason(fid, feature, views), **base)
+    kind2 = "line" if kind == "line" else "arc"
+    try:
+        fl = _image_feature(kind2, vl, calib.K1, calib.D1, model)
+        fr = _image_feature(kind2, vr, calib.K2, calib.D2, model)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        return FeaturePrediction(status="failed", reason=f"{fid}: 2D fit failed ({exc})", **base)
+    if kind != "line":
+        base["axis_ratio"] = float(min(f.fit.params[3] / f.fit.params[2] for f in (fl, fr)))
+    if kind == "line":
+        ang, img = _epipolar_angle(geo, fl, fr)
+        base["epipolar_angle"] = ang
+        if ang < EPIPOLAR_MIN_ANGLE:
+            return FeaturePrediction(status="degenerate", reason=(
+                f"{fid} runs {np.rad2deg(ang):.1f} deg from the epipolar lines in the {img} image "
+                f"(under {np.rad2deg(EPIPOLAR_MIN_ANGLE):.0f} deg its depth is undetermined)"), **base)
+    corr = correspond(fl, fr, geo)
+    if len(corr) < 6:
+        return FeaturePrediction(status="failed", reason=(
+            f"{fid}: only {len(corr)} corresponding points (epipolar lines cross it too obliquely)"), **base)
+    try:
+        fviews = feature_views(fl, fr, model.sigma, calib)
+        fit = fit_feature(fl, fr, fviews, corr.points)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        return FeaturePrediction(status="failed", reason=f"{fid}: 3D fit failed ({exc})", **base)
+    n = 6 if kind2 == "line" else 7
+    cal = calibration_covariance(fit, kind2, fl, fr, model.sigma, calib) if calibration_parameters(calib) \
+        else np.zeros((n, n))
+    f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal)
+    return FeaturePrediction(status="measured", record=ChainRecord(f3), **base)
+
+
+# ---------------------------------------------------------------------------
+# characteristics
+
+
+def tolerance_width(c):
+    """Width of a characteristic's specification zone (None without limits)."""
+    lo, hi = c.lower_limit, c.upper_limit
+    if lo is not None and hi is not None:
+        return float(hi - lo)
+    if hi is not None and lo is None and c.nominal == 0.0:
+        return float(hi)  # a geometrical tolerance: zone from 0 to its width
+    return None
+
+
+def _causes(c, features):
+    """Why a measured characteristic's U is large: the weak points of its features."""
+    out = []
+    for fid in c.features:
+        fp = features.get(fid)
+        if fp is None or not fp.measured:
+            continue
+        if fp.epipolar_angle is not None and fp.epipolar_angle < NARROW_EPIPOLAR_ANGLE:
+            out.append(f"{fid} runs only {np.rad2deg(fp.epipolar_angle):.0f} deg from the epipolar lines")
+        if fp.view_angle is not None and fp.view_angle > OBLIQUE_ANGLE:
+            out.append(f"{fid} is seen {np.rad2deg(fp.view_angle):.0f} deg off its axis (nearly edge-on)")
+        if fp.visible_fraction < 0.7:
+            out.append(f"only {100 * fp.visible_fraction:.0f} % of {fid} is visible in both images")
+        if fp.median_contrast < LOW_CONTRAST:
+            out.append(f"{fid} has only {fp.median_contrast:.0f} grey levels of contrast")
+    return out
+
+
+def _fmt(x, unit):
+    return f"{math.degrees(x):.4f} deg" if unit == "rad" else f"{x:.4f} mm"
+
+
+def _unregistered_reason(fid):
+    """Why a measured feature is left out: the registration does not match it."""
+    return (f"{fid} would be measured but the registration does not match it to the CAD model "
+            "(e.g. a rim seen only through its hole, whose plane face is turned away from the cameras)")
+
+
+def _general(c):
+    return c.source != "spec"
+
+
+def _characteristic_prediction(c, ev, features, max_ratio, registration_error):
+    T = tolerance_width(c)
+    if ev is None or ev.standard_uncertainty is None:
+        why = [features[f].reason for f in c.features if f in features and not features[f].measured]
+        if not why and registration_error:
+            why = [registration_error]
+        if not why:
+            why = [_unregistered_reason(f) for f in c.features if f in features and features[f].measured]
+        if not why and ev is not None:
+            why = [ev.reason]
+        hidden = any(f in features and features[f].status == "hidden" for f in c.features)
+        measured_any = any(f in features and features[f].measured for f in c.features)
+        inspected = not (_general(c) and hidden and not measured_any)
+        return CharacteristicPrediction(c, math.inf, math.inf, T, math.inf, False,
+                                        "; ".join(why) or "not measurable", inspected=inspected)
+    warn = [f"{fid} is seen {np.rad2deg(features[fid].view_angle):.0f} deg off its axis: its image is an ellipse "
+            f"of axis ratio {features[fid].axis_ratio:.2f}, which the segmentation may break into pieces"
+            for fid in c.features if fid in features and features[fid].measured
+            and features[fid].axis_ratio is not None and features[fid].axis_ratio < FLAT_ELLIPSE]
+    u, U = float(ev.standard_uncertainty), float(ev.expanded_uncertainty)
+    ratio = U / T if T else float("nan")
+    ok = T is not None and U <= max_ratio * T
+    reason = None
+    if not ok:
+        if T is None:
+            reason = "no tolerance to compare with"
+        else:
+            causes = _causes(c, features) or ["the edge-point noise alone (noise-limited)"]
+            reason = (f"U = {_fmt(U, c.unit)} is {ratio:.2f} of the tolerance {_fmt(T, c.unit)} "
+                      f"(needs <= {max_ratio:g}): " + "; ".join(causes))
+    return CharacteristicPrediction(c, u, U, T, ratio, ok, reason, ev.method, warning="; ".join(warn) or None)
+
+
+def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, model=None, datums=None,
+                 max_ratio=DEFAULT_RATIO, shading=None, n_mc=None, seed=0, label="", angles=()):
+    """Predicted U of every characteristic with the part in one pose.
+
+    Parameters
+    ----------
+    inventory : Inventory
+    scene : RaycastScene
+        The part's mesh in the ray caster (:func:`partinspect.simulate.render.build_scene`).
+    calib : StereoCalibration
+        With ``image_size``.
+    part_to_camera : ndarray, shape (4, 4)
+    characteristics : sequence of Characteristic
+    model : DetectorModel, optional
+    datums : sequence of str, optional
+        CAD ids the registration aligns on (default all matched features).
+    max_ratio : float
+        Decidable when ``U <= max_ratio * tolerance``.
+    shading : Shading, optional
+    n_mc : int, optional
+        Monte Carlo draws of evaluate() for position and profile (its
+        default when None).
+    seed : int
+    label : str
+    angles : tuple
+        The fixture angles of the pose, for the report.
+
+    Returns
+    -------
+    PosePrediction
+    """
+    from partinspect.cad.registration import RegistrationError, register
+    from partinspect.tolerances.evaluate import N_MC, evaluate_characteristic
+    from partinspect.vision.matching import epipolar_geometry
+
+    model = model or DetectorModel()
+    geo = epipolar_geometry(calib)
+    P = np.asarray(part_to_camera, float)
+    wanted = {fid for c in characteristics for fid in c.features}
+    if datums:
+        wanted |= set(datums)
+    # Every non-smooth feature takes part in the registration, as in a real run.
+    todo = [f for f in inventory.features if f.id in wanted or not f.smooth]
+    features = {f.id: predict_feature(f, scene, calib, P, model, geo, shading) for f in todo}
+    measured = [fp for fp in features.values() if fp.measured]
+    circles = [fp for fp in measured if fp.kind != "line"]
+    lines = [fp for fp in measured if fp.kind == "line"]
+    reg, reg_error = None, None
+    used_datums = None if not datums else [d for d in datums if d in features and features[d].measured]
+    try:
+        if datums and not used_datums:
+            raise RegistrationError("none of the datum features is measurable")
+        reg = register([fp.record for fp in circles], [fp.record for fp in lines], inventory,
+                       datums=used_datums, pose_hint=P)
+    except RegistrationError as exc:
+        reg_error = f"no registration: {exc.problem}"
+    preds = []
+    parts = reg.features_in_part_frame() if reg is not None else None
+    for c in characteristics:
+        ev = None
+        if reg is not None:
+            ev = evaluate_characteristic(c, parts, reg, inventory, seed=seed, n_mc=n_mc or N_MC)
+        preds.append(_characteristic_prediction(c, ev, features, max_ratio, reg_error))
+    return PosePrediction(P, features, preds, reg, reg_error, max_ratio, label, tuple(angles))

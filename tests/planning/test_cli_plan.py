@@ -1,0 +1,72 @@
+"""`inspect plan` at the command line: outputs, exit codes, bad input."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from partinspect.cli import main
+from tests.planning.conftest import REPO, SIZE, view_pose
+
+PLATE = REPO / "examples" / "plate" / "part.step"
+
+
+@pytest.fixture(scope="module")
+def rig_file(tmp_path_factory):
+    from partinspect.simulate.rig import default_rig
+    from partinspect.vision.calibration import write_calibration
+
+    path = tmp_path_factory.mktemp("rig") / "calibration.yaml"
+    write_calibration(path, default_rig(SIZE))
+    return path
+
+
+def test_help_imports_nothing_heavy():
+    code = ("import sys\nfrom partinspect.cli import main\ntry:\n    main(['plan', '--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in ('cv2', 'open3d', 'cadquery', 'OCP', 'scipy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "--rig" in out and "--ratio" in out
+    assert out.strip().splitlines()[-1] == "[]"
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["missing.step", "--rig", "RIG"], "missing.step: STEP file not found"),
+    (["PLATE", "--rig", "nowhere.yaml"], "nowhere.yaml: calibration file not found"),
+    (["PLATE", "--rig", "RIG", "--ratio", "0"], "--ratio must be a number in (0, 1]"),
+    (["PLATE", "--rig", "RIG", "--pose", "1,2"], "--pose: expected RX,RY,RZ"),
+    (["PLATE", "--rig", "RIG", "--pose", "nowhere.json"], "nowhere.json: pose file not found"),
+    (["PLATE", "--rig", "RIG", "--noise", "-1"], "--noise must be a positive number"),
+    (["PLATE", "--rig", "RIG", "--tolerances", "none.yaml"], "none.yaml: tolerance file not found"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, needle, rig_file, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = [str(PLATE) if a == "PLATE" else str(rig_file) if a == "RIG" else a for a in args]
+    assert main(["plan", *args, "-o", str(tmp_path / "out"), "--no-search"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and needle in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_plan_names_the_spoiled_characteristic(rig_file, tmp_path, capsys, plate, rig):
+    """A render's truth.json as --pose: the front edge along the epipolar lines is named, exit 3."""
+    import numpy as np
+
+    pose = tmp_path / "truth.json"
+    pose.write_text(json.dumps({"part_to_camera": view_pose(plate, rig, 45.0, 270.0, 0.0).tolist()}))
+    out = tmp_path / "plan"
+    code = main(["plan", str(PLATE), "--rig", str(rig_file), "--pose", str(pose), "--no-search", "--ratio", "1",
+                 "-o", str(out)])
+    assert code == 3
+    text = capsys.readouterr().out
+    line = next(l for l in text.splitlines() if l.startswith("  front-top-edge.straightness:"))
+    assert "line-5 runs" in line and "epipolar lines" in line
+    data = json.loads((out / "plan.json").read_text())
+    assert data["schema"] == "plan/1" and data["start"]["decidable"] == data["best"]["decidable"]
+    c = {c["id"]: c for c in data["start"]["characteristics"]}
+    assert c["front-top-edge.straightness"]["expanded_uncertainty"] is None
+    assert c["circle-4.diameter"]["decidable"] and 0 < c["circle-4.diameter"]["expanded_uncertainty"] < 0.05
+    html = (out / "plan.html").read_text()
+    assert "front-top-edge.straightness" in html and "epipolar" in html and "<script" not in html
+    best = json.loads((out / "best_pose.json").read_text())
+    assert np.allclose(best["part_to_camera"], json.loads(pose.read_text())["part_to_camera"])
