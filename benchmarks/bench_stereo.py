@@ -5,7 +5,10 @@ then every draw adds fresh sensor noise (``partinspect.simulate.render.sensor``)
 and runs the whole 2D + 3D chain. Reported per noise level: RMS errors of
 circle centres per axis, radii and line positions (perpendicular to the
 line, at the true edge's middle), coverage of the 95 % ellipsoid (centres)
-and of +-2u (radii), RMS of normalised errors; beside an OpenCV baseline
+and of +-2u (radii), RMS of normalised errors, the median standard
+uncertainties of centre depth and radius with the share of the systematic
+rim component (``Feature3D.param_cov_systematic``) in the depth variance;
+beside an OpenCV baseline
 (Canny + findContours + fitEllipse, ellipse centres matched along epipolar
 lines and triangulated with triangulatePoints, radius = semi-major axis x
 depth / f, averaged over the views). Then the median wall time of
@@ -100,6 +103,7 @@ def run(name, size, noises, draws):
     for noise in noises:
         rng = np.random.default_rng(int(noise * 1000))
         ce, cz, re, rz, le, lz, base_c, base_r = [], [], [], [], [], [], [], []
+        u_depth, u_rad, sys_share = [], [], []
         for _ in range(draws):
             L, R = sensor(rad[0], noise, rng), sensor(rad[1], noise, rng)
             res = measure_stereo(L, R, rig)
@@ -118,6 +122,9 @@ def run(name, size, noises, draws):
                     cz.append(e @ np.linalg.inv(f.covariance) @ e)
                     re.append(f.radius - t["radius"])
                     rz.append((f.radius - t["radius"]) / f.radius_std)
+                    u_depth.append(np.sqrt(f.covariance[2, 2]))
+                    u_rad.append(f.radius_std)
+                    sys_share.append(f.param_cov_systematic[2, 2] / f.param_cov[2, 2])
             for X, r in opencv_circles(L, R, rig):
                 t = nearest_circle(X, truths)
                 if np.linalg.norm(X - t["center"]) < 1.0:
@@ -131,6 +138,7 @@ def run(name, size, noises, draws):
             centre_nrms=np.sqrt(np.mean(cz) / 3), radius_nrms=np.sqrt(np.mean(np.square(rz))),
             line_rms=np.sqrt((le**2).mean(0)) * 1e3, line_cov95=np.mean(np.array(lz) <= 5.991464547107979),
             line_nrms=np.sqrt(np.mean(lz) / 2),
+            u_depth=np.median(u_depth) * 1e3, u_radius=np.median(u_rad) * 1e3, sys_share=np.median(sys_share),
             cv_n=len(base_c), cv_centre_rms=np.sqrt((base_c**2).mean(0)) * 1e3 if len(base_c) else np.full(3, np.nan),
             cv_radius_rms=np.sqrt(np.mean(np.square(base_r))) * 1e3 if base_r else np.nan))
     return rows
@@ -151,11 +159,12 @@ def main():
     rows = run(a.part, tuple(a.size), a.noises, a.draws)
     print(f"part {a.part}, {a.size[0]}x{a.size[1]}, {a.draws} noise draws per level; errors in um (x/y/z rig frame)")
     print("noise | circles | centre RMS x/y/z | radius RMS | centre in 95% ell. | radius in +-2u | "
-          "RMS z centre/radius | lines | line RMS x/y/z | line in 95% | RMS z line | "
-          "OpenCV n | OpenCV centre RMS | OpenCV radius RMS")
+          "RMS z centre/radius | median u depth/radius | systematic share of u^2 depth | lines | line RMS x/y/z | "
+          "line in 95% | RMS z line | OpenCV n | OpenCV centre RMS | OpenCV radius RMS")
     for r in rows:
         print(f"{r['noise']:.0f} | {r['n_circles']} | {fmt(r['centre_rms'])} | {r['radius_rms']:.1f} | "
               f"{r['centre_cov95']:.3f} | {r['radius_cov95']:.3f} | {r['centre_nrms']:.2f}/{r['radius_nrms']:.2f} | "
+              f"{r['u_depth']:.1f}/{r['u_radius']:.1f} | {r['sys_share']:.2f} | "
               f"{r['n_lines']} | {fmt(r['line_rms'])} | {r['line_cov95']:.3f} | {r['line_nrms']:.2f} | "
               f"{r['cv_n']} | {fmt(r['cv_centre_rms'])} | {r['cv_radius_rms']:.1f}")
     if a.timing_runs:

@@ -332,7 +332,9 @@ def _monte_carlo(stereo, calib, draws):
     """The stereo result with Monte Carlo covariances in place of the first-order ones.
 
     Returns the new result and the ratios of Monte Carlo to first-order
-    standard uncertainties over all parameters (for the report).
+    standard uncertainties of the random inputs over all parameters (for
+    the report). The systematic (Type B) covariance of a feature is not
+    sampled and is added to the Monte Carlo covariance unchanged.
     """
     from dataclasses import replace
 
@@ -342,6 +344,9 @@ def _monte_carlo(stereo, calib, draws):
     for mc in monte_carlo(stereo, calib, draws=draws, seed=0):
         f = feats[mc.feature]
         C = 0.5 * (mc.cov_mc + mc.cov_mc.T)
+        # The draws cover the random inputs only; the Type B part (rim shading) is added as it was.
+        if getattr(f, "param_cov_systematic", None) is not None:
+            C = C + f.param_cov_systematic
         extra = {"radius_std": float(np.sqrt(C[6, 6]))} if f.kind != "line" else {}
         feats[mc.feature] = replace(f, param_cov=C, covariance=C[:3, :3], axis_cov=C[3:6, 3:6], **extra)
         ratios.extend(r for r in mc.std_ratio if np.isfinite(r))

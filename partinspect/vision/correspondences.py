@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from partinspect.vision.edges import CURVATURE_SAMPLING_BIAS
 from partinspect.vision.fitting import _ellipse_geometry
 from partinspect.vision.triangulation import triangulate
 
@@ -74,11 +75,14 @@ class Correspondences:
 
 
 def deblurred(xy, fit, blur):
-    """Edge points of an arc moved back by the smoothing bias ``blur^2 kappa / 2``.
+    """Edge points of an arc moved back by the curvature bias of the edge detector.
 
     Gaussian smoothing moves points on a curve towards its centre of
-    curvature; the ellipse fit removes that bias from its parameters, and
-    the same correction is applied here to points that go on to other fits.
+    curvature by ``blur^2 kappa / 2``, and the sub-pixel interpolation
+    along a pixel axis adds ``c sin^2(2 phi) kappa`` (phi the angle between
+    the normal and the nearest pixel axis, c =
+    :data:`partinspect.vision.edges.CURVATURE_SAMPLING_BIAS`); both are
+    undone here, with kappa the fitted ellipse's curvature at each point.
 
     Parameters
     ----------
@@ -98,7 +102,8 @@ def deblurred(xy, fit, blur):
     _, n, _ = _ellipse_geometry(xy, fit.params, phi)
     sp, cp = np.sin(phi), np.cos(phi)
     kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
-    return xy + (0.5 * blur * blur * kappa)[:, None] * n
+    sin2phi_sq = 4.0 * (n[:, 0] * n[:, 1]) ** 2
+    return xy + ((0.5 * blur * blur + CURVATURE_SAMPLING_BIAS * sin2phi_sq) * kappa)[:, None] * n
 
 
 def intersect_line(lines, params):

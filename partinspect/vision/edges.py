@@ -9,6 +9,15 @@ Each point's position covariance is the first-order propagation of the
 image noise through that estimator, using the exact noise covariance of the
 filtered gradient between the samples it reads.
 
+Every point also records how the grey-level gradients *beside* the edge
+(a shaded surface next to it, e.g. the inner wall of a hole at its rim)
+displace it (:func:`background_gradients`); the points themselves are left
+as found, and the 3D fit of circles uses these numbers
+(:mod:`partinspect.vision.stereo`, "Rims of holes"). On a curved edge the
+detector is biased towards the centre of curvature by the smoothing and by
+the sampling (``CURVATURE_SAMPLING_BIAS``), removed by
+:func:`partinspect.vision.correspondences.deblurred`.
+
 Everything is on the original (distorted) image; pixel coordinates follow
 OpenCV: the centre of the top-left pixel is (0, 0), x right, y down.
 
@@ -46,6 +55,30 @@ __all__ = [
 # carries no information; a tiny value keeps the 2x2 matrix invertible.
 ALONG_EDGE_VARIANCE = 1e-6
 BLEND_ANGLE = 0.45  # rad; chosen on the measured bias, see _subpixel_offset
+# Sub-pixel localisation on a curved edge: besides the smoothing bias
+# width^2 kappa / 2 (continuous theory), the three samples read 1 px apart
+# along a pixel axis see the curve recede on both sides, which moves the
+# found point a further CURVATURE_SAMPLING_BIAS sin^2(2 phi) kappa towards
+# the centre of curvature (phi: angle between the normal and the nearest
+# pixel axis; kappa in 1/px). Measured on exact area-integrated discs of
+# radius 10-80 px, optical blur 0.3-1.0 px, sigma 1, either polarity: the
+# coefficient is the same for all (0.27 / 2 px^2), and the model leaves
+# < 0.003 px of the curvature bias at any angle (R = 10 px).
+CURVATURE_SAMPLING_BIAS = 0.135
+# Distances from an edge point, px, at which the background gradient beside
+# the edge is read (background_gradients): beyond 2.5 W (W ~ 1.2 px for
+# sigma 1 and an optical blur of 0.6 px) the step's own response is a few
+# per cent of its peak and is subtracted.
+BACKGROUND_DISTANCES = (3.0, 3.5, 4.0)
+# Mean squared magnitude of the image-noise part of one side's background
+# gradient (the mean over BACKGROUND_DISTANCES), per grad_noise^2: measured
+# on white noise, 1.27-1.30 for every direction of the normal. Half of it
+# is the variance of the component along any one direction.
+BACKGROUND_NOISE = 1.28
+# px: wider profiles are not step edges (a plateau of the gradient magnitude
+# on a shading ramp steeper than the thresholds); optical blur of a usable
+# image keeps step edges well below it.
+MAX_STEP_WIDTH = 3.0
 
 
 @dataclass(frozen=True)
@@ -84,6 +117,16 @@ class EdgePoints:
     grad_noise : float
         Standard deviation of each gradient component due to that noise,
         grey levels / px.
+    background_shift : ndarray, shape (N,) or None
+        First-order displacement of each point along its normal, px, caused
+        by the grey-level gradients *beside* the edge (a shaded surface on
+        one side, e.g. the visible inner wall of a hole), see
+        :func:`background_gradients`. Not applied to ``xy``.
+    background_bound : ndarray, shape (N,) or None
+        ``width^2 |g_b - g_d| / h``, px, from the difference of the
+        background gradient vectors on the two sides: a scale for what the
+        first-order ``background_shift`` may miss (points beside a shaded
+        surface), see :func:`background_gradients`.
     """
 
     xy: np.ndarray
@@ -96,6 +139,8 @@ class EdgePoints:
     sigma: float
     noise: float
     grad_noise: float
+    background_shift: np.ndarray | None = None
+    background_bound: np.ndarray | None = None
 
     def __len__(self):
         return len(self.xy)
@@ -107,9 +152,10 @@ class EdgePoints:
 
     def take(self, index):
         """The subset of points selected by an index array or boolean mask."""
+        opt = [None if a is None else a[index] for a in (self.background_shift, self.background_bound)]
         return EdgePoints(self.xy[index], self.normal[index], self.strength[index], self.cov[index],
                           self.pixel[index], self.width[index], self.shape, self.sigma, self.noise,
-                          self.grad_noise)
+                          self.grad_noise, *opt)
 
 
 def gaussian_derivative_kernels(sigma):
@@ -231,6 +277,87 @@ def _subpixel_offset(a, b, c, n_ax):
     return off, J
 
 
+def _bilinear(img, x, y):
+    """Bilinear samples of ``img`` at (x, y), px (OpenCV pixel frame, clamped at the borders)."""
+    H, W = img.shape
+    x = np.clip(x, 0.0, W - 1.000001)
+    y = np.clip(y, 0.0, H - 1.000001)
+    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    a, b = img[y0, x0], img[y0, x0 + 1]
+    c, d = img[y0 + 1, x0], img[y0 + 1, x0 + 1]
+    return (1 - fy) * ((1 - fx) * a + fx * b) + fy * ((1 - fx) * c + fx * d)
+
+
+def background_gradients(gx, gy, xy, normal, strength, width, grad_noise=0.0, distances=BACKGROUND_DISTANCES):
+    """How the grey-level gradients beside each edge point displace it.
+
+    The edge point is the maximum of the smoothed gradient across the edge.
+    For a step of height h whose profile (total Gaussian width W: filter,
+    optics, pixel) has a background of slope s_b on its bright side and
+    s_d on its dark side (along the normal n, dark to bright), the maximum
+    moves by ``W^2 (s_b - s_d) / h`` along n to first order; a background
+    that is the same linear ramp on both sides moves nothing. The
+    background gradients g_b, g_d are read from the filtered gradient at
+    ``distances`` px on either side (where the step's own response,
+    ``m exp(-d^2 / (2 W^2))`` along n, is subtracted) and averaged over
+    those distances.
+
+    Parameters
+    ----------
+    gx, gy : ndarray, shape (H, W)
+        The filtered gradient of the image.
+    xy, normal : ndarray, shape (N, 2)
+        Edge points, px, and their unit normals (dark to bright).
+    strength, width : ndarray, shape (N,)
+        Gradient magnitude at each point and the per-point profile widths
+        (their median over the points narrower than ``MAX_STEP_WIDTH`` is
+        used: the width is noisy per point).
+    grad_noise : float
+        Standard deviation of each gradient component from image noise,
+        grey levels / px (:func:`gradient_noise_std`).
+    distances : sequence of float
+        Where the background is read, px from the point.
+
+    Returns
+    -------
+    shift : ndarray, shape (N,)
+        First-order displacement along the normal, ``W^2 n.(g_b - g_d) / h``,
+        px. Its standard deviation from image noise is
+        ``W^2 sqrt(BACKGROUND_NOISE) grad_noise / h``.
+    bound : ndarray, shape (N,)
+        ``W^2 |g_b - g_d| / h``, px, with the expected contribution of the
+        image noise removed in quadrature. Background structure the linear
+        model does not describe (a slope that steepens towards the edge, as
+        on a surface seen near grazing incidence; a gradient along the
+        edge) displaces points by amounts of this order; a background
+        common to both sides (one shaded face, the step's own tail) does
+        not count.
+    """
+    n = len(xy)
+    if n == 0:
+        return np.zeros(0), np.zeros(0)
+    # The width of the step edges: points on a plateau of the gradient
+    # magnitude (a shading ramp above the thresholds) have none.
+    steps = width < MAX_STEP_WIDTH
+    W = float(np.median(width[steps])) if steps.any() else 1.0
+    h = strength * W * np.sqrt(2.0 * np.pi)  # step height, grey levels
+    side = []
+    for sign in (1.0, -1.0):
+        g = np.zeros((n, 2))
+        for d in distances:
+            p = xy + sign * d * normal
+            tail = strength * np.exp(-d * d / (2.0 * W * W))
+            g[:, 0] += _bilinear(gx, p[:, 0], p[:, 1]) - tail * normal[:, 0]
+            g[:, 1] += _bilinear(gy, p[:, 0], p[:, 1]) - tail * normal[:, 1]
+        side.append(g / len(distances))
+    diff = side[0] - side[1]
+    shift = W * W * np.einsum("ni,ni->n", diff, normal) / h
+    mag2 = np.maximum((diff * diff).sum(axis=1) - 2.0 * BACKGROUND_NOISE * grad_noise ** 2, 0.0)
+    bound = W * W * np.sqrt(mag2) / h
+    return shift, bound
+
+
 def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0, k_high=8.0):
     """Sub-pixel edge points with position covariances.
 
@@ -339,4 +466,5 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
     # and the second difference of its logarithm is -(n . e)^2 / w^2.
     Dl = np.log(a) - 2.0 * np.log(b) + np.log(c)
     width = np.sqrt(np.maximum(-n_ax2 / np.minimum(Dl, -1e-12), 0.0))
-    return EdgePoints(xy, nrm, m, cov, pixel, width, (H, W), float(sigma), noise, sg)
+    shift, bound = background_gradients(gx, gy, xy, nrm, m, width, sg)
+    return EdgePoints(xy, nrm, m, cov, pixel, width, (H, W), float(sigma), noise, sg, shift, bound)

@@ -9,6 +9,11 @@ adjustment of one primitive). Its covariance is first-order propagation from
 pixels to the 3D parameters in one step: ``(J^T W J)^-1`` for independent
 point errors, and the sandwich ``S^-1 M S^-1`` when neighbouring edge points
 share smoothed noise (see :func:`partinspect.vision.fitting.information_matrices`).
+A view may also carry a Type B standard uncertainty per point for an
+uncorrected systematic displacement (``View.bias``, correlated along the
+edge over a longer length): the points are then weighted by their random
+and systematic variances together, and the systematic part of the
+covariance is propagated by the same sandwich and reported separately.
 
 Inputs are *ideal* pixel coordinates (distortion removed from the points,
 ``K @ [undistort_points(uv), 1]``) in the rig frame convention of
@@ -28,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from partinspect.vision.fitting import information_matrices
+from partinspect.vision.fitting import _band
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic"]
 
@@ -42,19 +47,38 @@ class View:
     xy : ndarray, shape (N, 2)
         Ideal (undistorted) pixel coordinates.
     sigma : ndarray, shape (N,)
-        Standard uncertainty of each point across the edge, px.
+        Standard uncertainty of each point across the edge from image
+        noise, px.
     P : ndarray, shape (3, 4)
         Camera matrix ``K [R | t]`` mapping rig-frame points (mm) to ideal pixels.
     corr_length : float or None
         Correlation length of the point errors along the edge, px (the edge
         filter's sigma: neighbouring edge points share smoothed noise), with
         the points ordered along the edge; None for independent errors.
+    bias : ndarray, shape (N,) or None
+        Standard uncertainty of an uncorrected *systematic* displacement of
+        each point across the edge, px (a Type B evaluation, JCGM 100 4.3),
+        or None for none. It does not average out along the edge: the
+        displacements of two points are correlated as
+        ``exp(-d^2 / (4 bias_corr_length^2))`` at distance d.
+    bias_corr_length : float or None
+        Correlation length of ``bias`` along the edge, px; None: fully
+        correlated over the whole view.
     """
 
     xy: np.ndarray
     sigma: np.ndarray
     P: np.ndarray
     corr_length: float | None = None
+    bias: np.ndarray | None = None
+    bias_corr_length: float | None = None
+
+    @property
+    def total_sigma(self):
+        """Standard uncertainty of each point, random and systematic together, px (the fit's weights)."""
+        if self.bias is None:
+            return self.sigma
+        return np.sqrt(self.sigma * self.sigma + self.bias * self.bias)
 
 
 @dataclass(frozen=True)
@@ -66,6 +90,8 @@ class Line3D:
     component along ``direction`` is zero by construction (the gauge).
     ``direction_cov`` is the 3x3 covariance of the unit direction.
     ``param_cov`` is the 4x4 covariance of the minimal parameters.
+    Covariances include the views' systematic parts (``View.bias``), of
+    which ``param_cov_systematic`` is the share in ``param_cov``.
     """
 
     point: np.ndarray
@@ -75,6 +101,7 @@ class Line3D:
     param_cov: np.ndarray
     chi2: float
     dof: int
+    param_cov_systematic: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -97,6 +124,9 @@ class Circle3D:
         Weighted sum of squared residuals at the solution.
     dof : int
         Number of residuals minus 6.
+    param_cov_systematic : ndarray, shape (6, 6) or None
+        The share of ``param_cov`` due to the views' uncorrected systematic
+        displacements (``View.bias``); the covariances above include it.
     """
 
     center: np.ndarray
@@ -108,6 +138,7 @@ class Circle3D:
     param_cov: np.ndarray
     chi2: float
     dof: int
+    param_cov_systematic: np.ndarray | None = None
 
 
 def _basis(d):
@@ -146,24 +177,55 @@ def _gauss_newton(residuals, theta0, max_iter=50, tol=1e-12):
     return theta, J, r
 
 
-def _covariance(views, J):
-    """Sandwich covariance of the fit, the views' errors independent of each other.
+def _gram(a, xy, corr_length):
+    """``a^T R a`` for rows ``a`` ordered along a curve, R_ij = exp(-d_ij^2 / (4 l^2)) (banded)."""
+    G = a.T @ a
+    for k, rho in _band(xy, corr_length):
+        C = (a * rho[:, None]).T @ np.roll(a, -k, axis=0)
+        G += C + C.T
+    return G
 
-    ``J`` holds the weighted Jacobian rows of all views stacked in order.
+
+def _gram_dense(a, xy, corr_length):
+    """``a^T R a`` with R_ij = exp(-d_ij^2 / (4 l^2)) over every pair (all ones for l None).
+
+    Dense, so points of one edge that are near each other count whatever
+    their order in the arrays (a feature merged from several segments).
     """
-    S = np.zeros((J.shape[1], J.shape[1]))
-    M = np.zeros_like(S)
+    if corr_length is None:
+        s = a.sum(axis=0)
+        return np.outer(s, s)
+    d2 = ((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
+    return a.T @ np.exp(-d2 / (4.0 * corr_length * corr_length)) @ a
+
+
+def _covariance(views, J):
+    """Sandwich covariances of the fit: (random, systematic).
+
+    ``J`` holds the weighted Jacobian rows of all views stacked in order
+    (residuals divided by each point's ``total_sigma``). The estimate is
+    ``theta = -S^-1 H_w^T e_w`` to first order, with ``S = H_w^T H_w``; the
+    weighted errors e_w = e / t have the covariance ``D_s R_s D_s + D_b
+    R_b D_b`` (D_s = diag(sigma / t), D_b = diag(bias / t); R_s, R_b the
+    correlations along the edge of the noise and of the systematic
+    displacements), so each part is ``S^-1 (H_w^T D R D H_w) S^-1``. The
+    views' errors are independent of each other.
+    """
+    p = J.shape[1]
+    S = J.T @ J
+    M, Mb = np.zeros((p, p)), np.zeros((p, p))
     start = 0
     for v in views:
         n = len(v.xy)
-        h = J[start : start + n] * v.sigma[:, None]  # back to unweighted distance derivatives
-        Sv, Mv, _ = information_matrices(h, v.sigma, v.xy, v.corr_length)
-        S += Sv
-        M += Mv
+        hw = J[start : start + n]
+        t = v.total_sigma
+        M += _gram(hw * (v.sigma / t)[:, None], v.xy, v.corr_length)
+        if v.bias is not None:
+            Mb += _gram_dense(hw * (v.bias / t)[:, None], v.xy, v.bias_corr_length)
         start += n
     Sinv = np.linalg.inv(S)
-    cov = Sinv @ M @ Sinv
-    return 0.5 * (cov + cov.T)
+    cov, cov_b = Sinv @ M @ Sinv, Sinv @ Mb @ Sinv
+    return 0.5 * (cov + cov.T), 0.5 * (cov_b + cov_b.T)
 
 
 def _line_residuals(views, c0, d0, e1, e2):
@@ -177,7 +239,7 @@ def _line_residuals(views, c0, d0, e1, e2):
             x2 = v.P @ np.append(p + 100.0 * d, 1.0)
             line = np.cross(x1, x2)
             line /= np.hypot(line[0], line[1])
-            out.append((v.xy @ line[:2] + line[2]) / v.sigma)
+            out.append((v.xy @ line[:2] + line[2]) / v.total_sigma)
         return np.concatenate(out)
 
     return residuals
@@ -201,7 +263,8 @@ def fit_line_3d(views, point0, direction0):
     c0 = np.asarray(point0, float)
     e1, e2 = _basis(d0)
     theta, J, r = _gauss_newton(_line_residuals(views, c0, d0, e1, e2), np.zeros(4))
-    cov = _covariance(views, J)
+    cov_random, cov_sys = _covariance(views, J)
+    cov = cov_random + cov_sys
     a, b, al, be = theta
     d = d0 + al * e1 + be * e2
     nd = np.linalg.norm(d)
@@ -217,7 +280,7 @@ def fit_line_3d(views, point0, direction0):
     Jfull[:3, :2] = Jp
     Jfull[3:, 2:] = Jd
     C = Jfull @ cov @ Jfull.T
-    return Line3D(point, d, C[:3, :3], C[3:, 3:], cov, float(r @ r), int(r.size - 4))
+    return Line3D(point, d, C[:3, :3], C[3:, 3:], cov, float(r @ r), int(r.size - 4), cov_sys)
 
 
 def circle_image_conic(center, normal, radius, P):
@@ -254,7 +317,7 @@ def _circle_residuals(views, n0, e1, e2):
             C = circle_image_conic(c, n, theta[5], v.P)
             Cx = x @ C
             # Sampson distance: algebraic residual over its gradient norm.
-            out.append(np.einsum("ni,ni->n", Cx, x) / (2 * np.hypot(Cx[:, 0], Cx[:, 1])) / v.sigma)
+            out.append(np.einsum("ni,ni->n", Cx, x) / (2 * np.hypot(Cx[:, 0], Cx[:, 1])) / v.total_sigma)
         return np.concatenate(out)
 
     return residuals
@@ -283,7 +346,8 @@ def fit_circle_3d(views, center0, normal0, radius0):
     e1, e2 = _basis(n0)
     theta0 = np.r_[np.asarray(center0, float), 0.0, 0.0, float(radius0)]
     theta, J, r = _gauss_newton(_circle_residuals(views, n0, e1, e2), theta0)
-    cov = _covariance(views, J)
+    cov_random, cov_sys = _covariance(views, J)
+    cov = cov_random + cov_sys
     n = n0 + theta[3] * e1 + theta[4] * e2
     nn = np.linalg.norm(n)
     Jn = (np.eye(3) - np.outer(n, n) / nn**2) / nn @ np.stack([e1, e2], 1)
@@ -292,5 +356,6 @@ def fit_circle_3d(views, center0, normal0, radius0):
         n, Jn = -n, -Jn
     normal_cov = Jn @ cov[3:5, 3:5] @ Jn.T
     return Circle3D(
-        theta[:3], n, float(theta[5]), cov[:3, :3], normal_cov, float(np.sqrt(cov[5, 5])), cov, float(r @ r), int(r.size - 6)
+        theta[:3], n, float(theta[5]), cov[:3, :3], normal_cov, float(np.sqrt(cov[5, 5])), cov, float(r @ r),
+        int(r.size - 6), cov_sys
     )

@@ -49,8 +49,9 @@ class MonteCarloFeature:
     cov_mc : ndarray
         Their covariance (the Monte Carlo covariance).
     cov_first_order : ndarray
-        ``Feature3D.param_cov`` (image noise, plus the calibration when it
-        has standard uncertainties), for comparison.
+        The first-order covariance of the same inputs, for comparison:
+        ``Feature3D.param_cov`` less its systematic (Type B) part, i.e.
+        image noise plus the calibration when it has standard uncertainties.
     std_ratio : ndarray
         ``sqrt(diag(cov_mc) / diag(cov_first_order))`` (NaN where the
         first-order variance is zero).
@@ -158,7 +159,11 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
             samples.append(_params(fit, kind, ref))
         samples = np.array(samples)
         cov = np.cov(samples, rowvar=False)
-        fo = f3.param_cov
+        # The Monte Carlo draws the random inputs (image noise, calibration);
+        # the Type B rim-shading part of param_cov is not drawn, so it is
+        # left out of the comparison.
+        sys_cov = getattr(f3, "param_cov_systematic", None)
+        fo = f3.param_cov if sys_cov is None else f3.param_cov - sys_cov
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.sqrt(np.diag(cov) / np.diag(fo))
         out.append(MonteCarloFeature(int(k), f3.kind, len(samples), samples, samples.mean(axis=0), cov, fo, ratio))

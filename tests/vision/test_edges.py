@@ -90,3 +90,73 @@ def test_output_shapes_and_no_noise_points():
     assert len(np.unique(ep.pixel[:, 0] * 1000 + ep.pixel[:, 1])) == n
     # Gradient points from dark (outside) to bright (inside the disc).
     assert np.all(((np.array([70, 70]) - ep.xy) * ep.normal).sum(axis=1) > 0)
+
+
+def _ramp_step(angle, ramp):
+    """A straight step (60 -> 160 grey) with a linear ramp of ``ramp`` grey/px on its dark side only."""
+    A, B = np.cos(angle), np.sin(angle)
+    hp = HalfPlane(A, B, -(A * 60.3 + B * 50.2))  # inside (dark side of the normal) is A x + B y + C < 0
+    clean = render_clean([(hp, 60.0)], 100, 120, background=160.0)
+    rows, cols = np.mgrid[0:100, 0:120].astype(float)
+    d = hp.sdist(cols, rows)
+    # The ramp rises towards the edge on the dark side: grey - ramp * |d| there (pixel-centre values).
+    clean = clean + ramp * np.minimum(d, 0.0)
+    img = ndimage.gaussian_filter(clean, 0.6, mode="nearest")
+    ep = edge_points(img, 1.0, noise=2.0)
+    ok = (ep.xy[:, 0] > 15) & (ep.xy[:, 0] < 105) & (ep.xy[:, 1] > 15) & (ep.xy[:, 1] < 85)
+    ok &= np.abs(hp.distance(ep.xy)) < 1.0
+    return hp.distance(ep.xy[ok]), ep.take(ok)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.5])
+def test_background_shift_predicts_the_displacement_by_a_one_sided_ramp(angle):
+    flat, ep0 = _ramp_step(angle, 0.0)
+    assert np.abs(ep0.background_shift).max() < 0.003 and np.abs(ep0.background_bound).max() < 0.003
+    # 4 grey/px rising towards the edge on its dark side steepens the dark
+    # flank: the gradient maximum moves towards the dark side, by W^2 s / h to
+    # first order; the detector's three-sample interpolation of the skewed
+    # peak moves it 5-40 % further (partinspect.vision.stereo's
+    # BACKGROUND_CORRECTION allows for that).
+    d, ep = _ramp_step(angle, 4.0)
+    moved = d.mean() - flat.mean()
+    assert moved < -0.03
+    assert 1.0 < moved / np.mean(ep.background_shift) < 1.45
+    # The bound holds the shift (less the expected image-noise share, removed in quadrature).
+    assert np.all(ep.background_bound >= 0.95 * np.abs(ep.background_shift))
+
+
+def test_background_bound_of_pure_noise_is_small():
+    # Image noise beside a clean edge: its expected share is removed from the bound.
+    clean = ndimage.gaussian_filter(render_clean([(HalfPlane(1.0, 0.0, -60.3), 160.0)], 100, 120, 60.0), 0.6,
+                                    mode="nearest")
+    b = []
+    for seed in range(3):
+        ep = edge_points(render([], 100, 120, blur=0, noise=2.0, seed=seed, clean=clean), 1.0, noise=2.0)
+        b.append(ep.background_bound[(ep.xy[:, 1] > 10) & (ep.xy[:, 1] < 90)])
+    b = np.concatenate(b)
+    # Without the removal the bound would be about W^2 sqrt(2 * 1.28) g_n / h (h = 100 grey levels).
+    unremoved = 1.2 ** 2 * np.sqrt(2 * 1.28) * gradient_noise_std(2.0, 1.0) / 100.0
+    assert np.median(b) < 0.6 * unremoved
+
+
+@pytest.mark.parametrize("radius", [10.0, 30.0])
+def test_curvature_bias_removed_by_deblurred(radius):
+    from partinspect.vision.correspondences import deblurred
+    from partinspect.vision.fitting import fit_ellipse
+
+    c = (radius + 20.3, radius + 19.6)
+    n = int(2 * radius + 40)
+    img = ndimage.gaussian_filter(render_clean([(Disc(*c, radius), 60.0)], n, n, background=200.0), 0.6,
+                                  mode="nearest")
+    ep = edge_points(img, 1.0, noise=2.0)
+    r = np.hypot(ep.xy[:, 0] - c[0], ep.xy[:, 1] - c[1])
+    ok = np.abs(r - radius) < 1.5
+    xy, W = ep.xy[ok], float(np.median(ep.width[ok]))
+    assert np.mean(r[ok] - radius) < -0.5 * W * W / radius  # raw: towards the centre
+    out = deblurred(xy, fit_ellipse(xy), W)
+    err = np.hypot(out[:, 0] - c[0], out[:, 1] - c[1]) - radius
+    phi = np.degrees(np.arctan2(np.abs(ep.normal[ok, 1]), np.abs(ep.normal[ok, 0])))
+    phi = np.minimum(phi, 90 - phi)
+    for lo in range(0, 45, 15):  # every direction of the normal to the pixel axes
+        sel = (phi >= lo) & (phi < lo + 15)
+        assert abs(err[sel].mean()) < 0.004, (lo, err[sel].mean())

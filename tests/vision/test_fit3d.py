@@ -110,3 +110,34 @@ def test_line_covariance_is_honest_and_depth_is_worst():
     assert abs(f.covariance @ f.direction).max() < 1e-12  # the gauge: no uncertainty along the line
     sd = np.sqrt(np.diag(f.covariance))
     assert sd[2] > 2 * max(sd[0], sd[1])
+
+
+@pytest.mark.parametrize("corr", [None, 40.0])
+def test_systematic_part_is_the_response_to_the_stated_displacement(corr):
+    """A Type B displacement b_i of the left view's points: the propagated covariance is
+    that of xi * (the response to b)."""
+    X = circle_points(680)
+    ph = np.linspace(0, 2 * np.pi, 680, endpoint=False)
+    b = 0.04 * (1.2 + np.cos(ph))  # px, larger on one side of the rim
+    x = proj(PS[0], X)
+    t = np.gradient(x, axis=0)
+    nrm = np.c_[-t[:, 1], t[:, 0]] / np.linalg.norm(t, axis=1)[:, None]
+    clean = [View(proj(P, X), np.full(680, SIGMA), P, 1.0) for P in PS]
+    clean[0] = View(clean[0].xy, clean[0].sigma, PS[0], 1.0, b, corr)
+    f0 = fit_circle_3d(clean, CIRCLE["center"], CIRCLE["normal"], 6.0)
+    assert np.abs(f0.center - CIRCLE["center"]).max() < 1e-7  # noiseless, unbiased
+    S = f0.param_cov_systematic
+    assert np.all(np.linalg.eigvalsh(S) > -1e-15)
+    assert np.allclose(S, S.T)
+    if corr is None:
+        # Fully correlated: one common xi, so S is the outer product of the response to b.
+        moved = [View(clean[0].xy + b[:, None] * nrm, clean[0].sigma, PS[0], 1.0, b, None), clean[1]]
+        f1 = fit_circle_3d(moved, CIRCLE["center"], CIRCLE["normal"], 6.0)
+        d = np.r_[f1.center - f0.center, f1.radius - f0.radius]
+        s = np.sqrt(np.diag(S)[[0, 1, 2, 5]])
+        assert np.allclose(np.abs(d), s, rtol=0.02, atol=1e-9), (d, s)
+    else:
+        # Correlated over a part of the rim only: less than the common displacement.
+        full = fit_circle_3d([View(clean[0].xy, clean[0].sigma, PS[0], 1.0, b, None), clean[1]],
+                             CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic
+        assert S[5, 5] < full[5, 5]

@@ -25,15 +25,28 @@ def _pick(res):
     return [circle, line]
 
 
+def _ratio(m, res, calibration=False):
+    """Monte Carlo over first-order standard deviations of the parts the Monte Carlo draws.
+
+    A circle's ``param_cov`` also holds the Type B component for the
+    remaining edge displacement at hole rims (``param_cov_systematic``),
+    which no draw of image noise or calibration reproduces.
+    """
+    f = res.features[m.feature]
+    fo = f.param_cov_image + (f.param_cov_calibration if calibration else 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(np.diag(m.cov_mc) / np.diag(fo))
+
+
 def test_first_order_agrees_with_monte_carlo_image_noise():
     rig, res = measured(0)
     mc = monte_carlo(res, rig, _pick(res), draws=150, seed=1)
     for m in mc:
         # Positions (centre or point, across the line) and radius: standard deviations within 15 %.
         idx = [0, 1, 2, 6] if m.kind == "circle" else [0, 1, 2]
-        ratio = m.std_ratio[idx]
+        ratio = _ratio(m, res)[idx]
         ratio = ratio[np.isfinite(ratio)]
-        assert np.all(np.abs(ratio - 1) < 0.15), (m.kind, m.std_ratio)
+        assert np.all(np.abs(ratio - 1) < 0.15), (m.kind, _ratio(m, res))
 
 
 def test_first_order_agrees_with_monte_carlo_with_calibration():
@@ -44,4 +57,5 @@ def test_first_order_agrees_with_monte_carlo_with_calibration():
     mc = monte_carlo(res, cal, _pick(res), draws=100, seed=2)
     for m in mc:
         idx = [0, 1, 2, 6] if m.kind == "circle" else [0, 1, 2]
-        assert np.all(np.abs(m.std_ratio[idx] - 1) < 0.2), (m.kind, m.std_ratio)
+        ratio = _ratio(m, res, calibration=True)
+        assert np.all(np.abs(ratio[idx] - 1) < 0.2), (m.kind, ratio)

@@ -3,7 +3,6 @@
 from dataclasses import replace
 
 import numpy as np
-import pytest
 
 from partinspect.vision.ideal import camera_matrices
 from partinspect.vision.stereo import measure_stereo
@@ -83,15 +82,27 @@ def test_circles_accurate_depth_worst():
     assert rms[2] > rms[0] and rms[2] > rms[1]  # the paper's observation: depth is worst
 
 
-@pytest.mark.xfail(reason="known: rendered hole rims give circle centres a 10-25 um depth bias and radii "
-                          "+3-12 um, 5-10 standard uncertainties; lines are unbiased (see the report)", strict=False)
 def test_circles_honest():
-    z = []
+    # The rims of the plate's holes are rendered with their shaded inner walls
+    # visible, which displaces the edge points (stereo module notes, "Rims of
+    # holes"): corrected to first order, the rest carried as a Type B component.
+    # Normalised errors over the circles of both draws (8 here: the same four
+    # holes twice): centre chi2 / 3 and radius error / u near 1, neither much
+    # too large (bias left unaccounted for) nor much too small (an inflated
+    # budget); most inside their 95 % region. The bounds allow for the
+    # sampling spread of 8 values (benchmarks/bench_stereo.py runs more).
+    z, rz = [], []
     for seed in SEEDS:
         for kind, lab, e, C, r, u in errors(seed):
             if kind == "circle":
-                z.append(e @ np.linalg.inv(C) @ e / 3)
-    assert 0.4 < np.mean(z) < 2.5, np.mean(z)
+                z.append(e @ np.linalg.inv(C) @ e)
+                rz.append(r / u)
+    z, rz = np.array(z), np.array(rz)
+    assert len(z) >= 6
+    assert 0.4 < np.mean(z) / 3 < 2.5, z / 3
+    assert np.mean(z <= 7.814727903251178) >= 0.75, z / 3  # chi2(3) 95 % quantile
+    assert 0.5 < np.sqrt(np.mean(rz ** 2)) < 1.6, rz
+    assert np.mean(np.abs(rz) <= 2) >= 0.75, rz
 
 
 def test_distorted_images_measured_through_ideal_pixels():
@@ -109,6 +120,7 @@ def test_calibration_uncertainty_is_added():
     assert res2.calibration_included and not res.calibration_included
     for a, b in zip(res.features, res2.features):
         assert np.allclose(a.params, b.params)
-        assert np.allclose(b.param_cov, b.param_cov_image + b.param_cov_calibration)
+        assert np.allclose(b.param_cov, b.param_cov_image + b.param_cov_calibration + b.param_cov_systematic)
+        assert np.allclose(a.param_cov_systematic, b.param_cov_systematic)
         assert np.all(np.linalg.eigvalsh(b.param_cov_calibration) > -1e-12)
         assert np.trace(b.covariance) > 2 * np.trace(a.covariance)
