@@ -186,22 +186,35 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         "decision_rule": resolved.decision_rule,
     }
 
+    from partinspect.adaptive import measure_adaptively
+    from partinspect.cad.visibility import visibility
     from partinspect.vision.stereo import measure_stereo
 
-    stereo = measure_stereo(left, right, calib, progress=progress)
+    def run_round(params):
+        stereo = measure_stereo(
+            left, right, calib, sigma=params["sigma"], progress=progress,
+            edge_options={"k_low": params["k_low"], "k_high": params["k_high"]},
+            match_options={"min_points": params["min_points"]},
+        )
+        progress(f"registering {len(stereo.features)} measured features to the CAD model")
+        try:
+            registration = _register(stereo, inv, resolved, images, hint)
+        except InputError as e:
+            e.stereo = stereo
+            raise
+        progress("checking which edges the cameras see")
+        return stereo, registration, visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
+
+    best, adaptive_log, advice = measure_adaptively(run_round, progress=progress)
+    stereo, registration, seen = best.stereo, best.registration, best.visibility
     uncertainty_info = {"method": "first-order propagation (JCGM 100)", "coverage_factor": 2.0}
     if uncertainty == "montecarlo":
+        # On the chosen round only: the draws are the expensive part.
         progress(f"Monte Carlo: {draws} draws for each of {len(stereo.features)} features")
         stereo, ratios = _monte_carlo(stereo, calib, draws)
+        registration = _register(stereo, inv, resolved, images, hint)
         uncertainty_info = {"method": "Monte Carlo (JCGM 101)", "draws": draws, "seed": 0, "coverage_factor": 2.0,
                             "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None}
-    progress(f"registering {len(stereo.features)} measured features to the CAD model")
-    registration = _register(stereo, inv, resolved, images, hint)
-
-    progress("checking which edges the cameras see")
-    from partinspect.cad.visibility import visibility
-
-    seen = visibility(shape, inv, calib, registration.part_to_camera)
 
     progress(f"evaluating {len(characteristics)} characteristics")
     from partinspect.tolerances.decision import decide_all
@@ -246,6 +259,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         "images": {"width": left.shape[1], "height": left.shape[0], "bit_depth": bit_depth},
         "tolerances": spec_info,
         "uncertainty": uncertainty_info,
+        "adaptive": {"rounds": adaptive_log, "advice": advice},
         "registration": registration_entry(registration),
         "features": features,
         "characteristics": characteristics,
@@ -429,6 +443,11 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons):
     """Why a CAD feature has no measurement: out of view, or what became of its edge in the images."""
     if not vis.in_view:
         return "not visible: " + vis.reason()
+    noise = max(float(stereo.left.noise), float(stereo.right.noise))
+    if not vis.shows_edge(noise):
+        return (f"in view, but with too little grey-level step across it to be detected ({vis.contrast[0]:.0f} and "
+                f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): "
+                "its two faces look alike under this lighting")
     from scipy.spatial import cKDTree
 
     from partinspect.simulate.truth import feature_geometry, sample_edge

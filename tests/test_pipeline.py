@@ -71,6 +71,8 @@ def test_nominal_plate_passes_or_is_inconclusive_and_says_why(workdir, tmp_path,
             lo, up, y, U = c["lower_limit"], c["upper_limit"], c["measured"], c["expanded_uncertainty"]
             assert (up is not None and y + U > up) or (lo is not None and y - U < lo), c
         assert c["reason"]
+    # Clean data: the first round meets no situation, nothing is re-run, no advice.
+    assert len(report["adaptive"]["rounds"]) == 1 and report["adaptive"]["advice"] == []
     # General tolerances of edges out of view are listed, not judged.
     assert report["not_inspected"] and all(c["reason"] for c in report["not_inspected"])
     assert not {c["feature"] for c in report["not_inspected"]} & seen

@@ -28,6 +28,13 @@ SEEN_FRACTION = 0.5
 """A feature with less than this fraction of its length in view in either
 image counts as out of view."""
 
+MIN_CONTRAST_SNR = 6.0
+"""An edge whose grey step is below this many noise standard deviations
+cannot be expected to be detected (the hysteresis thresholds sit at 4 and 8
+gradient-noise units)."""
+CONTRAST_OFFSET = 2.5
+"""px either side of the projected edge where its grey step is read."""
+
 MESH_TOLERANCE = 0.05
 """Chord error of the mesh the sight lines are cast through, mm (about a
 pixel's footprint on the part for the rigs the project targets)."""
@@ -39,6 +46,9 @@ class FeatureVisibility:
 
     Attributes
     ----------
+    contrast : tuple of float
+        Median grey-level step across the edge where it is seen, left and
+        right image (NaN when no images were given or nothing is seen).
     in_image : tuple of float
         Fraction of the edge projecting inside the left and right image.
     unoccluded : tuple of float
@@ -50,6 +60,11 @@ class FeatureVisibility:
     in_image: tuple
     unoccluded: tuple
     seen: tuple
+    contrast: tuple = (float("nan"), float("nan"))
+
+    def shows_edge(self, noise):
+        """True when the edge is in view and its grey step is at least ``MIN_CONTRAST_SNR`` x ``noise`` in both images."""
+        return self.in_view and all(not (c < MIN_CONTRAST_SNR * noise) for c in self.contrast)
 
     @property
     def in_view(self):
@@ -72,7 +87,19 @@ class FeatureVisibility:
         return "; ".join(out)
 
 
-def visibility(shape, inventory, calib, part_to_camera, *, mesh=None):
+def _step(image, uv, normal):
+    """Grey-level difference across an edge at each point, bilinear samples CONTRAST_OFFSET px either side."""
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    a = uv + CONTRAST_OFFSET * normal
+    b = uv - CONTRAST_OFFSET * normal
+    ga = cv2.remap(img, a[:, 0:1].astype(np.float32), a[:, 1:2].astype(np.float32), cv2.INTER_LINEAR)
+    gb = cv2.remap(img, b[:, 0:1].astype(np.float32), b[:, 1:2].astype(np.float32), cv2.INTER_LINEAR)
+    return np.abs(ga - gb).ravel()
+
+
+def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=None):
     """Visibility of every feature of an inventory in both cameras.
 
     Parameters
@@ -85,6 +112,9 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None):
         ``x_rig = R @ X_part + t``, mm.
     mesh : trimesh.Trimesh, optional
         A tessellation of ``shape`` with ``face_attributes["cad_face"]``.
+    images : (ndarray, ndarray), optional
+        The left and right images (grey, as recorded): each edge's grey
+        step across it is then read where it is seen.
 
     Returns
     -------
@@ -103,11 +133,16 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None):
     out = {}
     for f in inventory.features:
         pts, tan = sample_edge(f.kind, feature_geometry(f))
-        fr = {"in_image": [], "unoccluded": [], "seen": []}
+        fr = {"in_image": [], "unoccluded": [], "seen": [], "contrast": []}
         for index in (0, 1):
             v = edge_visibility(rs, calib, index, part_to_camera, pts, tan)
+            seen = v["in_image"] & v["unoccluded"]
             fr["in_image"].append(float(np.mean(v["in_image"])))
             fr["unoccluded"].append(float(np.mean(v["unoccluded"])))
-            fr["seen"].append(float(np.mean(v["in_image"] & v["unoccluded"])))
-        out[f.id] = FeatureVisibility(*(tuple(fr[k]) for k in ("in_image", "unoccluded", "seen")))
+            fr["seen"].append(float(np.mean(seen)))
+            c = float("nan")
+            if images is not None and seen.any():
+                c = float(np.median(_step(images[index], v["uv"][seen], v["normal_uv"][seen])))
+            fr["contrast"].append(c)
+        out[f.id] = FeatureVisibility(*(tuple(fr[k]) for k in ("in_image", "unoccluded", "seen", "contrast")))
     return out

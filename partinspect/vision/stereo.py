@@ -304,14 +304,20 @@ def _with_edge_data(feature, edges):
     return EdgeFeature(**base, background_offset=mean[:, :2], background_bound=mean[:, 2], background_std=mean_std)
 
 
-def measure_images(image, K, D, *, sigma=1.0):
-    """The 2D chain of one image (distorted pixels in, ideal-pixel features out)."""
+def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options=None):
+    """The 2D chain of one image (distorted pixels in, ideal-pixel features out).
+
+    ``edge_options`` go to :func:`partinspect.vision.edges.edge_points`
+    (e.g. the hysteresis factors ``k_low``, ``k_high``), ``segment_options``
+    to :func:`partinspect.vision.contours.segment_contours` (e.g.
+    ``alpha``, ``min_length``): the knobs the adaptive steps turn.
+    """
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     noise = float(estimate_noise(img))
-    edges = edge_points(img, sigma, noise=noise)
-    segments = segment_contours(edges, chain_edges(edges))
+    edges = edge_points(img, sigma, noise=noise, **(edge_options or {}))
+    segments = segment_contours(edges, chain_edges(edges), **(segment_options or {}))
     feats = [_with_edge_data(f, edges) for f in image_features(edges, segments, K, D)]
     return ImageResult(noise, edges, segments, feats)
 
@@ -560,7 +566,8 @@ def _make_feature3d(match, fl, fr, fit, corr, cal_cov):
                      total, img_cov, cal_cov, fit, corr, sys_cov)
 
 
-def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_options=None):
+def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_options=None, edge_options=None,
+                   segment_options=None):
     """Measure the 3D lines and circles of a part from a calibrated stereo pair.
 
     Parameters
@@ -578,6 +585,8 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         ``progress(message)`` at each stage.
     match_options : dict, optional
         Keyword arguments of :func:`partinspect.vision.matching.match_features`.
+    edge_options, segment_options : dict, optional
+        Passed to :func:`measure_images` for both images.
 
     Returns
     -------
@@ -585,9 +594,9 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     """
     say = progress or (lambda message: None)
     say("edges and segments: left image")
-    L = measure_images(left, calib.K1, calib.D1, sigma=sigma)
+    L = measure_images(left, calib.K1, calib.D1, sigma=sigma, edge_options=edge_options, segment_options=segment_options)
     say("edges and segments: right image")
-    R = measure_images(right, calib.K2, calib.D2, sigma=sigma)
+    R = measure_images(right, calib.K2, calib.D2, sigma=sigma, edge_options=edge_options, segment_options=segment_options)
     geo = epipolar_geometry(calib)
     say("matching")
     matching = match_features(L.features, R.features, geo, **(match_options or {}))

@@ -1,0 +1,87 @@
+"""The situation graph: which situations hold, which actions follow, which round is kept."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from partinspect.adaptive import DEFAULTS, SITUATIONS, measure_adaptively, met_situations, state_of
+from partinspect.cad.visibility import FeatureVisibility
+from partinspect.errors import InputError
+
+
+def _side(noise=2.0, strength=200.0, noise_ratio=1.0):
+    edges = SimpleNamespace(strength=np.full(50, strength), sigma=1.0)
+    fit = SimpleNamespace(consistency=SimpleNamespace(noise_ratio=noise_ratio))
+    return SimpleNamespace(noise=noise, edges=edges, features=[SimpleNamespace(fit=fit)] * 3)
+
+
+def _stereo(**kw):
+    return SimpleNamespace(left=_side(**kw), right=_side(**kw))
+
+
+SEEN = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (60.0, 55.0))
+FLAT = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (3.0, 2.0))  # in view, no grey step
+HIDDEN = FeatureVisibility((1.0, 1.0), (0.0, 0.0), (0.0, 0.0), (float("nan"),) * 2)
+
+
+def _registration(ids, wrms=1.0):
+    return SimpleNamespace(assignment={"circle": {}, "line": dict(enumerate(ids))}, weighted_rms=wrms)
+
+
+def test_missing_counts_only_edges_in_view_with_a_grey_step():
+    vis = {"line-1": SEEN, "line-2": SEEN, "line-3": FLAT, "line-4": HIDDEN}
+    s = state_of(DEFAULTS, _stereo(), _registration(["line-1"]), vis)
+    assert s.missing == ("line-2",)
+    names = [sit.name for sit, _ in met_situations(s)]
+    assert names == ["expected edges missing"]
+
+
+def test_clean_data_meets_no_situation_and_runs_once():
+    calls = []
+
+    def run(params):
+        calls.append(dict(params))
+        return _stereo(), _registration(["line-1"]), {"line-1": SEEN}
+
+    best, log, advice = measure_adaptively(run)
+    assert calls == [DEFAULTS] and len(log) == 1 and advice == []
+    assert best.params == DEFAULTS
+
+
+def test_actions_are_tried_in_order_and_the_better_round_is_kept():
+    vis = {"line-1": SEEN, "line-2": SEEN}
+    calls = []
+
+    def run(params):
+        calls.append(dict(params))
+        found = ["line-1", "line-2"] if params["sigma"] > 1.0 else ["line-1"]
+        return _stereo(), _registration(found), vis
+
+    best, log, advice = measure_adaptively(run)
+    actions = next(s for s in SITUATIONS if s.name == "expected edges missing").actions
+    assert calls[1] == {**DEFAULTS, **actions[0]}  # the first action, on the defaults
+    assert all(c["sigma"] == 1.0 for c in calls[:-1]) and calls[-1]["sigma"] == 1.5  # sigma last, as listed
+    assert best.params["sigma"] == 1.5 and best.state.missing == ()
+    assert log[-1]["kept"] and log[-1]["after"]["change"] == {"sigma": 1.5}
+    assert advice == []
+
+
+def test_a_persisting_situation_gives_its_advice():
+    def run(params):
+        return _stereo(noise_ratio=2.0), _registration(["line-1"]), {"line-1": SEEN}
+
+    best, log, advice = measure_adaptively(run)
+    assert len(log) == 2  # one action for this situation, then nothing left to try
+    assert [a["situation"] for a in advice] == ["residuals inconsistent with the noise"]
+    assert "focus" in advice[0]["advice"]
+
+
+def test_no_alignment_in_any_round_raises_the_first_error():
+    def run(params):
+        e = InputError("images", f"cannot align (sigma {params['sigma']})")
+        e.stereo = _stereo()
+        raise e
+
+    with pytest.raises(InputError, match="sigma 1"):
+        measure_adaptively(run)
