@@ -262,3 +262,21 @@ def test_write_reports_with_figures_keeps_json_and_junit_unchanged(tmp_path):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
     assert 'id="fig-images"' in (tmp_path / "b" / "report.html").read_text()
     assert 'id="figures"' not in (tmp_path / "a" / "report.html").read_text()
+
+
+def test_adaptive_rounds_and_advice_are_shown_escaped():
+    report = synthetic.make_report()
+    assert 'id="adaptive"' not in render_html(report)  # no section without adaptive data
+    report["adaptive"] = {
+        "rounds": [
+            {"round": 1, "params": {"sigma": 1.0}, "kept": True,
+             "situations": [{"name": "expected edges missing", "step": "matching", "detail": "<script>x</script> line-5"}]},
+            {"round": 2, "params": {"sigma": 1.5}, "kept": False, "situations": [],
+             "after": {"situation": "expected edges missing", "change": {"sigma": 1.5}}},
+        ],
+        "advice": [{"situation": "expected edges missing", "step": "matching", "detail": "line-5 missing",
+                    "advice": "turn the part"}],
+    }
+    html = render_html(report)
+    assert 'id="adaptive"' in html and "2 rounds" in html and "turn the part" in html
+    assert "<script>x</script>" not in html and "&lt;script&gt;x&lt;/script&gt;" in html
