@@ -434,22 +434,49 @@ def _open_storage(path):
     return fs
 
 
+def _matrix_header_ok(node):
+    """True when an ``!!opencv-matrix`` node has rows, cols, dt and data, once each, consistent.
+
+    Checked before ``FileNode.mat()``: OpenCV 5.0's ``mat()`` on a header
+    with a duplicated or missing field corrupts the heap and a later read
+    aborts the process.
+    """
+    if not node.isMap():
+        return False
+    keys = list(node.keys())
+    if sorted(keys) != ["cols", "data", "dt", "rows"]:
+        return False
+    rows, cols, dt, data = (node.getNode(k) for k in ("rows", "cols", "dt", "data"))
+    if not (rows.isInt() and cols.isInt() and dt.isString() and data.isSeq()):
+        return False
+    channels = int(dt.string()[:-1]) if len(dt.string()) > 1 and dt.string()[:-1].isdigit() else 1
+    return rows.real() >= 0 and cols.real() >= 0 and data.size() == int(rows.real()) * int(cols.real()) * channels
+
+
 def _read_node(fs, path, name, required=True):
-    node = fs.getNode(name)
-    if node.empty():
+    import cv2
+
+    # OpenCV reports malformed structure (a top level that is not a map, a
+    # matrix with duplicated or missing fields, text among its numbers) as
+    # C++ assertion traces; the user gets one line naming the entry.
+    try:
+        if not fs.root().isMap():
+            _fail(path, "the file's top level is not a map of named entries (image_width, K1, ...)")
+        node = fs.getNode(name)
+        empty = node.empty()
+    except (cv2.error, SystemError):
+        _fail(path, f"cannot read entry {name!r}: the file's structure is malformed")
+    if empty:
         if required:
             _fail(path, f"missing entry {name!r}")
         return None
-    if node.isInt() or node.isReal():
-        return node.real()
-    import cv2
-
     try:
-        mat = node.mat()
+        if node.isInt() or node.isReal():
+            return node.real()
+        mat = node.mat() if _matrix_header_ok(node) else None
     except (cv2.error, SystemError):
-        # e.g. text among a matrix's numbers: OpenCV's message is a C++ trace.
         mat = None
-    if mat is None:
+    if mat is None or not isinstance(mat, np.ndarray):
         _fail(path, f"entry {name!r} is not a number or an OpenCV matrix")
     return mat
 
