@@ -188,7 +188,16 @@ def _partners(geo, kind, x, right_params, left_params, rank=None):
     return y, _ellipse_normal_sin(y, d_r, right_params), rank
 
 
-def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4):
+def _within_extent(y, pts, margin):
+    """Points ``y`` (N, 2) whose position along the line through ``pts`` lies within their span +- ``margin`` px."""
+    c = pts.mean(axis=0)
+    _, _, Vt = np.linalg.svd(pts - c, full_matrices=False)
+    t = (pts - c) @ Vt[0]
+    s = (y - c) @ Vt[0]
+    return (s >= t.min() - margin) & (s <= t.max() + margin)
+
+
+def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margin=2.0):
     """Triangulated correspondences along a matched pair of image features.
 
     Parameters
@@ -201,6 +210,9 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4):
         this angle, rad, are dropped (their partner is ill-determined).
     step : float
         Relative step of the numerical Jacobians.
+    margin : float
+        Lines: a left point is kept only when its partner on the right line
+        lies within the right feature's points' extent plus this, px.
 
     Returns
     -------
@@ -212,6 +224,11 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4):
     pl = np.asarray(left.fit.params, float)
     y, sin_a, rank = _partners(geo, kind, x, pr, pl)
     keep = np.isfinite(y).all(axis=1) & (sin_a >= np.sin(min_angle))
+    if kind == "line":
+        # Only where the right image sees the edge too: the fitted right line
+        # extended past its points would place a left-only stretch (or a
+        # neighbour merged with it in the left image) on the line's extension.
+        keep &= _within_extent(y, right.ideal.xy, margin)
     idx = np.flatnonzero(keep)
     x, y = x[idx], y[idx]
     if rank is not None:

@@ -21,9 +21,30 @@ right features are then paired:
   with a rejection threshold for pairs too poor to keep.
 
 Nothing is dropped silently: every feature left without a partner is
-returned with its reason. A line nearly parallel to the epipolar lines is
-*degenerate* (its position along them, hence its depth, is undetermined)
-and is reported with its angle rather than matched.
+returned with its reason. Two geometries are not measured at all, and are
+reported with the figure that rules them out rather than matched:
+
+- a line nearly parallel to the epipolar lines is *degenerate*: its
+  position along them, hence its depth, is undetermined;
+- an elliptical arc whose minor/major axis ratio is small is a circle seen
+  nearly *edge-on* (the ratio is about the cosine of the angle between the
+  line of sight and the circle's axis): the radius of curvature at the ends
+  of its major axis, b^2 / a, falls to a pixel or two, below what the edge
+  detector's first-order smoothing correction models; the two sides of the
+  ellipse crowd each other; a hole's rim is seen against its own wall,
+  whose shading changes along the thin ellipse, so only pieces of it are
+  found. Its points are then displaced by more than their uncertainty says.
+  On renders of the sample plate (1224 x 1024 px, noise 2) holes whose
+  thinner image had axis ratio 0.095 and 0.13 came out 0.096 and 0.016 mm
+  too small in diameter with U = 0.072 and 0.014 mm: false fails; from
+  0.13 (that one) to 0.18, 3 of 5 were within U. The threshold, 0.2
+  (78.5 degrees off axis), is above all of these. Thin partial arcs above
+  it can still be biased where the rim's contrast varies along them: a
+  displacement of the edge points, not a geometric degeneracy, and not
+  rejected here.
+
+A feature whose only plausible partner in the other image is degenerate or
+edge-on gets that partner's reason, so both images tell the same story.
 
 All coordinates are ideal pixels (distortion removed, see
 :mod:`partinspect.vision.ideal`); 3D points are in the rig (left camera)
@@ -60,11 +81,21 @@ __all__ = [
     "image_features",
     "match_features",
     "REASONS",
+    "MIN_EPIPOLAR_ANGLE",
+    "MIN_AXIS_RATIO",
 ]
+
+MIN_EPIPOLAR_ANGLE = np.deg2rad(8.0)
+"""Lines closer than this to the epipolar lines (in either image) are "degenerate", rad."""
+MIN_AXIS_RATIO = 0.2
+"""Arcs whose fitted ellipse has a minor/major axis ratio below this (in
+either image) are "edge-on": the circle is seen more than arccos 0.2 = 78.5
+degrees off its axis. See the module notes for the evidence."""
 
 REASONS = {
     "too_short": "too few edge points to be measured",
     "degenerate": "line nearly parallel to the epipolar lines: its position along them is undetermined",
+    "edge_on": "circle seen nearly edge-on: its ellipse is too thin for a reliable radius",
     "no_candidate": "no feature of the other image in its epipolar band",
     "kind_mismatch": "only features of another kind in its epipolar band",
     "shape_mismatch": "features in its band disagree in polarity, size or orientation",
@@ -498,6 +529,16 @@ def _line_angles(geo, feats, side):
     return out
 
 
+def _axis_ratios(feats):
+    """Minor/major axis ratio of each arc's fitted ellipse; NaN for lines."""
+    out = np.full(len(feats), np.nan)
+    for k, f in enumerate(feats):
+        if f.kind == "arc":
+            a, b = f.fit.params[2:4]
+            out[k] = min(a, b) / max(a, b) if max(a, b) > 0 else 0.0
+    return out
+
+
 def _line_polarity(geo, f, side):
     d = geo.directions_left(f.ideal.xy) if side == "left" else geo.directions_right(f.ideal.xy)
     return 1 if np.mean(np.einsum("ni,ni->n", d, f.ideal.normal)) > 0 else -1
@@ -542,8 +583,8 @@ def _line_middle_depth(geo, fl, fr, lo, hi):
     return X[2], (geo.R @ X + geo.T)[2]
 
 
-def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0), band_tolerance=3.0,
-                   min_overlap=0.5, radius_tolerance=0.1, angle_tolerance=np.deg2rad(30.0),
+def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_ANGLE, min_axis_ratio=MIN_AXIS_RATIO,
+                   band_tolerance=3.0, min_overlap=0.5, radius_tolerance=0.1, angle_tolerance=np.deg2rad(30.0),
                    max_cost=1.0, ambiguity_margin=0.1, depth_range=None):
     """Pair left and right image features one to one.
 
@@ -557,6 +598,9 @@ def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0)
     min_angle : float
         Lines closer than this to the epipolar lines (in either image) are
         "degenerate", rad.
+    min_axis_ratio : float
+        Arcs whose ellipse's minor/major axis ratio is below this (in
+        either image) are "edge_on".
     band_tolerance : float
         Each band is widened by this at both ends, px (the two images trim
         their segments' ends independently).
@@ -584,6 +628,10 @@ def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0)
 
     Notes
     -----
+    A degenerate or edge-on feature takes part in no pair. A feature left
+    unmatched whose band holds such a feature of its kind and polarity (the
+    partner it would have had) is given the same reason, naming it.
+
     A match whose best alternative is within ``ambiguity_margin`` is kept
     only when the alternative breaks the ordering constraint more often
     (matched lines keep their order along the epipolar lines).
@@ -598,8 +646,14 @@ def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0)
     zmin, zmax = depth_range if depth_range is not None else (0.0, np.inf)
     band_l, band_r = _bands(geo, left, "left"), _bands(geo, right, "right")
     ang_l, ang_r = _line_angles(geo, left, "left"), _line_angles(geo, right, "right")
-    usable_l = np.array([len(f) >= min_points and not (ang_l[k] < min_angle) for k, f in enumerate(left)], bool)
-    usable_r = np.array([len(f) >= min_points and not (ang_r[k] < min_angle) for k, f in enumerate(right)], bool)
+    ratio_l, ratio_r = _axis_ratios(left), _axis_ratios(right)
+    long_l = np.array([len(f) >= min_points for f in left], bool)
+    long_r = np.array([len(f) >= min_points for f in right], bool)
+    # Degenerate (None: usable) or ("degenerate" | "edge_on", detail) per feature.
+    unfit_l = [_unfit(ang_l[k], ratio_l[k], min_angle, min_axis_ratio) for k in range(nl)]
+    unfit_r = [_unfit(ang_r[k], ratio_r[k], min_angle, min_axis_ratio) for k in range(nr)]
+    usable_l = long_l & np.array([u is None for u in unfit_l], bool)
+    usable_r = long_r & np.array([u is None for u in unfit_r], bool)
     pol_l = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, "left") for f in left]
     pol_r = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, "right") for f in right]
     sang_l = [_signed_line_angle(geo, f, "left") if f.kind == "line" else 0.0 for f in left]
@@ -610,9 +664,10 @@ def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0)
     shape = np.full((nl, nr), np.inf)
     in_band = np.zeros((nl, nr), bool)
     same_kind_in_band = np.zeros((nl, nr), bool)
-    for i in np.flatnonzero(usable_l):
+    blocked = np.zeros((nl, nr), bool)  # would-be partners, one of them degenerate or edge-on
+    for i in np.flatnonzero(long_l):
         lo_i, hi_i = band_l[i, 0] - band_tolerance, band_l[i, 1] + band_tolerance
-        for j in np.flatnonzero(usable_r):
+        for j in np.flatnonzero(long_r):
             lo_j, hi_j = band_r[j, 0] - band_tolerance, band_r[j, 1] + band_tolerance
             inter = min(hi_i, hi_j) - max(lo_i, lo_j)
             if inter <= 0:
@@ -626,6 +681,9 @@ def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0)
                 continue
             same_kind_in_band[i, j] = True
             if pol_l[i] != pol_r[j]:
+                continue
+            if not (usable_l[i] and usable_r[j]):
+                blocked[i, j] = True
                 continue
             if fl.kind == "arc":
                 rl, rr, zl, zr = _arc_radius(geo, fl, fr)
@@ -663,21 +721,25 @@ def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0)
         taken_r.add(j)
 
     unmatched = []
-    for side, feats, usable, angles, taken, band_mask in (
-        ("left", left, usable_l, ang_l, taken_l, (in_band, same_kind_in_band, cost)),
-        ("right", right, usable_r, ang_r, taken_r, (in_band.T, same_kind_in_band.T, cost.T)),
+    for side, other, feats, unfit, unfit_other, angles, taken, band_mask in (
+        ("left", "right", left, unfit_l, unfit_r, ang_l, taken_l, (in_band, same_kind_in_band, cost, blocked)),
+        ("right", "left", right, unfit_r, unfit_l, ang_r, taken_r, (in_band.T, same_kind_in_band.T, cost.T, blocked.T)),
     ):
-        inb, same, cst = band_mask
+        inb, same, cst, blk = band_mask
         for k, f in enumerate(feats):
             if k in taken:
                 continue
             ang = float(angles[k])
+            partners = [o for o in np.flatnonzero(blk[k]) if unfit_other[o] is not None]
             if len(f) < min_points:
                 unmatched.append(Unmatched(side, k, "too_short", f"{len(f)} points < {min_points}", ang))
-            elif ang < min_angle:
-                unmatched.append(Unmatched(side, k, "degenerate",
-                                           f"{np.degrees(ang):.1f} deg from the epipolar lines "
-                                           f"(< {np.degrees(min_angle):.1f} deg)", ang))
+            elif unfit[k] is not None:
+                unmatched.append(Unmatched(side, k, unfit[k][0], unfit[k][1], ang))
+            elif partners and not np.isfinite(cst[k]).any():
+                o = partners[0]
+                unmatched.append(Unmatched(side, k, unfit_other[o][0],
+                                           f"its counterpart in the {other} image (feature {int(o)}): "
+                                           + unfit_other[o][1], ang))
             elif (side, k) in ambiguous:
                 unmatched.append(Unmatched(side, k, "ambiguous", ambiguous[(side, k)], ang))
             elif not inb[k].any():
@@ -692,6 +754,17 @@ def match_features(left, right, geo, *, min_points=12, min_angle=np.deg2rad(8.0)
                 unmatched.append(Unmatched(side, k, "outcompeted",
                                            "candidates " + ", ".join(str(int(o)) for o in others), ang))
     return Matching(tuple(matches), tuple(unmatched), cost, ang_l, ang_r)
+
+
+def _unfit(angle, ratio, min_angle, min_axis_ratio):
+    """Why a feature cannot be measured by its geometry alone: None, or (reason, detail)."""
+    if angle < min_angle:
+        return ("degenerate",
+                f"{np.degrees(angle):.1f} deg from the epipolar lines (< {np.degrees(min_angle):.1f} deg)")
+    if ratio < min_axis_ratio:
+        return ("edge_on", f"ellipse axis ratio {ratio:.2f} (< {min_axis_ratio:.2f}): seen about "
+                           f"{np.degrees(np.arccos(min(1.0, ratio))):.0f} deg off its axis")
+    return None
 
 
 def _order_violations(geo, left, right, pairs):
