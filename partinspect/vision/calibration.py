@@ -464,7 +464,7 @@ def _read_node(fs, path, name, required=True):
             _fail(path, "the file's top level is not a map of named entries (image_width, K1, ...)")
         node = fs.getNode(name)
         empty = node.empty()
-    except (cv2.error, SystemError):
+    except (cv2.error, SystemError, UnicodeDecodeError):
         _fail(path, f"cannot read entry {name!r}: the file's structure is malformed")
     if empty:
         if required:
@@ -474,7 +474,7 @@ def _read_node(fs, path, name, required=True):
         if node.isInt() or node.isReal():
             return node.real()
         mat = node.mat() if _matrix_header_ok(node) else None
-    except (cv2.error, SystemError):
+    except (cv2.error, SystemError, UnicodeDecodeError):  # e.g. a field name that is not UTF-8
         mat = None
     if mat is None or not isinstance(mat, np.ndarray):
         _fail(path, f"entry {name!r} is not a number or an OpenCV matrix")

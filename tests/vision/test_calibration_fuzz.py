@@ -27,8 +27,10 @@ from partinspect.vision.calibration import StereoCalibration, read_calibration, 
 
 # No shrinking: a crash restarts the worker (a second or two), and the
 # failing file is shown whole anyway.
+# Derandomized: the same examples on every run, so CI is reproducible; the
+# regressions found by earlier random runs are kept as explicit examples.
 SETTINGS = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow],
-                    phases=[Phase.explicit, Phase.reuse, Phase.generate])
+                    phases=[Phase.explicit, Phase.reuse, Phase.generate], derandomize=True)
 
 
 def _valid_text(with_std=True):
@@ -162,6 +164,7 @@ def test_lines_deleted_duplicated_or_swapped(data):
 
 @SETTINGS
 @given(st.integers(0, len(VALID.encode())), st.binary(max_size=16), st.booleans())
+@example(position=238, junk=b"\xc0", truncate=False)  # a non-UTF-8 byte inside a matrix's field name
 def test_truncated_or_with_bytes_inserted(position, junk, truncate):
     raw = VALID.encode()
     check(raw[:position] if truncate else raw[:position] + junk + raw[position:])
