@@ -264,7 +264,8 @@ def _reason_counts(rep):
     """How many features were not measured, by the kind of reason."""
     keys = ["not visible", "nearly parallel to the epipolar lines", "nearly edge-on", "too few edge points",
             "no edge found", "no feature of the other image", "disagree in polarity", "matched, but",
-            "two or more partners", "only features of another kind", "matched better", "not matched to the CAD"]
+            "two or more partners", "only features of another kind", "matched better", "not matched to the CAD",
+            "too little grey-level step"]
     out = {}
     for f in rep["features"]:
         if f["measured"] is None:
