@@ -108,7 +108,16 @@ MATCH_GATE = 0.5
 Large against the noise (microns), small against feature spacing (mm), and
 loose enough to accept a feature machined a few tenths off."""
 DIRECTION_GATE = np.deg2rad(2.0)
-"""rad: a measured line or normal within this of a posed CAD one is parallel."""
+"""rad: a measured line or normal within this of a posed CAD one is parallel
+(or within ``DIRECTION_GATE_SIGMAS`` of its own standard uncertainty, when
+that is wider)."""
+DIRECTION_GATE_SIGMAS = 4.0
+"""A short or faint edge's direction can be uncertain by a degree or more;
+gating it at a fixed angle refused such an edge (a 2 mm stretch at half
+contrast, 2.3 deg off with a standard uncertainty of 1.0 deg) that its own
+covariance explains. Its weight in the fit follows that covariance."""
+DIRECTION_GATE_MAX = np.deg2rad(10.0)
+"""rad: however uncertain, a direction further off than this is not parallel."""
 AMBIGUITY_RATIO = 2.0
 """Two distinct poses whose chi-squares are within this factor (plus a few
 units) explain the data equally well."""
@@ -559,6 +568,20 @@ class _Meas:
     dirs: np.ndarray
     ends: np.ndarray  # (N, 2, 3) measured extent end points (or +-5 mm)
     lengths: np.ndarray
+    normal_cos: np.ndarray  # (M,) cosine of each circle's direction gate
+    dir_cos: np.ndarray  # (N,) the same for lines
+
+
+def _direction_gate_cos(rec):
+    """Cosine of the angle within which a measured axis counts as parallel to a CAD one."""
+    try:
+        C = axis_cov(rec)
+        u = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (C + C.T))[-1], 0.0)))
+    except (AttributeError, np.linalg.LinAlgError, ValueError):
+        u = 0.0
+    if not np.isfinite(u):
+        u = 0.0
+    return float(np.cos(np.clip(DIRECTION_GATE_SIGMAS * u, DIRECTION_GATE, DIRECTION_GATE_MAX)))
 
 
 def _meas_arrays(circles, lines):
@@ -579,6 +602,8 @@ def _meas_arrays(circles, lines):
         np.array([_unit(l.direction) for l in lines], float).reshape(-1, 3) if lines else z3,
         np.array(ends, float).reshape(-1, 2, 3),
         np.array(lens, float),
+        np.array([_direction_gate_cos(c) for c in circles], float),
+        np.array([_direction_gate_cos(l) for l in lines], float),
     )
 
 
@@ -689,7 +714,7 @@ def _match(meas, cad, R, t, gate=MATCH_GATE):
         d = np.linalg.norm(meas.centers[:, None] - cc[None], axis=2)
         ok = d <= gate
         ok &= np.abs(meas.radii[:, None] - cad.radii[None]) <= RADIUS_GATE
-        ok &= np.abs(meas.normals @ nn.T) >= np.cos(DIRECTION_GATE)
+        ok &= np.abs(meas.normals @ nn.T) >= meas.normal_cos[:, None]
         ok &= vis[None]
         d = np.where(ok, d, np.inf)
         # one-to-one, nearest first
@@ -706,7 +731,7 @@ def _match(meas, cad, R, t, gate=MATCH_GATE):
         u = cad.dirs @ R.T
         mid_cad = s + 0.5 * cad.lengths[:, None] * u
         vis = _facing(cad.line_faces, R, mid_cad)
-        par = np.abs(meas.dirs @ u.T) >= np.cos(DIRECTION_GATE)  # (n, L)
+        par = np.abs(meas.dirs @ u.T) >= meas.dir_cos[:, None]  # (n, L)
         dist = np.zeros(par.shape)
         inside = np.ones(par.shape, bool)
         for e in range(2):

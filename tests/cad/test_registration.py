@@ -189,3 +189,23 @@ def test_unknown_datum():
     inv = inventory(load_step(EXAMPLES / "plate" / "part.step"))
     with pytest.raises(RegistrationError, match="circle-99"):
         register([], [], inv, datums=["circle-99"])
+
+
+@pytest.mark.parametrize("u_deg, matched", [(1.0, True), (0.1, False)])
+def test_direction_gate_follows_the_lines_own_uncertainty(scene, u_deg, matched):
+    """A short, faint edge 3 deg off is matched when its direction is that uncertain, not when it is precise."""
+    from dataclasses import replace
+
+    _, inv, T, ids = scene
+    m = measure_features(inv, T, ids, np.random.default_rng(8), n_points=0)
+    lines = list(m.lines)
+    # The shortest edge: turned 3 deg about its middle, its ends stay within the distance gate.
+    j = int(np.argmin([np.linalg.norm(l.end - l.start) for l in lines]))
+    d = lines[j].direction / np.linalg.norm(lines[j].direction)
+    e = np.cross(d, [1.0, 0, 0] if abs(d[0]) < 0.9 else [0, 1.0, 0])
+    e /= np.linalg.norm(e)
+    a = np.deg2rad(3.0)
+    P = np.eye(3) - np.outer(d, d)
+    lines[j] = replace(lines[j], direction=np.cos(a) * d + np.sin(a) * e, direction_cov=np.deg2rad(u_deg) ** 2 * P)
+    reg = register(m.circles, lines, inv, pose_hint=T)
+    assert (reg.assignment["line"].get(j) == m.line_ids[j]) == matched
