@@ -16,7 +16,8 @@ deviations) and how well each camera sees it:
   changing across the edge: an edge between two faces that meet
   tangentially shows none, nor does a stretch of edge whose image runs
   within 1.5 px of another edge (as where a hole's bottom rim passes
-  behind its top rim);
+  behind its top rim); judged in the image only (a sample outside it
+  counts as without contrast);
 - ``visible``: fraction passing all three at once.
 
 ``visible_both`` is true when ``visible`` is at least ``VISIBLE_FRACTION``
@@ -180,7 +181,9 @@ def edge_visibility(rs, calib, index, part_to_camera, points, tangents, shading=
     # with a change of face across the edge itself.
     light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
     contrast = np.zeros(len(points), bool)
-    ok = np.isfinite(uv).all(axis=1)
+    # Only samples in the image: far outside it a strong distortion model can
+    # fold over, and its pixels cannot be mapped back to rays.
+    ok = in_image
     if ok.any():
         offsets = np.array([-CONTRAST_OFFSET, -0.25, 0.25, CONTRAST_OFFSET])
         q = uv[ok, None, :] + offsets[None, :, None] * normal[ok, None, :]

@@ -204,3 +204,26 @@ def test_to_json_rounds_and_is_deterministic():
     data = json.loads(text)
     assert data == {"a": [0.333333333, 0.0, 0.0], "b": 0.0, "c": [True, 3]}
     assert "-0.0" not in text
+
+
+def test_edge_far_outside_the_image_is_not_visible_even_where_the_lens_model_folds():
+    """An edge running out past the fold of a strong distortion model: not in the image, no error.
+
+    The default rig's radial distortion folds back beyond about 0.8 of the
+    focal length off axis (a render of a large NIST part failed there).
+    """
+    from partinspect.simulate.render import camera_in_part
+    from partinspect.simulate.truth import edge_visibility
+    from tests.simulate.scenes import Part
+
+    p = Part("plate")
+    rig = p.rig(distortion=True, size=SMALL)
+    pose = p.pose(rig)
+    # Along a ray direction from 0.3 to 1.1 focal lengths off axis, 400 mm away, in the part frame.
+    r = np.linspace(0.3, 1.1, 400)
+    cam = np.stack([0.8 * r * 400.0, -0.6 * r * 400.0, np.full_like(r, 400.0)], axis=1)
+    K, D, R, t = camera_in_part(rig, 0, pose)
+    pts = (cam - t) @ R
+    tang = np.tile((np.array([0.8, -0.6, 0.0]) @ R), (len(r), 1))
+    v = edge_visibility(p.scene, rig, 0, pose, pts, tang)
+    assert not v["in_image"].any() and not v["contrast"].any()
