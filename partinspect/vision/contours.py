@@ -38,7 +38,14 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from partinspect.vision.fitting import _ellipse_geometry, _ellipse_start, _foot_phases, fit_ellipse, fit_line
+from partinspect.vision.fitting import (
+    _ellipse_geometry,
+    _ellipse_start,
+    _foot_phases,
+    _normal_std,
+    fit_ellipse,
+    fit_line,
+)
 
 __all__ = ["Contour", "Segment", "chain_edges", "segment_contour", "segment_contours"]
 
@@ -207,7 +214,7 @@ def _ellipse_plausible(xy, cov, factor=9.0):
         return False
     phi = _foot_phases(xy, p)
     r, n, _ = _ellipse_geometry(xy, p, phi)
-    s2 = np.einsum("ni,nij,nj->n", n, cov, n)
+    s2 = _normal_std(cov, n) ** 2
     return float((r * r / s2).mean()) < factor
 
 
@@ -259,7 +266,17 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
     xy_all, cov_all = edges.xy[idx], edges.cov[idx]
     cl = edges.sigma
 
+    cache = {}
+
     def fit_range(lo, hi, open_start=True, open_end=True, kinds=("line", "arc")):
+        # The merge pass re-tests the unions of every adjacent pair in each
+        # round although only the pairs next to the last merge changed.
+        key = (lo % n, hi - lo, open_start, open_end, kinds)
+        if key not in cache:
+            cache[key] = _fit_range(lo, hi, open_start, open_end, kinds)
+        return cache[key]
+
+    def _fit_range(lo, hi, open_start, open_end, kinds):
         pos = np.arange(lo, hi) % n
         xy = xy_all[pos]
         keep = _trimmed(pos, _arc_length(xy), trim, open_start, open_end)
@@ -340,7 +357,10 @@ def _make_segment(edges, contour, pos, res, contour_id, corr_length, refit):
         if kind == "line":
             fit = fit_line(xy, cov, corr_length=corr_length)
         else:
-            fit = fit_ellipse(xy, cov, corr_length=corr_length, blur=float(np.median(edges.width[fit_index])))
+            # The test's fit of the same points (with the floor added to
+            # their variances) is a start next to the minimum.
+            fit = fit_ellipse(xy, cov, corr_length=corr_length, blur=float(np.median(edges.width[fit_index])),
+                              start=fit.params)
     return Segment(kind, contour.index[pos], fit_index, fit, contour_id)
 
 

@@ -234,24 +234,35 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margi
     if rank is not None:
         rank = rank[idx]
     K1, K2, R, T = geo.K1, geo.K2, geo.R, geo.T
-    X = triangulate(x, y, K1, K2, R, T)
-
-    def X_of(xp, pp):
-        yp, _, _ = _partners(geo, kind, xp, pp, pl, rank)
-        return triangulate(xp, yp, K1, K2, R, T)
-
-    # Central-difference Jacobians, vectorised over the points.
     n = len(idx)
+
+    # Central-difference Jacobians, vectorised over the points: the
+    # partners of every perturbed point set are found first and all of
+    # them triangulated in one call (triangulation is point by point).
+    xs, ys = [x], [y]
+    h_x = step * 10.0  # px
+    for k in range(2):
+        for sign in (1.0, -1.0):
+            xp = x.copy()
+            xp[:, k] += sign * h_x
+            xs.append(xp)
+    rank_x = None if rank is None else np.tile(rank, 4)
+    ys.append(_partners(geo, kind, np.concatenate(xs[1:]), pr, pl, rank_x)[0])
+    h_p = np.array([step * max(1.0, abs(v)) if kind == "arc" else step for v in pr])
+    for k in range(len(pr)):
+        for sign in (1.0, -1.0):
+            pp = pr.copy()
+            pp[k] += sign * h_p[k]
+            xs.append(x)
+            ys.append(_partners(geo, kind, x, pp, pl, rank)[0])
+    Xall = triangulate(np.concatenate(xs), np.concatenate(ys), K1, K2, R, T).reshape(len(xs), n, 3)
+    X = Xall[0]
     Jx = np.empty((n, 3, 2))
     for k in range(2):
-        h = np.zeros(2)
-        h[k] = step * 10.0  # px
-        Jx[:, :, k] = (X_of(x + h, pr) - X_of(x - h, pr)) / (2 * h[k])
+        Jx[:, :, k] = (Xall[1 + 2 * k] - Xall[2 + 2 * k]) / (2 * h_x)
     Jp = np.empty((n, 3, len(pr)))
     for k in range(len(pr)):
-        h = np.zeros(len(pr))
-        h[k] = step * max(1.0, abs(pr[k])) if kind == "arc" else step
-        Jp[:, :, k] = (X_of(x, pr + h) - X_of(x, pr - h)) / (2 * h[k])
+        Jp[:, :, k] = (Xall[5 + 2 * k] - Xall[6 + 2 * k]) / (2 * h_p[k])
     cov_p = np.asarray(right.fit.cov, float)
     # A near-circle's axis angle is free (infinite variance, zero effect).
     cov_p = np.where(np.isfinite(cov_p), cov_p, 0.0)

@@ -144,9 +144,15 @@ class Circle3D:
 def _basis(d):
     """Two unit vectors completing unit ``d`` to an orthonormal frame."""
     a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = np.cross(d, a)
+    e1 = _cross3(d, a)
     e1 /= np.linalg.norm(e1)
-    return e1, np.cross(d, e1)
+    return e1, _cross3(d, e1)
+
+
+def _cross3(a, b):
+    """``np.cross`` of two 3-vectors, the same arithmetic without its
+    overhead (the Gauss-Newton residuals call it thousands of times)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def _gauss_newton(residuals, theta0, max_iter=50, tol=1e-12):
@@ -157,7 +163,7 @@ def _gauss_newton(residuals, theta0, max_iter=50, tol=1e-12):
     r = residuals(theta)
     cost = r @ r
     for _ in range(max_iter):
-        J = np.stack([(residuals(theta + e) - residuals(theta - e)) / (2 * h) for e, h in zip(np.diag(step), step)], 1)
+        J = _jacobian(residuals, theta, step)
         A, g = J.T @ J, J.T @ r
         while True:
             delta = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
@@ -173,8 +179,20 @@ def _gauss_newton(residuals, theta0, max_iter=50, tol=1e-12):
         cost = cost_new
         if converged:
             break
-    J = np.stack([(residuals(theta + e) - residuals(theta - e)) / (2 * h) for e, h in zip(np.diag(step), step)], 1)
+    J = _jacobian(residuals, theta, step)
     return theta, J, r
+
+
+def _jacobian(residuals, theta, step):
+    """Central-difference Jacobian; all 2p evaluations in one call when the
+    residual function offers ``batch`` (thetas (k, p) -> residuals (k, N))."""
+    E = np.diag(step)
+    batch = getattr(residuals, "batch", None)
+    if batch is None:
+        return np.stack([(residuals(theta + e) - residuals(theta - e)) / (2 * h) for e, h in zip(E, step)], 1)
+    rr = batch(np.concatenate([theta + E, theta - E]))
+    p = len(step)
+    return ((rr[:p] - rr[p:]) / (2 * step)[:, None]).T
 
 
 def _gram(a, xy, corr_length):
@@ -195,8 +213,13 @@ def _gram_dense(a, xy, corr_length):
     if corr_length is None:
         s = a.sum(axis=0)
         return np.outer(s, s)
-    d2 = ((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
-    return a.T @ np.exp(-d2 / (4.0 * corr_length * corr_length)) @ a
+    from scipy.spatial.distance import cdist
+
+    # cdist: the same squared distances without the (N, N, 2) temporary.
+    R = cdist(xy, xy, "sqeuclidean")
+    R *= -1.0 / (4.0 * corr_length * corr_length)
+    np.exp(R, out=R)
+    return a.T @ R @ a
 
 
 def _covariance(views, J):
@@ -242,6 +265,23 @@ def _line_residuals(views, c0, d0, e1, e2):
             out.append((v.xy @ line[:2] + line[2]) / v.total_sigma)
         return np.concatenate(out)
 
+    def batch(thetas):
+        # The same as residuals(theta) for each row, the image lines of all
+        # rows at once.
+        thetas = np.asarray(thetas, float)
+        p = c0 + thetas[:, :1] * e1 + thetas[:, 1:2] * e2
+        d = d0 + thetas[:, 2:3] * e1 + thetas[:, 3:4] * e2
+        out = []
+        for v, sig in zip(views, total):
+            x1 = p @ v.P[:, :3].T + v.P[:, 3]
+            x2 = (p + 100.0 * d) @ v.P[:, :3].T + v.P[:, 3]
+            line = np.cross(x1, x2)
+            line /= np.hypot(line[:, 0], line[:, 1])[:, None]
+            out.append((line[:, :2] @ v.xy.T + line[:, 2:]) / sig)
+        return np.concatenate(out, axis=1)
+
+    total = [v.total_sigma for v in views]
+    residuals.batch = batch
     return residuals
 
 
@@ -320,6 +360,25 @@ def _circle_residuals(views, n0, e1, e2):
             out.append(np.einsum("ni,ni->n", Cx, x) / (2 * np.hypot(Cx[:, 0], Cx[:, 1])) / v.total_sigma)
         return np.concatenate(out)
 
+    def batch(thetas):
+        # residuals(theta) for each row: the small conics one by one, the
+        # point-wise Sampson distances for all rows at once.
+        thetas = np.asarray(thetas, float)
+        out = []
+        for v, sig in zip(views, total):
+            Cs = np.array([circle_image_conic(t[:3], n0 + t[3] * e1 + t[4] * e2, t[5], v.P) for t in thetas])
+            u, w = v.xy[:, 0], v.xy[:, 1]
+            # Cx = C (u, w, 1) for every conic (rows) and point (columns).
+            c = [[Cs[:, i, j, None] for j in range(3)] for i in range(3)]
+            cx0 = c[0][0] * u + c[0][1] * w + c[0][2]
+            cx1 = c[1][0] * u + c[1][1] * w + c[1][2]
+            cx2 = c[2][0] * u + c[2][1] * w + c[2][2]
+            alg = cx0 * u + cx1 * w + cx2
+            out.append(alg / (2 * np.hypot(cx0, cx1)) / sig)
+        return np.concatenate(out, axis=1)
+
+    total = [v.total_sigma for v in views]
+    residuals.batch = batch
     return residuals
 
 

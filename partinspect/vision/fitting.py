@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import stats
+from scipy import special
 
 __all__ = [
     "LineFit",
@@ -229,7 +229,11 @@ def _normal_std(cov, normals):
     cov = np.asarray(cov, float)
     if cov.ndim == 1:  # already a variance along the normal
         return np.sqrt(cov)
-    return np.sqrt(np.einsum("ni,nij,nj->n", normals, cov, normals))
+    # Written out: einsum on (N, 2, 2) blocks is several times slower, and
+    # this runs at every iteration of the ellipse fit.
+    nx, ny = normals[..., 0], normals[..., 1]
+    var = nx * nx * cov[:, 0, 0] + nx * ny * (cov[:, 0, 1] + cov[:, 1, 0]) + ny * ny * cov[:, 1, 1]
+    return np.sqrt(var)
 
 
 def _band(xy, corr_length):
@@ -243,9 +247,14 @@ def _band(xy, corr_length):
     out = []
     if not corr_length or n < 2:
         return out
+    xy = np.asarray(xy, float)
+    diff = np.empty_like(xy)
     for k in range(1, n // 2 + 1):
-        d = np.linalg.norm(np.roll(xy, -k, axis=0) - xy, axis=1)
-        rho = np.exp(-(d * d) / (4.0 * corr_length * corr_length))
+        # xy[(i + k) % n] - xy[i] by two slices (np.roll copies and is slow).
+        np.subtract(xy[k:], xy[: n - k], out=diff[: n - k])
+        np.subtract(xy[:k], xy[n - k:], out=diff[n - k:])
+        d2 = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]
+        rho = np.exp(d2 * (-1.0 / (4.0 * corr_length * corr_length)))
         if k == n - k:  # the same pair seen twice
             rho = rho * 0.5
         if rho.max() < 1e-4:
@@ -286,11 +295,13 @@ def information_matrices(h, s, xy, corr_length):
     S = hw.T @ hw
     M = S.copy()
     trR2 = float(len(h))
+    n = len(hw)
     for k, rho in _band(xy, corr_length):
-        hk = np.roll(hw, -k, axis=0)
-        C = (hw * rho[:, None]).T @ hk
+        # (hw * rho)^T roll(hw, -k), the roll done by two slices.
+        a = hw * rho[:, None]
+        C = a[: n - k].T @ hw[k:] + a[n - k:].T @ hw[:k]
         M += C + C.T
-        trR2 += 2.0 * float((rho * rho).sum())
+        trR2 += 2.0 * float(rho @ rho)
     return S, M, trR2
 
 
@@ -305,8 +316,28 @@ def _uncertainty(h, s, xy, corr_length):
     trR2 : float
     """
     S, M, trR2 = information_matrices(h, s, xy, corr_length)
-    sinv = np.linalg.pinv(S, rcond=1e-13, hermitian=True)
+    sinv = _pinv_sym(S, 1e-13)
     return sinv @ M @ sinv, sinv, trR2
+
+
+def _pinv_sym(S, rcond):
+    """Pseudo-inverse of a small symmetric matrix: ``np.linalg.pinv(S, rcond,
+    hermitian=True)`` without its per-call overhead (the fits call it many
+    thousand times on 2x2 to 5x5 matrices)."""
+    ev, V = np.linalg.eigh(S)
+    big = np.abs(ev) > rcond * np.abs(ev).max()
+    inv = np.where(big, 1.0 / np.where(big, ev, 1.0), 0.0)
+    return (V * inv) @ V.T
+
+
+def _solve_sym(S, rhs, rcond):
+    """Minimum-norm least-squares solution of ``S x = rhs`` for a small
+    symmetric S (as ``np.linalg.lstsq(S, rhs, rcond)``: singular values below
+    rcond times the largest are cut), by one eigendecomposition."""
+    ev, V = np.linalg.eigh(S)
+    big = np.abs(ev) > rcond * np.abs(ev).max()
+    inv = np.where(big, 1.0 / np.where(big, ev, 1.0), 0.0)
+    return V @ (inv * (V.T @ rhs))
 
 
 def _consistency(r, s, n_params, trR2):
@@ -319,7 +350,9 @@ def _consistency(r, s, n_params, trR2):
     trR2 = max(trR2 * dof_raw / n, 1e-12)
     scale = trR2 / trR
     nu = trR * trR / trR2
-    p = float(stats.chi2.sf(q / scale, nu))
+    # scipy.special.chdtrc is what stats.chi2.sf evaluates, without the
+    # distribution machinery's overhead (~0.5 ms a call).
+    p = float(special.chdtrc(nu, q / scale))
     return Consistency(q, nu, scale, p, float(np.sqrt(q / trR)))
 
 
@@ -340,11 +373,15 @@ def _as_points(xy, min_points):
 # ---------------------------------------------------------------- line
 
 def _line_tls(xy, w):
-    c = (w[:, None] * xy).sum(axis=0) / w.sum()
-    d = (xy - c) * np.sqrt(w)[:, None]
-    # Smallest right singular vector of the weighted, centred points.
-    _, _, vt = np.linalg.svd(d, full_matrices=False)
-    n = vt[-1]
+    c = (w @ xy) / w.sum()
+    dx, dy = xy[:, 0] - c[0], xy[:, 1] - c[1]
+    # Smallest right singular vector of the weighted, centred points: the
+    # minor axis of their 2x2 scatter matrix, in closed form (an SVD of the
+    # (N, 2) matrix costs more in overhead than in arithmetic).
+    wx = w * dx
+    sxx, syy, sxy = float(wx @ dx), float(w @ (dy * dy)), float(wx @ dy)
+    t = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # major axis angle
+    n = np.array([-np.sin(t), np.cos(t)])
     return n, c
 
 
@@ -510,8 +547,12 @@ def ellipse_points(params, phi):
     """Points (N, 2) of the ellipse (xc, yc, a, b, theta) at phases phi."""
     xc, yc, a, b, th = params
     c, s = np.cos(th), np.sin(th)
+    phi = np.ravel(phi)  # a scalar phase gives one point, as before
     u, v = a * np.cos(phi), b * np.sin(phi)
-    return np.column_stack([xc + c * u - s * v, yc + s * u + c * v])
+    out = np.empty((len(u), 2))
+    out[:, 0] = xc + c * u - s * v
+    out[:, 1] = yc + s * u + c * v
+    return out
 
 
 def _ellipse_start(xy):
@@ -537,7 +578,12 @@ def _canonical(p):
 
 
 def _foot_phases(xy, params, phi=None, iters=6):
-    """Phases of the orthogonal foot points (Newton on each, vectorised)."""
+    """Phases of the orthogonal foot points (Newton on each, vectorised).
+
+    At most ``iters`` Newton steps; stops earlier once no phase moves by
+    more than 1e-13 rad (Newton converges quadratically, so the next step
+    would change nothing beyond rounding).
+    """
     xc, yc, a, b, th = params
     c, s = np.cos(th), np.sin(th)
     dx, dy = xy[:, 0] - xc, xy[:, 1] - yc
@@ -551,7 +597,10 @@ def _foot_phases(xy, params, phi=None, iters=6):
         f = (u - ex) * tx + (v - ey) * ty
         fp = -(tx * tx + ty * ty) - (u - ex) * ex - (v - ey) * ey
         fp = np.where(np.abs(fp) < 1e-12, -1e-12, fp)
-        phi = phi - f / np.minimum(fp, -1e-12)
+        d = f / np.minimum(fp, -1e-12)
+        phi = phi - d
+        if np.abs(d).max() < 1e-13:
+            break
     return phi
 
 
@@ -559,25 +608,47 @@ def _ellipse_geometry(xy, params, phi):
     """Residuals, outward unit normals and rows h_i at the foot points."""
     xc, yc, a, b, th = params
     c, s = np.cos(th), np.sin(th)
-    Q = np.array([[c, -s], [s, c]])
     cp, sp = np.cos(phi), np.sin(phi)
-    e = ellipse_points(params, phi)
-    # Outward normal in the ellipse frame is (b cos phi, a sin phi).
-    nl = np.column_stack([b * cp, a * sp])
-    nl /= np.linalg.norm(nl, axis=1)[:, None]
-    n = nl @ Q.T
-    r = ((xy - e) * n).sum(axis=1)
+    # Outward normal in the ellipse frame is (b cos phi, a sin phi); in the
+    # image it is Q(theta) times that.
+    lx, ly = b * cp, a * sp
+    ln = np.sqrt(lx * lx + ly * ly)
+    lx, ly = lx / ln, ly / ln
+    nx, ny = c * lx - s * ly, s * lx + c * ly
+    ex = xc + c * (a * cp) - s * (b * sp)
+    ey = yc + s * (a * cp) + c * (b * sp)
+    r = (xy[:, 0] - ex) * nx + (xy[:, 1] - ey) * ny
+    n = np.empty((len(phi), 2))
+    n[:, 0], n[:, 1] = nx, ny
     # d(signed distance)/d(params) = -n . d(x(phi))/d(params); the phase
     # derivative drops out because dx/dphi is tangent (Schur complement of
-    # the block-diagonal phase part, [2]_ section 4).
-    dxa = np.column_stack([cp, np.zeros_like(cp)]) @ Q.T
-    dxb = np.column_stack([np.zeros_like(sp), sp]) @ Q.T
-    dxt = np.column_stack([-b * sp, a * cp]) @ Q.T  # Q' (a cos, b sin) = Q R90 (...)
-    h = -np.column_stack([n[:, 0], n[:, 1], (n * dxa).sum(1), (n * dxb).sum(1), (n * dxt).sum(1)])
+    # the block-diagonal phase part, [2]_ section 4). With n = Q l and
+    # dx/d(a, b, theta) = Q (cos phi, 0), Q (0, sin phi), Q (-b sin phi,
+    # a cos phi), the products reduce to the ellipse frame.
+    h = np.empty((len(phi), 5))
+    h[:, 0], h[:, 1] = -nx, -ny
+    h[:, 2] = -lx * cp
+    h[:, 3] = -ly * sp
+    h[:, 4] = b * sp * lx - a * cp * ly
     return r, n, h
 
 
-def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=1e-9):
+def _ellipse_normals(params, phi, cp=None, sp=None):
+    """Outward unit normals (N, 2) at phases phi, or at their cosines and sines cp, sp."""
+    _, _, a, b, th = params
+    c, s = np.cos(th), np.sin(th)
+    if cp is None:
+        cp, sp = np.cos(phi), np.sin(phi)
+    lx, ly = b * cp, a * sp
+    ln = np.sqrt(lx * lx + ly * ly)
+    lx, ly = lx / ln, ly / ln
+    n = np.empty((len(cp), 2))
+    n[:, 0] = c * lx - s * ly
+    n[:, 1] = s * lx + c * ly
+    return n
+
+
+def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=1e-9, start=None):
     """Geometric ellipse fit in parametric form (Gander, Golub & Strebel 1994).
 
     Unknowns are the centre, semi-axes, angle and one phase phi_i per point;
@@ -613,6 +684,10 @@ def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=
         blur^2 kappa / 2; with ``blur`` each point is moved back by that
         amount at the fitted curvature and the fit repeated (twice). The
         residuals returned are those of the corrected points.
+    start : array_like, shape (5,), optional
+        Start values (xc, yc, a, b, theta) instead of the direct algebraic
+        fit, e.g. the fit of nearly the same points: the same minimum is
+        reached in fewer iterations when the start is near it.
 
     Returns
     -------
@@ -626,7 +701,7 @@ def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=
     ``corr_length``.
     """
     xy = _as_points(xy, 6)
-    fit = _fit_ellipse(xy, cov, corr_length, max_iter, tol)
+    fit = _fit_ellipse(xy, cov, corr_length, max_iter, tol, start)
     if blur:
         for _ in range(2):
             xc, yc, a, b, th = fit.params
@@ -634,48 +709,68 @@ def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=
             sp, cp = np.sin(fit.phases), np.cos(fit.phases)
             kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
             shifted = xy + (0.5 * blur * blur * kappa)[:, None] * n
-            fit = _fit_ellipse(shifted, cov, corr_length, max_iter, tol)
+            # The shift is a small fraction of a pixel: start from the fit
+            # before it.
+            fit = _fit_ellipse(shifted, cov, corr_length, max_iter, tol, fit.params)
         r = fit.residuals  # residuals are of the corrected points
         fit = EllipseFit(fit.params, fit.cov, fit.ci95, r, fit.phases, fit.point_std,
                          fit.consistency, fit.converged, fit.iterations)
     return fit
 
 
-def _fit_ellipse(xy, cov, corr_length, max_iter, tol):
-    """Gauss-Newton of Gander et al. on fixed points; see fit_ellipse."""
+def _fit_ellipse(xy, cov, corr_length, max_iter, tol, start=None):
+    """Gauss-Newton of Gander et al. on fixed points; see fit_ellipse.
+
+    ``start`` (xc, yc, a, b, theta) replaces the algebraic start, e.g. the
+    fit of nearly the same points: the iteration then needs a few steps
+    instead of the many that bring a partial arc's algebraic fit home.
+    """
     n_pts = len(xy)
-    p = _ellipse_start(xy)
+    p = _ellipse_start(xy) if start is None else _canonical(start)
     phi = _foot_phases(xy, p)
     lam = 1e-3
     converged = False
     it = 0
+    x, y = xy[:, 0], xy[:, 1]
 
-    def weights(p, phi):
+    def weights(p, cp, sp):
         if cov is None:
             return np.ones(n_pts)
-        _, n, _ = _ellipse_geometry(xy, p, phi)
-        s = _normal_std(cov, n)
+        s = _normal_std(cov, _ellipse_normals(p, None, cp, sp))
         return 1.0 / (s * s)
 
-    def cost(p, phi, w):
-        d = xy - ellipse_points(p, phi)
-        return float((w * (d * d).sum(axis=1)).sum())
+    def residual(p, cp, sp):
+        xc, yc, a, b, th = p
+        c, s = np.cos(th), np.sin(th)
+        acp, bsp = a * cp, b * sp
+        return x - (xc + c * acp - s * bsp), y - (yc + s * acp + c * bsp)
 
-    w = weights(p, phi)
-    f0 = cost(p, phi, w)
+    def cost(rx, ry, w):
+        return float(w @ (rx * rx + ry * ry))
+
+    # The sines and cosines of the phases are computed once per iterate and
+    # shared by the cost, the weights and the next step's blocks.
+    cp, sp = np.cos(phi), np.sin(phi)
+    w = weights(p, cp, sp)
+    rx, ry = residual(p, cp, sp)
+    f0 = cost(rx, ry, w)
     for it in range(1, max_iter + 1):
-        step_u, step_phi = _gander_step(xy, p, phi, w, lam)
+        blocks = _gander_blocks(p, cp, sp, rx, ry, w)
+        step_u, step_phi = _gander_solve(blocks, lam)
         while True:
             p_new = p + step_u
             if p_new[2] > 0 and p_new[3] > 0:
                 phi_new = phi + step_phi
-                f1 = cost(p_new, phi_new, w)
+                cp_new, sp_new = np.cos(phi_new), np.sin(phi_new)
+                rx_new, ry_new = residual(p_new, cp_new, sp_new)
+                f1 = cost(rx_new, ry_new, w)
                 if f1 <= f0 * (1 + 1e-12):
                     break
             lam *= 10
             if lam > 1e12:
                 break
-            step_u, step_phi = _gander_step(xy, p, phi, w, lam)
+            # Only the damping changed: the blocks are reused.
+            step_u, step_phi = _gander_solve(blocks, lam)
         if lam > 1e12:
             break
         # Largest displacement of the curve the step causes, px; a rotation
@@ -683,9 +778,9 @@ def _fit_ellipse(xy, cov, corr_length, max_iter, tol):
         # whose theta is free).
         moved = np.abs(step_u[:4]).sum() + abs(p[2] - p[3]) * abs(step_u[4])
         small = moved < tol * max(1.0, p[2])
-        p, phi = p_new, phi_new
-        w = weights(p, phi)  # the normals moved: re-project the covariances
-        f0 = cost(p, phi, w)
+        p, phi, cp, sp, rx, ry = p_new, phi_new, cp_new, sp_new, rx_new, ry_new
+        w = weights(p, cp, sp)  # the normals moved: re-project the covariances
+        f0 = cost(rx, ry, w)
         lam = max(lam / 10, 1e-9)
         if small:
             converged = True
@@ -703,38 +798,57 @@ def _fit_ellipse(xy, cov, corr_length, max_iter, tol):
     return EllipseFit(p, covp, _ci(p, covp), r, phi, s, cons, converged, it)
 
 
-def _gander_step(xy, p, phi, w, lam):
-    """One damped Gauss-Newton step of Gander et al. [2]_ with the phases eliminated.
+def _gander_blocks(p, cp, sp, rx, ry, w):
+    """Undamped blocks of the normal equations of Gander et al. [2]_.
 
-    Residuals rho_i = p_i - x(phi_i; u), weight w_i on both components.
-    The Jacobian has a block-diagonal phase part (one 2-vector j_i per
-    point) and a dense part J_i (2 x 5); the normal equations are solved by
-    the Schur complement of the diagonal phase block, O(m).
+    Residuals rho_i = p_i - x(phi_i; u) = (rx_i, ry_i), weight w_i on both
+    components. The Jacobian has a block-diagonal phase part (one 2-vector
+    j_i per point) and a dense part J_i (2 x 5). Returns (D, B, C, g_phi,
+    g_u): the diagonal phase block, the (m, 5) coupling, the 5x5 block and
+    the two gradients.
     """
-    xc, yc, a, b, th = p
+    _, _, a, b, th = p
     c, s = np.cos(th), np.sin(th)
-    Q = np.array([[c, -s], [s, c]])
-    cp, sp = np.cos(phi), np.sin(phi)
-    rho = xy - ellipse_points(p, phi)
-    # Jacobians of rho (= minus those of x).
-    j = -(np.column_stack([-a * sp, b * cp]) @ Q.T)  # (m, 2)
-    J = np.empty((len(xy), 2, 5))
-    J[:, :, 0] = [-1.0, 0.0]
-    J[:, :, 1] = [0.0, -1.0]
-    J[:, :, 2] = -(np.column_stack([cp, np.zeros_like(cp)]) @ Q.T)
-    J[:, :, 3] = -(np.column_stack([np.zeros_like(sp), sp]) @ Q.T)
-    J[:, :, 4] = -(np.column_stack([-b * sp, a * cp]) @ Q.T)
-    D = w * (j * j).sum(axis=1)
-    B = w[:, None] * (j[:, :, None] * J).sum(axis=1)  # (m, 5)
-    Jw = (J * np.sqrt(w)[:, None, None]).reshape(-1, 5)
-    C = Jw.T @ Jw
-    g_phi = w * (j * rho).sum(axis=1)
-    g_u = Jw.T @ (rho * np.sqrt(w)[:, None]).reshape(-1)
+    m = len(cp)
+    # Written out component by component: the (m, 2, 5) products and
+    # column_stack of the textbook form cost more than the arithmetic.
+    acp, bsp = a * cp, b * sp
+    # Jacobians of rho (= minus those of x): phase part j = -Q (-a sin, b cos).
+    asp, bcp = a * sp, b * cp
+    jx = c * asp + s * bcp
+    jy = s * asp - c * bcp
+    # Dense part, x and y components of the five columns.
+    Jx = np.empty((m, 5))
+    Jy = np.empty((m, 5))
+    Jx[:, 0], Jy[:, 0] = -1.0, 0.0
+    Jx[:, 1], Jy[:, 1] = 0.0, -1.0
+    Jx[:, 2], Jy[:, 2] = -c * cp, -s * cp
+    Jx[:, 3], Jy[:, 3] = s * sp, -c * sp
+    Jx[:, 4] = c * bsp + s * acp
+    Jy[:, 4] = s * bsp - c * acp
+    D = w * (jx * jx + jy * jy)
+    B = w[:, None] * (jx[:, None] * Jx + jy[:, None] * Jy)  # (m, 5)
+    wJx, wJy = Jx * w[:, None], Jy * w[:, None]
+    C = wJx.T @ Jx + wJy.T @ Jy
+    g_phi = w * (jx * rx + jy * ry)
+    g_u = wJx.T @ rx + wJy.T @ ry
+    return D, B, C, g_phi, g_u
+
+
+def _gander_solve(blocks, lam):
+    """One Levenberg-Marquardt step from the blocks, the phases eliminated.
+
+    The normal equations are solved by the Schur complement of the diagonal
+    phase block (a 5x5 system), O(m) [2]_.
+    """
+    D, B, C, g_phi, g_u = blocks
     D = D * (1.0 + lam)
     C = C + lam * np.diag(np.diag(C))
-    S = C - (B / D[:, None]).T @ B
-    rhs = -g_u + (B / D[:, None]).T @ g_phi
-    du = np.linalg.lstsq(S, rhs, rcond=1e-14)[0]
+    BD = B / D[:, None]
+    S = C - BD.T @ B
+    S = 0.5 * (S + S.T)  # symmetric up to rounding; eigh reads one triangle
+    rhs = -g_u + BD.T @ g_phi
+    du = _solve_sym(S, rhs, 1e-14)
     dphi = (-g_phi - B @ du) / D
     return du, dphi
 

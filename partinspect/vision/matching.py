@@ -295,14 +295,14 @@ class ImageFeature:
         return len(self.index)
 
 
-def _fit(kind, ideal, corr_length):
+def _fit(kind, ideal, corr_length, start=None):
     if kind == "line":
         return fit_line(ideal.xy, ideal.cov, corr_length=corr_length)
     # No smoothing-bias correction (fit_ellipse's ``blur``): on rendered
     # parts the rims of holes are not uniform discs, and the edge points lie
     # on the true ellipse to 0.01-0.02 px as found, while the correction
     # pushed them 0.03-0.06 px outwards (measured against the truth).
-    return fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length)
+    return fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=start)
 
 
 OUTLIER_Z = 5.0
@@ -316,21 +316,31 @@ model (line / ellipse) is wrong, which the segmentation's test must see."""
 
 def _make_feature(kind, seg_ids, segments, edges, K, D):
     index = np.concatenate([segments[i].fit_index for i in seg_ids])
+    # The points' ideal coordinates are computed once (each point's are
+    # independent of the others) and subset as outliers go.
+    all_ideal = ideal_points(edges.xy[index], edges.cov[index], K, D, edges.normal[index])
+    keep = np.arange(len(index))
     # A single displaced point (a corner-rounded end that passed the
     # segmentation's trim) would otherwise enter the 3D points and make a
     # straight edge look out of straightness by tenths of a mm: points
     # inconsistent with the fit are rejected, worst first, and the fit redone.
     budget = int(MAX_OUTLIER_FRACTION * len(index))
+    start = None
     while True:
-        uv, cov = edges.xy[index], edges.cov[index]
-        ideal = ideal_points(uv, cov, K, D, edges.normal[index])
-        fit = _fit(kind, ideal, edges.sigma)
+        ideal = IdealPoints(*(np.ascontiguousarray(getattr(all_ideal, f)[keep])
+                              for f in ("xy", "cov", "normal", "normal_std", "jacobian")))
+        # After dropping one point the previous fit is a start next to the
+        # new minimum (same minimum, fewer iterations).
+        fit = _fit(kind, ideal, edges.sigma, start)
         z = np.abs(fit.residuals) / np.maximum(fit.point_std, 1e-12)
         worst = int(np.argmax(z))
         if z[worst] <= OUTLIER_Z or budget == 0:
             break
-        index = np.delete(index, worst)
+        keep = np.delete(keep, worst)
         budget -= 1
+        start = fit.params if kind == "arc" else None
+    index = index[keep]
+    uv, cov = edges.xy[index], edges.cov[index]
     blur = float(np.median(edges.width[index]))
     if kind == "arc":
         from partinspect.vision.fitting import _ellipse_geometry
@@ -403,12 +413,36 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
     list of ImageFeature
         In the order of their first segment.
     """
+    made = {}
+
+    def make(kind, seg_ids):
+        # Each round of the merge loop below re-tries every mergeable pair;
+        # all but those with the last merged feature were tried before.
+        key = (kind, tuple(seg_ids))
+        if key not in made:
+            made[key] = _make_feature(kind, list(seg_ids), segments, edges, K, D)
+        return made[key]
+
     feats = []
     for i, s in enumerate(segments):
         if len(s.fit_index) >= min_fit_points:
-            feats.append(_make_feature(s.kind, [i], segments, edges, K, D))
+            feats.append(make(s.kind, [i]))
     if not merge:
         return feats
+    tried = {}
+
+    def pair(a, b):
+        # A feature is fixed by its kind and segments, so a pair's test and
+        # union need computing once, not in every round.
+        key = (a.kind, a.segments, b.segments)
+        if key not in tried:
+            if not _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
+                tried[key] = None
+            else:
+                u = make(a.kind, a.segments + b.segments)
+                tried[key] = (_rms(u), max(merge_ratio * max(_rms(a), _rms(b)), max_misfit), u)
+        return tried[key]
+
     changed = True
     while changed:
         changed = False
@@ -416,11 +450,10 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         for i in range(len(feats)):
             for j in range(i + 1, len(feats)):
                 a, b = feats[i], feats[j]
-                if not _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
+                trial = pair(a, b)
+                if trial is None:
                     continue
-                u = _make_feature(a.kind, a.segments + b.segments, segments, edges, K, D)
-                limit = max(merge_ratio * max(_rms(a), _rms(b)), max_misfit)
-                ratio = _rms(u)
+                ratio, limit, u = trial
                 if ratio <= limit and (best is None or ratio < best[0]):
                     best = (ratio, i, j, u)
         if best is not None:
