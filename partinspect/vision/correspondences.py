@@ -197,6 +197,18 @@ def _within_extent(y, pts, margin):
     return (s >= t.min() - margin) & (s <= t.max() + margin)
 
 
+def _near_points(y, pts, margin):
+    """Points ``y`` (N, 2) within ``margin`` px of one of ``pts`` (M, 2); non-finite ones are not."""
+    from scipy.spatial import cKDTree
+
+    ok = np.isfinite(y).all(axis=1)
+    out = np.zeros(len(y), bool)
+    if ok.any() and len(pts):
+        d, _ = cKDTree(pts).query(y[ok], distance_upper_bound=margin + 1e-9)
+        out[ok] = d <= margin
+    return out
+
+
 def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margin=2.0):
     """Triangulated correspondences along a matched pair of image features.
 
@@ -211,8 +223,10 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margi
     step : float
         Relative step of the numerical Jacobians.
     margin : float
-        Lines: a left point is kept only when its partner on the right line
-        lies within the right feature's points' extent plus this, px.
+        px. Lines: a left point is kept only when its partner on the right
+        line lies within the right feature's points' extent plus this; arcs:
+        when its partner on the right ellipse lies within this of one of the
+        right feature's points (where the right image sees the edge too).
 
     Returns
     -------
@@ -229,6 +243,12 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margi
         # extended past its points would place a left-only stretch (or a
         # neighbour merged with it in the left image) on the line's extension.
         keep &= _within_extent(y, right.ideal.xy, margin)
+    else:
+        # Likewise on an arc: where the right image has no edge point, the
+        # partner is the fitted ellipse extrapolated, which for a partial
+        # rim can lie far from the real edge (it had put a circularity of
+        # 0.39 mm on a round hole).
+        keep &= _near_points(y, right.ideal.xy, margin)
     idx = np.flatnonzero(keep)
     x, y = x[idx], y[idx]
     if rank is not None:

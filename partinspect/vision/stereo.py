@@ -166,7 +166,8 @@ class Feature3D:
     radius : float
         Circles and arcs, mm (NaN for lines).
     angle_start, angle_end : float
-        Circles and arcs: angular extent of the triangulated points, rad,
+        Circles and arcs: angular extent of the edge points of either image
+        (back-projected onto the fitted circle's plane), rad,
         counter-clockwise about ``normal`` from
         ``partinspect.cad.features.reference_direction(normal)``; 0 and 2 pi
         for a circle.
@@ -565,7 +566,17 @@ def _image_param_cov(fit, kind):
     return M @ (fit.param_cov - sys) @ M.T, M @ sys @ M.T
 
 
-def _make_feature3d(match, fl, fr, fit, corr, cal_cov):
+def _on_plane(xy, K, R, T, center, normal):
+    """Ideal pixels (N, 2) of a camera ``x_cam = R @ X + T`` back-projected onto a plane, rig frame."""
+    d = np.c_[xy, np.ones(len(xy))] @ np.linalg.inv(K).T @ R  # ray directions, rig frame
+    o = -R.T @ T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = ((center - o) @ normal) / (d @ normal)
+    X = o + s[:, None] * d
+    return X[np.isfinite(X).all(axis=1) & (s > 0)]
+
+
+def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo=None):
     kind = fl.kind
     img_cov, sys_cov = _image_param_cov(fit, kind)
     total = img_cov + cal_cov + sys_cov
@@ -575,7 +586,13 @@ def _make_feature3d(match, fl, fr, fit, corr, cal_cov):
                          fit.point + t.min() * fit.direction, fit.point + t.max() * fit.direction,
                          None, None, float("nan"), float("nan"), float("nan"),
                          total[:3, :3], float("nan"), total[3:, 3:], total, img_cov, cal_cov, fit, corr, sys_cov)
-    a0, a1, extent = _angular_extent(corr.points, fit.center, fit.normal)
+    pts = corr.points
+    if geo is not None:
+        # The fit used each image's own edge points, so the rim it measured is
+        # what either image sees; the correspondences cover only what both do.
+        pts = np.vstack([_on_plane(fl.ideal.xy, geo.K1, np.eye(3), np.zeros(3), fit.center, fit.normal),
+                         _on_plane(fr.ideal.xy, geo.K2, geo.R, geo.T, fit.center, fit.normal)])
+    a0, a1, extent = _angular_extent(pts, fit.center, fit.normal)
     kind3 = "circle" if extent >= np.deg2rad(300.0) else "arc"
     if kind3 == "circle":
         a0, a1 = 0.0, 2 * np.pi
@@ -636,5 +653,5 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
             continue
         cal_cov = calibration_covariance(fit, fl.kind, fl, fr, corr_length, calib) if with_cal else \
             np.zeros((6, 6) if fl.kind == "line" else (7, 7))
-        feats.append(_make_feature3d(m, fl, fr, fit, corr, cal_cov))
+        feats.append(_make_feature3d(m, fl, fr, fit, corr, cal_cov, geo))
     return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), with_cal)

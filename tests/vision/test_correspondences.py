@@ -71,3 +71,14 @@ def test_point_covariances_match_simulation_and_depth_dominates():
     sd_fo = np.sqrt(np.einsum("nii->ni", c0.cov[:5]))
     assert np.all(np.abs(sd_mc / sd_fo - 1) < 0.3)
     assert np.all(sd_fo[:, 2] > sd_fo[:, 0]) and np.all(sd_fo[:, 2] > sd_fo[:, 1])
+
+
+def test_arc_partners_only_where_the_right_image_sees_the_rim():
+    """A rim seen whole on the left and half on the right: no partner on the right ellipse's extrapolation."""
+    geo = epipolar_geometry(RIG)
+    X = circle([15, 5, 395], [0.2, -0.5, -0.8], 5.0, n=200)
+    fr = feature("arc", X[:100], P2)
+    c = correspond(feature("arc", X, P1), fr, geo)
+    d = np.min(np.linalg.norm(c.right[:, None] - fr.ideal.xy[None], axis=2), axis=1)
+    assert d.max() <= 2.0
+    assert 0.3 * len(X) < len(c) < 0.6 * len(X)
