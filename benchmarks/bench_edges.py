@@ -1,8 +1,13 @@
-"""Speed of the 2D chain on one 2448x2048 image of a plate with holes.
+"""Speed and accuracy of the 2D chain on one 2448x2048 image of a plate with holes.
 
 Prints the median wall time of each stage over several runs: noise
 estimate, edge points, chaining, segmentation (line and ellipse fits), and
 the total. Target: the whole 2D chain under 0.4 s on the project machine.
+Beside it, in the same run and on the same image, OpenCV's obvious path
+(Canny + findContours + fitEllipse / fitLine): its time, and for both the
+RMS localisation error of edge points on the circular edges (distance to
+the true circle; the drawn discs are known exactly) and the RMS errors of
+the fitted circles' centres and radii.
 
     python3 benchmarks/bench_edges.py [--runs 5]
 """
@@ -14,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -24,15 +30,61 @@ from partinspect.vision.noise import estimate_noise  # noqa: E402
 from tests.vision.synthetic import Disc, Ellipse, rectangle, render  # noqa: E402
 
 
+HOLES = [(600, 500, 120), (1850, 500, 120), (600, 1550, 120), (1850, 1550, 120), (1224, 1024, 260),
+         (1224, 500, 60), (1224, 1550, 60)]
+
+
+def discs():
+    """(xc, yc, r) of the drawn holes, px."""
+    return np.array([(x + 0.3 * k, y + 0.17 * k, r) for k, (x, y, r) in enumerate(HOLES)])
+
+
 def plate_image(seed=0, noise=2.0):
     H, W = 2048, 2448
     shapes = [(rectangle(1224.3, 1024.6, 1900, 1500, 0.05), 190.0)]
-    for k, (x, y, r) in enumerate([(600, 500, 120), (1850, 500, 120), (600, 1550, 120),
-                                   (1850, 1550, 120), (1224, 1024, 260), (1224, 500, 60),
-                                   (1224, 1550, 60)]):
-        shapes.append((Disc(x + 0.3 * k, y + 0.17 * k, r), 45.0))
+    for xc, yc, r in discs():
+        shapes.append((Disc(xc, yc, r), 45.0))
     shapes.append((Ellipse(900.4, 1024.2, 90, 50, 0.3), 45.0))
     return render(shapes, H, W, background=40.0, noise=noise, seed=seed, ss=16)
+
+
+def circle_errors(xy, band=2.0):
+    """Signed distances of points (N, 2) to the nearest drawn circle, those within ``band`` px of one."""
+    D = discs()
+    d = np.hypot(xy[:, None, 0] - D[None, :, 0], xy[:, None, 1] - D[None, :, 1]) - D[None, :, 2]
+    e = d[np.arange(len(xy)), np.argmin(np.abs(d), axis=1)]
+    return e[np.abs(e) < band]
+
+
+def fit_errors(circles):
+    """Centre and radius errors (px) of fitted circles (xc, yc, r) matched to the drawn ones."""
+    ce, re = [], []
+    for xc, yc, r in discs():
+        if not len(circles):
+            break
+        c = np.asarray(circles)
+        k = np.argmin(np.hypot(c[:, 0] - xc, c[:, 1] - yc) + np.abs(c[:, 2] - r))
+        if np.hypot(c[k, 0] - xc, c[k, 1] - yc) < 5 and abs(c[k, 2] - r) < 5:
+            ce.append(np.hypot(c[k, 0] - xc, c[k, 1] - yc))
+            re.append(c[k, 2] - r)
+    return np.array(ce), np.array(re)
+
+
+def opencv_chain(img):
+    """Canny (thresholds 40 / 100 on 8-bit grey) + findContours + fitEllipse or fitLine per contour."""
+    e = cv2.Canny(img, 40, 100)
+    cs, _ = cv2.findContours(e, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    ellipses, lines = [], []
+    for c in cs:
+        if len(c) < 20:
+            continue
+        pts = c.reshape(-1, 2).astype(np.float32)
+        (x, y), (w, h), _ = cv2.fitEllipse(pts)
+        if 0.8 < w / max(h, 1e-9) < 1.25 and max(w, h) < 1000:
+            ellipses.append((x, y, (w + h) / 4))
+        else:
+            lines.append(cv2.fitLine(pts, cv2.DIST_L2, 0, 0.01, 0.01))
+    return e, ellipses, lines
 
 
 def main(argv=None):
@@ -53,12 +105,32 @@ def main(argv=None):
         t4 = time.perf_counter()
         for k, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
             stages[k].append(v)
+    cv_times = []
+    for _ in range(args.runs):
+        t0 = time.perf_counter()
+        canny, ellipses, lines = opencv_chain(img)
+        cv_times.append(time.perf_counter() - t0)
     kinds = [sg.kind for sg in segs]
     print(f"image 2448x2048, noise estimate {s:.3f} grey levels, {len(ep)} edge points, "
           f"{len(cs)} contours, {kinds.count('line')} lines, {kinds.count('arc')} arcs")
     for k, v in stages.items():
         print(f"  {k:8s} median {np.median(v) * 1e3:8.1f} ms   (min {np.min(v) * 1e3:.1f} ms)")
     print(f"target: total < 400 ms -> {'met' if np.median(stages['total']) < 0.4 else 'NOT met'}")
+    print(f"  OpenCV Canny + findContours + fitEllipse/fitLine: median {np.median(cv_times) * 1e3:.1f} ms")
+
+    ours_pts = circle_errors(ep.xy)
+    rows, cols = np.nonzero(canny)
+    cv_pts = circle_errors(np.c_[cols, rows].astype(float))
+    ours_c = [(sg.fit.params[0], sg.fit.params[1], 0.5 * (sg.fit.params[2] + sg.fit.params[3]))
+              for sg in segs if sg.kind == "arc"]
+    oc, orr = fit_errors(ours_c)
+    cc, cr = fit_errors(ellipses)
+    rms = lambda v: np.sqrt(np.mean(np.square(v))) if len(v) else float("nan")  # noqa: E731
+    print("accuracy on the drawn circles (px)       partinspect   OpenCV")
+    print(f"  edge points on circles: RMS error       {rms(ours_pts):10.4f}  {rms(cv_pts):8.4f}   "
+          f"({len(ours_pts)} / {len(cv_pts)} points)")
+    print(f"  circle centres: RMS error               {rms(oc):10.4f}  {rms(cc):8.4f}   ({len(oc)} / {len(cc)} of {len(HOLES)})")
+    print(f"  circle radii: RMS error                 {rms(orr):10.4f}  {rms(cr):8.4f}")
 
 
 if __name__ == "__main__":
