@@ -13,7 +13,9 @@ piece is accepted as a line, else as an elliptical arc, when the chi-square
 of its orthogonal residuals against the points' own standard uncertainties
 (correlation along the edge included) is not significant at level
 ``alpha``; otherwise it is split at the point farthest from its chord.
-Adjacent pieces are then merged while their union still passes the test.
+Pieces too short to split further that pass no test are kept pending;
+adjacent pieces are then merged while their union still passes the test,
+which is how a pending piece joins an accepted neighbour (or is dropped).
 Points within ``trim`` px (arc length) of a piece's open ends are left out
 of its fit: there the Gaussian smoothing mixes two edges (corners,
 junctions) and the points are displaced.
@@ -304,7 +306,15 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
             pieces.append((lo, hi, res))
             continue
         if hi - lo < 2 * min_points:
-            continue  # too short to split further: no primitive fits it
+            # Too short to split further and to be tested on its own (an
+            # ellipse is ill-determined on a dozen points: its fit creeps
+            # along a valley and does not converge): kept pending, for the
+            # merge pass to test together with an accepted neighbour, and
+            # dropped if none takes it. Dropping these pieces here lost up
+            # to half of some hole rims that one ellipse fits (short
+            # stretches next to a displaced one).
+            pieces.append((lo, hi, None))
+            continue
         pos = np.arange(lo, hi) % n
         xy = xy_all[pos]
         chord = xy[-1] - xy[0]
@@ -328,6 +338,8 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
         for i in range(m if contour.closed else m - 1):
             j = (i + 1) % m
             a, b = pieces[i], pieces[j]
+            if a[2] is None and b[2] is None:
+                continue  # two pending pieces: only an accepted piece takes one
             if a[1] % n != b[0]:
                 continue  # a dropped piece lies between them
             hi = a[1] + (b[1] - b[0])
@@ -345,6 +357,8 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
         pieces.sort(key=lambda t: t[0])
     segs = []
     for lo, hi, res in pieces:
+        if res is None:
+            continue  # pending and taken by no neighbour
         segs.append(_make_segment(edges, contour, np.arange(lo, hi) % n, res, contour_id, cl, refit))
     return segs
 
