@@ -330,18 +330,6 @@ def _characteristics(inv, tol_path):
 # ----------------------------------------------------------------- stages
 
 
-class _Record:
-    """A Feature3D as :func:`partinspect.cad.registration.register` reads it, with its edge points."""
-
-    def __init__(self, f):
-        self.feature = f
-        self.points = f.correspondences.points
-        self.point_covs = f.correspondences.cov
-
-    def __getattr__(self, name):
-        return getattr(self.feature, name)
-
-
 def _monte_carlo(stereo, calib, draws):
     """The stereo result with Monte Carlo covariances in place of the first-order ones.
 
@@ -382,8 +370,8 @@ def _register(stereo, inv, resolved, images, pose_hint=None):
     """Pose of the part and which CAD feature each measured one is."""
     from partinspect.cad.registration import RegistrationError, register
 
-    circles = [_Record(f) for f in stereo.features if f.kind != "line"]
-    lines = [_Record(f) for f in stereo.features if f.kind == "line"]
+    circles = [f for f in stereo.features if f.kind != "line"]
+    lines = [f for f in stereo.features if f.kind == "line"]
     datums = None if resolved.spec.datums is None else list(resolved.datums)
     try:
         return register(circles, lines, inv, datums=datums, pose_hint=pose_hint)

@@ -141,13 +141,12 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
         image features the chain matched (how much of the edge it kept).
     """
     from partinspect.cad.registration import register
-    from partinspect.planning.predict import ChainRecord
     from partinspect.tolerances.evaluate import evaluate_characteristic
     from partinspect.vision.stereo import measure_stereo
 
     res = measure_stereo(left, right, calib)
-    circles = [ChainRecord(f) for f in res.features if f.kind != "line"]
-    lines = [ChainRecord(f) for f in res.features if f.kind == "line"]
+    circles = [f for f in res.features if f.kind != "line"]
+    lines = [f for f in res.features if f.kind == "line"]
     reg = register(circles, lines, inventory, datums=datums, pose_hint=pose_hint)
     parts = reg.features_in_part_frame()
     evs = [evaluate_characteristic(c, parts, reg, inventory, seed=seed) for c in characteristics]
@@ -155,7 +154,7 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
     points = {}
     for kind in ("circle", "line"):
         for i, cad_id in reg.assignment[kind].items():
-            f3 = reg.measured_feature(kind, i).feature
+            f3 = reg.measured_feature(kind, i)
             n = (len(res.left.features[f3.left]), len(res.right.features[f3.right]))
             points[cad_id] = max(points.get(cad_id, (0, 0)), n)
     return evs, offsets, reg, points

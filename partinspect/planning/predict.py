@@ -71,7 +71,6 @@ __all__ = [
     "FeaturePrediction",
     "CharacteristicPrediction",
     "PosePrediction",
-    "ChainRecord",
     "tolerance_width",
     "sample_view",
     "background_terms",
@@ -146,24 +145,6 @@ class ViewSamples:
         return len(self.uv)
 
 
-class ChainRecord:
-    """A measured 3D feature as registration and evaluation read it.
-
-    Wraps a :class:`partinspect.vision.stereo.Feature3D` (every attribute is
-    the feature's) and adds ``points`` / ``point_covs``: its triangulated
-    correspondences and their 3x3 covariances, rig frame, which the form
-    characteristics (straightness, circularity) are evaluated on.
-    """
-
-    def __init__(self, feature):
-        self.feature = feature
-        self.points = feature.correspondences.points
-        self.point_covs = feature.correspondences.cov
-
-    def __getattr__(self, name):
-        return getattr(self.__dict__["feature"], name)
-
-
 @dataclass(frozen=True, eq=False)
 class FeaturePrediction:
     """What the chain would make of one CAD feature in this pose.
@@ -176,7 +157,7 @@ class FeaturePrediction:
         epipolar lines), "edge-on" (a circle), "failed".
     reason : str or None
         In words, naming the feature.
-    record : ChainRecord or None
+    record : partinspect.vision.stereo.Feature3D or None
         The predicted measured feature (rig frame) with its covariances.
     left, right : ViewSamples or None
     epipolar_angle : float or None
@@ -649,7 +630,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     cal = calibration_covariance(fit, kind2, fl, fr, model.sigma, calib) if calibration_parameters(calib) \
         else np.zeros((n, n))
     f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal)
-    return FeaturePrediction(status="measured", record=ChainRecord(f3), **base)
+    return FeaturePrediction(status="measured", record=f3, **base)
 
 
 # ---------------------------------------------------------------------------

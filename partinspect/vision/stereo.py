@@ -220,6 +220,17 @@ class Feature3D:
     param_cov_systematic: np.ndarray | None = None
 
     @property
+    def points(self):
+        """The triangulated correspondences, shape (N, 3), rig frame, mm: what
+        registration and the form characteristics evaluate."""
+        return self.correspondences.points
+
+    @property
+    def point_covs(self):
+        """Their 3x3 covariances, shape (N, 3, 3), mm^2."""
+        return self.correspondences.cov
+
+    @property
     def params(self):
         """(center, normal, radius) or (point, direction) as one vector."""
         if self.kind == "line":
