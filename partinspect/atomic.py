@@ -11,6 +11,7 @@ import os
 import signal
 import tempfile
 import threading
+import uuid
 from pathlib import Path
 
 from partinspect.errors import InputError
@@ -130,11 +131,16 @@ def prepare_output_dir(path):
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise InputError(path, "output path exists and is not a folder")
+    # The probe's name is fixed before it exists, so an interrupt (SIGINT)
+    # at any point after its creation still removes it in the finally.
+    probe = path / f".write-test-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=path)
-        os.close(fd)
-        os.unlink(probe)
+        try:
+            os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(probe)
     except OSError as exc:
         raise InputError(path, f"output folder is not writable ({exc.strerror or exc})") from None
     return path
