@@ -373,10 +373,29 @@ def _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
     if a.polarity != b.polarity:
         return False
     pa, pb = a.fit.params, b.fit.params
+    # A short piece of a rim fixes its own ellipse poorly (a third of a small
+    # hole: centre and axes uncertain by several px), so the pieces are
+    # compared within their fits' uncertainties too; the refit of the union
+    # then decides.
+    ca, cb = _finite_cov(a.fit.cov), _finite_cov(b.fit.cov)
+    s_c = np.sqrt(ca[0, 0] + ca[1, 1] + cb[0, 0] + cb[1, 1])
     size = max(pa[2], pb[2])
-    if np.hypot(*(pa[:2] - pb[:2])) > max(max_offset, 0.05 * size):
-        return False
-    return abs(np.log(pa[2] / pb[2])) < max_axis_ratio and abs(np.log(pa[3] / pb[3])) < 2 * max_axis_ratio
+    s_a = np.sqrt(ca[2, 2] / pa[2] ** 2 + cb[2, 2] / pb[2] ** 2)
+    s_b = np.sqrt(ca[3, 3] / pa[3] ** 2 + cb[3, 3] / pb[3] ** 2)
+    return bool(np.hypot(*(pa[:2] - pb[:2])) <= max(max_offset, 0.05 * size) + MERGE_SIGMAS * s_c
+                and abs(np.log(pa[2] / pb[2])) < max_axis_ratio + MERGE_SIGMAS * s_a
+                and abs(np.log(pa[3] / pb[3])) < 2 * max_axis_ratio + MERGE_SIGMAS * s_b)
+
+
+MERGE_SIGMAS = 4.0
+"""Arcs: pieces whose ellipses differ by less than this many of their
+combined standard uncertainties (on top of the fixed tolerances) are tried
+as one edge."""
+
+
+def _finite_cov(C):
+    C = np.asarray(C, float)
+    return np.where(np.isfinite(C), C, 0.0)
 
 
 def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_angle=np.deg2rad(3.0),

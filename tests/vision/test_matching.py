@@ -138,3 +138,27 @@ def test_plate_edges_come_out_whole_in_each_image():
         labels = Counter(S.label_image_feature(f.ideal.xy, truths, P) for f in res.features)
         assert not {k: n for k, n in labels.items() if k in seen and n > 1}
         assert seen <= set(labels)
+
+
+def test_short_pieces_of_one_rim_are_tried_as_one_within_their_uncertainty():
+    """Two short noisy pieces of one ellipse whose own fits disagree by more than the fixed
+    tolerance, but not beyond their uncertainties, are candidates to merge; a precisely
+    fitted ellipse 8 px beside the first is not."""
+    from types import SimpleNamespace
+
+    from partinspect.vision.fitting import fit_ellipse
+    from partinspect.vision.matching import _mergeable
+
+    rng = np.random.default_rng(2)
+
+    def piece(a, b, t0, t1, noise, x0=400.0):
+        t = np.linspace(t0, t1, 40)
+        xy = np.c_[x0 + a * np.cos(t), 300 + b * np.sin(t)] + rng.normal(0, noise, (40, 2))
+        fit = fit_ellipse(xy, np.tile(np.eye(2) * noise**2, (40, 1, 1)))
+        return SimpleNamespace(kind="arc", polarity=1, fit=fit, ideal=SimpleNamespace(xy=xy))
+
+    p1, p2 = piece(80, 30, 0.0, 0.7, 0.15), piece(80, 30, 2.6, 3.3, 0.15)
+    assert np.hypot(*(p1.fit.params[:2] - p2.fit.params[:2])) > 3.0  # the fixed test alone would refuse
+    assert _mergeable(p1, p2, np.deg2rad(3.0), 3.0, 0.1)
+    q1, q2 = piece(80, 30, 0.0, 6.0, 0.02), piece(80, 30, 0.0, 6.0, 0.02, x0=408.0)
+    assert not _mergeable(q1, q2, np.deg2rad(3.0), 3.0, 0.1)
