@@ -440,8 +440,11 @@ def residual_figure(figures):
             half = max(4.0 * scale, float(np.percentile(np.abs(res), 99.5)))
             half = min(half, 8.0 * scale) if sigma else half
             nb = int(np.clip(np.sqrt(res.size), 8, 36))
-            ax.hist(np.clip(res, -half, half), bins=nb, range=(-half, half), density=True,
-                    color="#9fb3c8", edgecolor="#6f87a0", linewidth=0.4)
+            # One filled step patch per panel, not a rectangle per bar: the SVG
+            # of some forty panels is written several times faster.
+            counts, edges = np.histogram(np.clip(res, -half, half), bins=nb, range=(-half, half), density=True)
+            ax.stairs(counts, edges, fill=True, color="#9fb3c8")
+            ax.stairs(counts, edges, color="#6f87a0", linewidth=0.6)
             text = f"n = {res.size}\nrms {rms:.3g} px"
             colour = "#1d2330"
             if sigma:
