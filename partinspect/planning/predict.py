@@ -629,7 +629,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     n = 6 if kind2 == "line" else 7
     cal = calibration_covariance(fit, kind2, fl, fr, model.sigma, calib) if calibration_parameters(calib) \
         else np.zeros((n, n))
-    f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal)
+    f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo)
     return FeaturePrediction(status="measured", record=f3, **base)
 
 

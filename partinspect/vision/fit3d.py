@@ -184,13 +184,10 @@ def _gauss_newton(residuals, theta0, max_iter=50, tol=1e-12):
 
 
 def _jacobian(residuals, theta, step):
-    """Central-difference Jacobian; all 2p evaluations in one call when the
-    residual function offers ``batch`` (thetas (k, p) -> residuals (k, N))."""
+    """Central-difference Jacobian, all 2p evaluations in one call of
+    ``residuals.batch`` (thetas (k, p) -> residuals (k, N))."""
     E = np.diag(step)
-    batch = getattr(residuals, "batch", None)
-    if batch is None:
-        return np.stack([(residuals(theta + e) - residuals(theta - e)) / (2 * h) for e, h in zip(E, step)], 1)
-    rr = batch(np.concatenate([theta + E, theta - E]))
+    rr = residuals.batch(np.concatenate([theta + E, theta - E]))
     p = len(step)
     return ((rr[:p] - rr[p:]) / (2 * step)[:, None]).T
 
@@ -252,22 +249,11 @@ def _covariance(views, J):
 
 
 def _line_residuals(views, c0, d0, e1, e2):
-    def residuals(theta):
-        a, b, al, be = theta
-        p = c0 + a * e1 + b * e2
-        d = d0 + al * e1 + be * e2
-        out = []
-        for v in views:
-            x1 = v.P @ np.append(p, 1.0)
-            x2 = v.P @ np.append(p + 100.0 * d, 1.0)
-            line = np.cross(x1, x2)
-            line /= np.hypot(line[0], line[1])
-            out.append((v.xy @ line[:2] + line[2]) / v.total_sigma)
-        return np.concatenate(out)
+    total = [v.total_sigma for v in views]
 
     def batch(thetas):
-        # The same as residuals(theta) for each row, the image lines of all
-        # rows at once.
+        # Residuals for each row of thetas (k, 4) -> (k, N): the image lines
+        # of all rows at once (the Jacobian evaluates 8 rows per call).
         thetas = np.asarray(thetas, float)
         p = c0 + thetas[:, :1] * e1 + thetas[:, 1:2] * e2
         d = d0 + thetas[:, 2:3] * e1 + thetas[:, 3:4] * e2
@@ -280,7 +266,9 @@ def _line_residuals(views, c0, d0, e1, e2):
             out.append((line[:, :2] @ v.xy.T + line[:, 2:]) / sig)
         return np.concatenate(out, axis=1)
 
-    total = [v.total_sigma for v in views]
+    def residuals(theta):
+        return batch(np.asarray(theta, float)[None])[0]
+
     residuals.batch = batch
     return residuals
 
@@ -347,22 +335,12 @@ def circle_image_conic(center, normal, radius, P):
 
 
 def _circle_residuals(views, n0, e1, e2):
-    hom = [np.c_[v.xy, np.ones(len(v.xy))] for v in views]
-
-    def residuals(theta):
-        c = theta[:3]
-        n = n0 + theta[3] * e1 + theta[4] * e2
-        out = []
-        for v, x in zip(views, hom):
-            C = circle_image_conic(c, n, theta[5], v.P)
-            Cx = x @ C
-            # Sampson distance: algebraic residual over its gradient norm.
-            out.append(np.einsum("ni,ni->n", Cx, x) / (2 * np.hypot(Cx[:, 0], Cx[:, 1])) / v.total_sigma)
-        return np.concatenate(out)
+    total = [v.total_sigma for v in views]
 
     def batch(thetas):
-        # residuals(theta) for each row: the small conics one by one, the
-        # point-wise Sampson distances for all rows at once.
+        # Sampson distances (algebraic residual over its gradient norm) for
+        # each row of thetas (k, 6) -> (k, N): the small conics one by one,
+        # the point-wise arithmetic for all rows at once.
         thetas = np.asarray(thetas, float)
         out = []
         for v, sig in zip(views, total):
@@ -377,7 +355,9 @@ def _circle_residuals(views, n0, e1, e2):
             out.append(alg / (2 * np.hypot(cx0, cx1)) / sig)
         return np.concatenate(out, axis=1)
 
-    total = [v.total_sigma for v in views]
+    def residuals(theta):
+        return batch(np.asarray(theta, float)[None])[0]
+
     residuals.batch = batch
     return residuals
 

@@ -587,7 +587,7 @@ def _on_plane(xy, K, R, T, center, normal):
     return X[np.isfinite(X).all(axis=1) & (s > 0)]
 
 
-def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo=None):
+def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo):
     kind = fl.kind
     img_cov, sys_cov = _image_param_cov(fit, kind)
     total = img_cov + cal_cov + sys_cov
@@ -597,12 +597,10 @@ def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo=None):
                          fit.point + t.min() * fit.direction, fit.point + t.max() * fit.direction,
                          None, None, float("nan"), float("nan"), float("nan"),
                          total[:3, :3], float("nan"), total[3:, 3:], total, img_cov, cal_cov, fit, corr, sys_cov)
-    pts = corr.points
-    if geo is not None:
-        # The fit used each image's own edge points, so the rim it measured is
-        # what either image sees; the correspondences cover only what both do.
-        pts = np.vstack([_on_plane(fl.ideal.xy, geo.K1, np.eye(3), np.zeros(3), fit.center, fit.normal),
-                         _on_plane(fr.ideal.xy, geo.K2, geo.R, geo.T, fit.center, fit.normal)])
+    # The fit used each image's own edge points, so the rim it measured is
+    # what either image sees; the correspondences cover only what both do.
+    pts = np.vstack([_on_plane(fl.ideal.xy, geo.K1, np.eye(3), np.zeros(3), fit.center, fit.normal),
+                     _on_plane(fr.ideal.xy, geo.K2, geo.R, geo.T, fit.center, fit.normal)])
     a0, a1, extent = _angular_extent(pts, fit.center, fit.normal)
     kind3 = "circle" if extent >= np.deg2rad(300.0) else "arc"
     if kind3 == "circle":
