@@ -41,15 +41,20 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from partinspect.vision.fitting import (
+    _as_points,
     _ellipse_geometry,
     _ellipse_start,
+    _EllipseJob,
+    _fit_ellipses,
     _foot_phases,
     _normal_std,
-    fit_ellipse,
     fit_line,
 )
 
 __all__ = ["Contour", "Segment", "chain_edges", "segment_contour", "segment_contours"]
+
+# Convergence tolerance of the trial ellipse fits: fit_ellipse's default.
+_TOL = 1e-9
 
 _NEIGHBOURS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
 
@@ -180,29 +185,61 @@ def _arc_length(xy):
     return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
 
 
-def _test_piece(xy, cov, corr_length, alpha, floor, kinds=("line", "arc"), min_arc=12, max_iter=30):
-    """Try the primitives in order; return (kind, fit, p_value) of the first accepted or None."""
-    cov_t = cov + (floor * floor) * np.eye(2) if floor else cov
-    for kind in kinds:
-        try:
-            if kind == "line":
+def _test_pieces(requests, min_arc=12, max_iter=30):
+    """The statistical test of several pieces at once.
+
+    Each piece is tried as a line, else (with ``"arc"`` in its kinds) as an
+    elliptical arc; the ellipse fits of all the pieces run together
+    (:func:`partinspect.vision.fitting._fit_ellipses`), each exactly as it
+    would alone.
+
+    Parameters
+    ----------
+    requests : list of tuple
+        (xy, cov, corr_length, alpha, floor, kinds) per piece; kinds is
+        ("line", "arc") or ("arc",).
+
+    Returns
+    -------
+    list
+        Per piece, (kind, fit, p_value) of the first primitive accepted, or
+        None.
+    """
+    out = [None] * len(requests)
+    jobs, where = [], []
+    for k, (xy, cov, corr_length, alpha, floor, kinds) in enumerate(requests):
+        cov_t = cov + (floor * floor) * np.eye(2) if floor else cov
+        if "line" in kinds:
+            try:
                 fit = fit_line(xy, cov_t, corr_length=corr_length)
-            else:
-                if len(xy) < min_arc or not _ellipse_plausible(xy, cov_t):
-                    continue
-                fit = fit_ellipse(xy, cov_t, corr_length=corr_length, max_iter=max_iter)
-                if not fit.converged or not np.all(np.isfinite(fit.params)):
-                    continue
-                # An "ellipse" far larger than its data is a line in disguise.
-                span = np.ptp(xy, axis=0).max()
-                if fit.params[2] > 50.0 * max(span, 1.0):
-                    continue
+            except (ValueError, np.linalg.LinAlgError):
+                fit = None
+            if fit is not None and fit.consistency.p_value >= alpha:
+                out[k] = ("line", fit, fit.consistency.p_value)
+                continue
+        if "arc" not in kinds or len(xy) < min_arc:
+            continue
+        try:
+            init = _ellipse_plausible(xy, cov_t)
         except (ValueError, np.linalg.LinAlgError):
+            init = None
+        if init is not None:
+            jobs.append(_EllipseJob(xy, cov_t, corr_length, init=init))
+            where.append(k)
+    # A fit that does not converge is rejected (see segment_contour): it
+    # comes back as None, without its covariance computed.
+    fits = _fit_ellipses(jobs, max_iter, _TOL, need_converged=True)
+    for k, job, fit in zip(where, jobs, fits):
+        if fit is None or not np.all(np.isfinite(fit.params)):
+            continue
+        # An "ellipse" far larger than its data is a line in disguise.
+        span = np.ptp(job.xy, axis=0).max()
+        if fit.params[2] > 50.0 * max(span, 1.0):
             continue
         p = fit.consistency.p_value
-        if p >= alpha:
-            return kind, fit, p
-    return None
+        if p >= requests[k][3]:
+            out[k] = ("arc", fit, p)
+    return out
 
 
 def _ellipse_plausible(xy, cov, factor=9.0):
@@ -210,14 +247,22 @@ def _ellipse_plausible(xy, cov, factor=9.0):
     orthogonal residuals must not exceed the point noise by far (their mean
     square within ``factor`` times the expected); the geometric fit improves
     on the algebraic one by much less than that for data that are not an
-    ellipse, and skipping it keeps the merge tests on corners cheap."""
+    ellipse, and skipping it keeps the merge tests on corners cheap.
+
+    Returns
+    -------
+    tuple or None
+        (params, phases): the algebraic fit and its foot phases, the start
+        of the geometric fit (computed here already), or None if the
+        points fail the screen.
+    """
     p = _ellipse_start(xy)
     if p[3] <= 0 or not np.all(np.isfinite(p)):
-        return False
+        return None
     phi = _foot_phases(xy, p)
     r, n, _ = _ellipse_geometry(xy, p, phi)
     s2 = _normal_std(cov, n) ** 2
-    return float((r * r / s2).mean()) < factor
+    return (p, phi) if float((r * r / s2).mean()) < factor else None
 
 
 def _trimmed(idx_local, s, trim, open_start, open_end):
@@ -259,6 +304,21 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
     -------
     list of Segment
     """
+    steps = _segment_steps(edges, contour, alpha, trim, min_points, floor)
+    return _make_segments(edges, [contour], [contour_id], _run_steps([steps]), refit)
+
+
+def _segment_steps(edges, contour, alpha, trim, min_points, floor):
+    """The split and merge of :func:`segment_contour`, as a generator.
+
+    It yields lists of the tests it needs, ``(xy, cov, corr_length, alpha,
+    floor, kinds)`` (see :func:`_test_pieces`), is sent their results, and
+    returns the accepted pieces, [(positions, (kind, fit, p_value,
+    fitted positions))]: so that :func:`segment_contours` can run the tests
+    of all the contours together (:func:`_run_steps`). Within a contour,
+    the pieces of one split level and the unions of one merge round are
+    tested together; no decision depends on the order of the tests.
+    """
     if trim is None:
         trim = 3.0 * edges.sigma + 1.0
     idx = contour.index
@@ -268,73 +328,78 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
     xy_all, cov_all = edges.xy[idx], edges.cov[idx]
     cl = edges.sigma
 
+    # The merge pass re-tests the unions of every adjacent pair in each
+    # round although only the pairs next to the last merge changed.
     cache = {}
 
-    def fit_range(lo, hi, open_start=True, open_end=True, kinds=("line", "arc")):
-        # The merge pass re-tests the unions of every adjacent pair in each
-        # round although only the pairs next to the last merge changed.
-        key = (lo % n, hi - lo, open_start, open_end, kinds)
-        if key not in cache:
-            cache[key] = _fit_range(lo, hi, open_start, open_end, kinds)
-        return cache[key]
-
-    def _fit_range(lo, hi, open_start, open_end, kinds):
-        pos = np.arange(lo, hi) % n
-        xy = xy_all[pos]
-        keep = _trimmed(pos, _arc_length(xy), trim, open_start, open_end)
-        if keep.sum() < min_points:
-            return None
-        res = _test_piece(xy[keep], cov_all[pos[keep]], cl, alpha, floor, kinds)
-        if res is None:
-            return None
-        return res + (pos[keep],)
+    def fit_ranges(ranges):
+        """Test results of pieces (lo, hi, open_start, open_end, kinds), the
+        ones not tested yet in one request."""
+        keys = [(lo % n, hi - lo, o_s, o_e, kinds) for lo, hi, o_s, o_e, kinds in ranges]
+        todo = {}
+        for key, (lo, hi, o_s, o_e, kinds) in zip(keys, ranges):
+            if key in cache or key in todo:
+                continue
+            pos = np.arange(lo, hi) % n
+            xy = xy_all[pos]
+            keep = _trimmed(pos, _arc_length(xy), trim, o_s, o_e)
+            if keep.sum() < min_points:
+                cache[key] = None
+                continue
+            todo[key] = (pos[keep], (xy[keep], cov_all[pos[keep]], cl, alpha, floor, kinds))
+        if todo:
+            results = yield [req for _, req in todo.values()]
+            for (key, (fit_pos, _)), res in zip(todo.items(), results):
+                cache[key] = None if res is None else res + (fit_pos,)
+        return [cache[key] for key in keys]
 
     # Split: a work list of (lo, hi) ranges in cyclic positions.
     pieces = []  # (lo, hi, result)
     if contour.closed:
-        whole = fit_range(0, n, False, False, kinds=("arc",))
+        whole, = yield from fit_ranges([(0, n, False, False, ("arc",))])
         if whole is not None:
-            return [_make_segment(edges, contour, np.arange(n), whole, contour_id, cl, refit)]
+            return [(np.arange(n), whole)]
         far = int(np.argmax(np.linalg.norm(xy_all - xy_all[0], axis=1)))
         stack = [(far, n), (0, far)] if far > 0 else [(0, n)]
     else:
         stack = [(0, n)]
     while stack:
-        lo, hi = stack.pop()
-        res = fit_range(lo, hi)
-        if res is not None:
-            pieces.append((lo, hi, res))
-            continue
-        if hi - lo < 2 * min_points:
-            # Too short to split further and to be tested on its own (an
-            # ellipse is ill-determined on a dozen points: its fit creeps
-            # along a valley and does not converge): kept pending, for the
-            # merge pass to test together with an accepted neighbour, and
-            # dropped if none takes it. Dropping these pieces here lost up
-            # to half of some hole rims that one ellipse fits (short
-            # stretches next to a displaced one).
-            pieces.append((lo, hi, None))
-            continue
-        pos = np.arange(lo, hi) % n
-        xy = xy_all[pos]
-        chord = xy[-1] - xy[0]
-        L = np.hypot(*chord)
-        if L > 1e-9:
-            v = xy - xy[0]
-            d = np.abs(chord[0] * v[:, 1] - chord[1] * v[:, 0]) / L
-        else:
-            d = np.linalg.norm(xy - xy[0], axis=1)
-        d[: min_points // 2] = d[len(d) - min_points // 2:] = -1
-        k = lo + int(np.argmax(d))
-        stack.append((k - n, hi - n) if k >= n else (k, hi))
-        stack.append((lo, k))
+        level, stack = stack, []
+        results = yield from fit_ranges([(lo, hi, True, True, ("line", "arc")) for lo, hi in level])
+        for (lo, hi), res in zip(level, results):
+            if res is not None:
+                pieces.append((lo, hi, res))
+                continue
+            if hi - lo < 2 * min_points:
+                # Too short to split further and to be tested on its own (an
+                # ellipse is ill-determined on a dozen points: its fit creeps
+                # along a valley and does not converge): kept pending, for the
+                # merge pass to test together with an accepted neighbour, and
+                # dropped if none takes it. Dropping these pieces here lost up
+                # to half of some hole rims that one ellipse fits (short
+                # stretches next to a displaced one).
+                pieces.append((lo, hi, None))
+                continue
+            pos = np.arange(lo, hi) % n
+            xy = xy_all[pos]
+            chord = xy[-1] - xy[0]
+            L = np.hypot(*chord)
+            if L > 1e-9:
+                v = xy - xy[0]
+                d = np.abs(chord[0] * v[:, 1] - chord[1] * v[:, 0]) / L
+            else:
+                d = np.linalg.norm(xy - xy[0], axis=1)
+            d[: min_points // 2] = d[len(d) - min_points // 2:] = -1
+            k = lo + int(np.argmax(d))
+            stack.append((k - n, hi - n) if k >= n else (k, hi))
+            stack.append((lo, k))
     pieces.sort(key=lambda t: t[0])
 
     # Merge neighbours while the union still passes; best p-value first.
     # A piece is (lo, hi): cyclic positions lo .. hi - 1, 0 <= lo < n.
     while len(pieces) > 1:
         m = len(pieces)
-        best = None
+        pairs = []
         for i in range(m if contour.closed else m - 1):
             j = (i + 1) % m
             a, b = pieces[i], pieces[j]
@@ -346,40 +411,93 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
             if hi - a[0] > n:
                 continue
             whole_loop = contour.closed and hi - a[0] == n
-            res = fit_range(a[0], hi, not whole_loop, not whole_loop)
+            pairs.append((i, a[0], hi, not whole_loop))
+        results = yield from fit_ranges([(lo, hi, o, o, ("line", "arc")) for _, lo, hi, o in pairs])
+        best = None
+        for (i, lo, hi, _), res in zip(pairs, results):
             if res is not None and (best is None or res[2] > best[1][2][2]):
-                best = (i, (a[0], hi, res))
+                best = (i, (lo, hi, res))
         if best is None:
             break
         i, merged = best
         j = (i + 1) % m
         pieces = [p for k, p in enumerate(pieces) if k not in (i, j)] + [merged]
         pieces.sort(key=lambda t: t[0])
-    segs = []
-    for lo, hi, res in pieces:
-        if res is None:
-            continue  # pending and taken by no neighbour
-        segs.append(_make_segment(edges, contour, np.arange(lo, hi) % n, res, contour_id, cl, refit))
-    return segs
+    # A pending piece taken by no neighbour is dropped.
+    return [(np.arange(lo, hi) % n, res) for lo, hi, res in pieces if res is not None]
 
 
-def _make_segment(edges, contour, pos, res, contour_id, corr_length, refit):
-    kind, fit, _, fit_pos = res
-    fit_index = contour.index[fit_pos]
+def _run_steps(steps):
+    """Run segmentation generators (:func:`_segment_steps`) side by side,
+    answering the tests they ask for in one batch per round.
+
+    Returns
+    -------
+    list
+        What each generator returns, in order.
+    """
+    out = [None] * len(steps)
+    waiting = {}
+    for k, g in enumerate(steps):
+        try:
+            waiting[k] = next(g)
+        except StopIteration as stop:
+            out[k] = stop.value
+    while waiting:
+        asked = [(k, req) for k, reqs in waiting.items() for req in reqs]
+        answers = _test_pieces([req for _, req in asked])
+        per = {k: [] for k in waiting}
+        for (k, _), ans in zip(asked, answers):
+            per[k].append(ans)
+        waiting = {}
+        for k, ans in per.items():
+            try:
+                waiting[k] = steps[k].send(ans)
+            except StopIteration as stop:
+                out[k] = stop.value
+    return out
+
+
+def _make_segments(edges, contours, contour_ids, accepted, refit):
+    """Segments of the accepted pieces of several contours, the refits of
+    all their arcs together.
+
+    Parameters
+    ----------
+    contours, contour_ids : list
+    accepted : list
+        Per contour, what :func:`_segment_steps` returns.
+    refit : bool
+        See :func:`segment_contour`.
+    """
+    cl = edges.sigma
+    todo = []  # [contour, contour id, positions, kind, fit, fit index]
+    for contour, cid, pieces in zip(contours, contour_ids, accepted):
+        for pos, (kind, fit, _, fit_pos) in pieces:
+            todo.append([contour, cid, pos, kind, fit, contour.index[fit_pos]])
     if refit:
-        xy, cov = edges.xy[fit_index], edges.cov[fit_index]
-        if kind == "line":
-            fit = fit_line(xy, cov, corr_length=corr_length)
-        else:
-            # The test's fit of the same points (with the floor added to
-            # their variances) is a start next to the minimum.
-            fit = fit_ellipse(xy, cov, corr_length=corr_length, blur=float(np.median(edges.width[fit_index])),
-                              start=fit.params)
-    return Segment(kind, contour.index[pos], fit_index, fit, contour_id)
+        arcs = []
+        for t in todo:
+            xy, cov = edges.xy[t[5]], edges.cov[t[5]]
+            if t[3] == "line":
+                t[4] = fit_line(xy, cov, corr_length=cl)
+            else:
+                # The test's fit of the same points (with the floor added
+                # to their variances) is a start next to the minimum.
+                arcs.append((t, _EllipseJob(_as_points(xy, 6), cov, cl, float(np.median(edges.width[t[5]])),
+                                           t[4].params)))
+        for (t, _), fit in zip(arcs, _fit_ellipses([job for _, job in arcs])):
+            t[4] = fit
+    return [Segment(kind, contour.index[pos], fit_index, fit, cid)
+            for contour, cid, pos, kind, fit, fit_index in todo]
 
 
 def segment_contours(edges, contours=None, *, min_length=10, **kwargs):
     """Segment every contour of an image.
+
+    The contours are segmented side by side, the trial fits of all of them
+    run together (see :func:`_segment_steps`); the result is that of
+    :func:`segment_contour` on each.
 
     Parameters
     ----------
@@ -397,8 +515,13 @@ def segment_contours(edges, contours=None, *, min_length=10, **kwargs):
     """
     if contours is None:
         contours = chain_edges(edges)
-    out = []
-    for k, c in enumerate(contours):
-        if len(c) >= min_length:
-            out.extend(segment_contour(edges, c, contour_id=k, **kwargs))
-    return out
+    # segment_contour's options and defaults, contour_id aside.
+    opts = {k: v for k, v in segment_contour.__kwdefaults__.items() if k != "contour_id"}
+    unknown = set(kwargs) - set(opts)
+    if unknown:
+        raise TypeError(f"segment_contours() got unexpected keyword arguments {sorted(unknown)}")
+    opts.update(kwargs)
+    refit = opts.pop("refit")
+    todo = [(k, c) for k, c in enumerate(contours) if len(c) >= min_length]
+    accepted = _run_steps([_segment_steps(edges, c, **opts) for _, c in todo])
+    return _make_segments(edges, [c for _, c in todo], [k for k, _ in todo], accepted, refit)

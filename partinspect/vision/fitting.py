@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import special
+from scipy.linalg.lapack import dposv as _dposv
 
 __all__ = [
     "LineFit",
@@ -243,24 +244,42 @@ def _band(xy, corr_length):
     Euclidean, so the ends of an open curve come out uncorrelated and those
     of a closed one correlated.
     """
+    ks, rho, _ = _band_stack(xy, corr_length)
+    return [(int(k), r) for k, r in zip(ks, rho)]
+
+
+def _band_stack(xy, corr_length, chunk=8):
+    """:func:`_band` as arrays: offsets ks (K,), rho (K, N) and the partner
+    indices (i + k) % N, (K, N).
+
+    The offsets are taken ``chunk`` at a time (a few suffice for points about
+    a pixel apart and ``corr_length`` about one), each chunk in one pass, and
+    the band ends at the first offset whose correlations all fall below
+    1e-4, as one offset at a time it would.
+    """
     n = len(xy)
-    out = []
+    empty = np.zeros(0, int), np.zeros((0, n)), np.zeros((0, n), int)
     if not corr_length or n < 2:
-        return out
+        return empty
     xy = np.asarray(xy, float)
-    diff = np.empty_like(xy)
-    for k in range(1, n // 2 + 1):
-        # xy[(i + k) % n] - xy[i] by two slices (np.roll copies and is slow).
-        np.subtract(xy[k:], xy[: n - k], out=diff[: n - k])
-        np.subtract(xy[:k], xy[n - k:], out=diff[n - k:])
-        d2 = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]
-        rho = np.exp(d2 * (-1.0 / (4.0 * corr_length * corr_length)))
-        if k == n - k:  # the same pair seen twice
-            rho = rho * 0.5
-        if rho.max() < 1e-4:
+    scale = -1.0 / (4.0 * corr_length * corr_length)
+    ar = np.arange(n)
+    parts = []
+    for k0 in range(1, n // 2 + 1, chunk):
+        ks = np.arange(k0, min(k0 + chunk, n // 2 + 1))
+        j = ar[None, :] + ks[:, None]
+        j[j >= n] -= n
+        diff = xy[j] - xy[None, :, :]
+        rho = np.exp((diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) * scale)
+        rho[ks == n - ks] *= 0.5  # the same pair seen twice
+        low = np.flatnonzero(rho.max(axis=1) < 1e-4)
+        if len(low):
+            parts.append((ks[: low[0]], rho[: low[0]], j[: low[0]]))
             break
-        out.append((k, rho))
-    return out
+        parts.append((ks, rho, j))
+    if not parts:
+        return empty
+    return tuple(np.concatenate(x) for x in zip(*parts))
 
 
 def information_matrices(h, s, xy, corr_length):
@@ -295,13 +314,13 @@ def information_matrices(h, s, xy, corr_length):
     S = hw.T @ hw
     M = S.copy()
     trR2 = float(len(h))
-    n = len(hw)
-    for k, rho in _band(xy, corr_length):
-        # (hw * rho)^T roll(hw, -k), the roll done by two slices.
-        a = hw * rho[:, None]
-        C = a[: n - k].T @ hw[k:] + a[n - k:].T @ hw[:k]
+    ks, rho, j = _band_stack(xy, corr_length)
+    if len(ks):
+        # sum_k sum_i rho_ki hw_i^T hw_(i+k): every offset in one product.
+        p = hw.shape[1]
+        C = (hw[None, :, :] * rho[:, :, None]).reshape(-1, p).T @ hw[j].reshape(-1, p)
         M += C + C.T
-        trR2 += 2.0 * float(rho @ rho)
+        trR2 += 2.0 * float((rho * rho).sum())
     return S, M, trR2
 
 
@@ -385,6 +404,23 @@ def _line_tls(xy, w):
     return n, c
 
 
+def _line_normal_std(cov):
+    """std(normal): :func:`_normal_std` of every point along one common
+    normal, with the covariance parts taken out once (the line fit asks
+    three times)."""
+    cov = np.asarray(cov, float)
+    if cov.ndim == 1:  # already a variance along the normal
+        s = np.sqrt(cov)
+        return lambda nrm: s
+    c00, c01, c11 = cov[:, 0, 0], cov[:, 0, 1] + cov[:, 1, 0], cov[:, 1, 1]
+
+    def std(nrm):
+        nx, ny = nrm
+        return np.sqrt(nx * nx * c00 + nx * ny * c01 + ny * ny * c11)
+
+    return std
+
+
 def fit_line(xy, cov=None, *, corr_length=None):
     """Orthogonal (total least squares) line fit by SVD, with covariance.
 
@@ -418,11 +454,12 @@ def fit_line(xy, cov=None, *, corr_length=None):
     w = np.ones(n_pts)
     nrm, c = _line_tls(xy, w)
     if cov is not None:
+        std = _line_normal_std(cov)
         for _ in range(2):
-            s = _normal_std(cov, np.broadcast_to(nrm, (n_pts, 2)))
+            s = std(nrm)
             w = 1.0 / (s * s)
             nrm, c = _line_tls(xy, w)
-        s = _normal_std(cov, np.broadcast_to(nrm, (n_pts, 2)))
+        s = std(nrm)
     C = -float(nrm @ c)
     if C > 0:
         nrm, C = -nrm, -C
@@ -633,21 +670,6 @@ def _ellipse_geometry(xy, params, phi):
     return r, n, h
 
 
-def _ellipse_normals(params, phi, cp=None, sp=None):
-    """Outward unit normals (N, 2) at phases phi, or at their cosines and sines cp, sp."""
-    _, _, a, b, th = params
-    c, s = np.cos(th), np.sin(th)
-    if cp is None:
-        cp, sp = np.cos(phi), np.sin(phi)
-    lx, ly = b * cp, a * sp
-    ln = np.sqrt(lx * lx + ly * ly)
-    lx, ly = lx / ln, ly / ln
-    n = np.empty((len(cp), 2))
-    n[:, 0] = c * lx - s * ly
-    n[:, 1] = s * lx + c * ly
-    return n
-
-
 def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=1e-9, start=None):
     """Geometric ellipse fit in parametric form (Gander, Golub & Strebel 1994).
 
@@ -701,90 +723,113 @@ def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=
     ``corr_length``.
     """
     xy = _as_points(xy, 6)
-    fit = _fit_ellipse(xy, cov, corr_length, max_iter, tol, start)
-    if blur:
-        for _ in range(2):
-            xc, yc, a, b, th = fit.params
-            _, n, _ = _ellipse_geometry(xy, fit.params, fit.phases)
-            sp, cp = np.sin(fit.phases), np.cos(fit.phases)
+    return _fit_ellipses([_EllipseJob(xy, cov, corr_length, blur, start)], max_iter, tol)[0]
+
+
+@dataclass(frozen=True)
+class _EllipseJob:
+    """One ellipse fit of :func:`_fit_ellipses`: the arguments of
+    :func:`fit_ellipse`, plus ``init`` = (params, phases), an algebraic start
+    and its foot phases the caller has computed already."""
+
+    xy: np.ndarray
+    cov: object = None
+    corr_length: float = None
+    blur: float = None
+    start: object = None
+    init: tuple = None
+
+
+def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False):
+    """:func:`fit_ellipse` of several point sets at once.
+
+    The Gauss-Newton iterations of all the fits run in lockstep on stacked
+    arrays (:func:`_lm_ellipses`): a fit of a few dozen points costs a few
+    hundred numpy calls, whose overhead, not their arithmetic, is what
+    takes the time, and stacking shares it. Each fit follows exactly the
+    iteration it would follow alone.
+
+    Parameters
+    ----------
+    jobs : list of _EllipseJob
+    max_iter, tol : see fit_ellipse
+    need_converged : bool
+        Return None for a fit that does not converge within ``max_iter``
+        (its covariance and test are then not computed; blurred jobs are
+        not supported).
+
+    Returns
+    -------
+    list of EllipseFit (or None)
+    """
+    if need_converged and any(job.blur for job in jobs):
+        raise ValueError("need_converged is not supported with blur")
+    starts = []
+    for job in jobs:
+        if job.init is not None:
+            starts.append(job.init)
+        else:
+            p = _ellipse_start(job.xy) if job.start is None else _canonical(job.start)
+            starts.append((p, _foot_phases(job.xy, p)))
+    xys = [job.xy for job in jobs]
+    fits = _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged)
+    blurred = [k for k, job in enumerate(jobs) if job.blur]
+    for _ in range(2 if blurred else 0):
+        for k in blurred:
+            f, blur = fits[k], jobs[k].blur
+            xc, yc, a, b, th = f.params
+            _, n, _ = _ellipse_geometry(jobs[k].xy, f.params, f.phases)
+            sp, cp = np.sin(f.phases), np.cos(f.phases)
             kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
-            shifted = xy + (0.5 * blur * blur * kappa)[:, None] * n
+            xys[k] = jobs[k].xy + (0.5 * blur * blur * kappa)[:, None] * n
             # The shift is a small fraction of a pixel: start from the fit
             # before it.
-            fit = _fit_ellipse(shifted, cov, corr_length, max_iter, tol, fit.params)
-        r = fit.residuals  # residuals are of the corrected points
-        fit = EllipseFit(fit.params, fit.cov, fit.ci95, r, fit.phases, fit.point_std,
-                         fit.consistency, fit.converged, fit.iterations)
-    return fit
+            p = _canonical(f.params)
+            starts[k] = (p, _foot_phases(xys[k], p))
+        sub = _fit_ellipses_once([xys[k] for k in blurred], [jobs[k] for k in blurred],
+                                 [starts[k] for k in blurred], max_iter, tol, False)
+        for k, f in zip(blurred, sub):
+            fits[k] = f  # its residuals are of the corrected points
+    return fits
 
 
-def _fit_ellipse(xy, cov, corr_length, max_iter, tol, start=None):
-    """Gauss-Newton of Gander et al. on fixed points; see fit_ellipse.
+# Largest padding of a group of stacked fits, point slots (see _fit_ellipses_once).
+_PAD_POINTS = 2000
 
-    ``start`` (xc, yc, a, b, theta) replaces the algebraic start, e.g. the
-    fit of nearly the same points: the iteration then needs a few steps
-    instead of the many that bring a partial arc's algebraic fit home.
-    """
-    n_pts = len(xy)
-    p = _ellipse_start(xy) if start is None else _canonical(start)
-    phi = _foot_phases(xy, p)
-    lam = 1e-3
-    converged = False
-    it = 0
-    x, y = xy[:, 0], xy[:, 1]
 
-    def weights(p, cp, sp):
-        if cov is None:
-            return np.ones(n_pts)
-        s = _normal_std(cov, _ellipse_normals(p, None, cp, sp))
-        return 1.0 / (s * s)
-
-    def residual(p, cp, sp):
-        xc, yc, a, b, th = p
-        c, s = np.cos(th), np.sin(th)
-        acp, bsp = a * cp, b * sp
-        return x - (xc + c * acp - s * bsp), y - (yc + s * acp + c * bsp)
-
-    def cost(rx, ry, w):
-        return float(w @ (rx * rx + ry * ry))
-
-    # The sines and cosines of the phases are computed once per iterate and
-    # shared by the cost, the weights and the next step's blocks.
-    cp, sp = np.cos(phi), np.sin(phi)
-    w = weights(p, cp, sp)
-    rx, ry = residual(p, cp, sp)
-    f0 = cost(rx, ry, w)
-    for it in range(1, max_iter + 1):
-        blocks = _gander_blocks(p, cp, sp, rx, ry, w)
-        step_u, step_phi = _gander_solve(blocks, lam)
-        while True:
-            p_new = p + step_u
-            if p_new[2] > 0 and p_new[3] > 0:
-                phi_new = phi + step_phi
-                cp_new, sp_new = np.cos(phi_new), np.sin(phi_new)
-                rx_new, ry_new = residual(p_new, cp_new, sp_new)
-                f1 = cost(rx_new, ry_new, w)
-                if f1 <= f0 * (1 + 1e-12):
-                    break
-            lam *= 10
-            if lam > 1e12:
+def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged):
+    """The fits of fixed points (the loop of _fit_ellipses), in groups: a
+    group's arrays are padded to its largest fit."""
+    out = [None] * len(xys)
+    order = sorted(range(len(xys)), key=lambda k: len(xys[k]))
+    while order:
+        # Sorted by size, a fit joins the group while the padding it causes
+        # stays below _PAD_POINTS point slots: an iteration costs about as
+        # much in numpy-call overhead as it does in arithmetic on that many
+        # points, so beyond it separate groups are cheaper.
+        n_group, total = 1, len(xys[order[0]])
+        while n_group < len(order):
+            m = len(xys[order[n_group]])
+            if (n_group + 1) * m - (total + m) > _PAD_POINTS:
                 break
-            # Only the damping changed: the blocks are reused.
-            step_u, step_phi = _gander_solve(blocks, lam)
-        if lam > 1e12:
-            break
-        # Largest displacement of the curve the step causes, px; a rotation
-        # moves an ellipse by at most (a - b) |dtheta| (nothing for a circle,
-        # whose theta is free).
-        moved = np.abs(step_u[:4]).sum() + abs(p[2] - p[3]) * abs(step_u[4])
-        small = moved < tol * max(1.0, p[2])
-        p, phi, cp, sp, rx, ry = p_new, phi_new, cp_new, sp_new, rx_new, ry_new
-        w = weights(p, cp, sp)  # the normals moved: re-project the covariances
-        f0 = cost(rx, ry, w)
-        lam = max(lam / 10, 1e-9)
-        if small:
-            converged = True
-            break
+            n_group, total = n_group + 1, total + m
+        group, order = order[:n_group], order[n_group:]
+        res = _lm_ellipses([xys[k] for k in group], [jobs[k].cov for k in group],
+                           [starts[k] for k in group], max_iter, tol)
+        for k, (p, converged, it) in zip(group, res):
+            if need_converged and not converged:
+                continue
+            try:
+                out[k] = _ellipse_result(xys[k], jobs[k].cov, jobs[k].corr_length, p, converged, it)
+            except (ValueError, np.linalg.LinAlgError):
+                if not need_converged:
+                    raise
+    return out
+
+
+def _ellipse_result(xy, cov, corr_length, p, converged, it):
+    """EllipseFit at the end of the iteration: foot points, covariance, test."""
+    n_pts = len(xy)
     p = _canonical(p)
     phi = _foot_phases(xy, p, None, iters=20)
     r, n, h = _ellipse_geometry(xy, p, phi)
@@ -798,59 +843,250 @@ def _fit_ellipse(xy, cov, corr_length, max_iter, tol, start=None):
     return EllipseFit(p, covp, _ci(p, covp), r, phi, s, cons, converged, it)
 
 
-def _gander_blocks(p, cp, sp, rx, ry, w):
-    """Undamped blocks of the normal equations of Gander et al. [2]_.
+def _lm_ellipses(xys, covs, starts, max_iter, tol):
+    """Damped Gauss-Newton of Gander et al. [2]_ on several point sets in lockstep.
 
-    Residuals rho_i = p_i - x(phi_i; u) = (rx_i, ry_i), weight w_i on both
-    components. The Jacobian has a block-diagonal phase part (one 2-vector
-    j_i per point) and a dense part J_i (2 x 5). Returns (D, B, C, g_phi,
-    g_u): the diagonal phase block, the (m, 5) coupling, the 5x5 block and
-    the two gradients.
+    Unknowns u = (xc, yc, a, b, theta) and one phase phi_i per point; the
+    residual rho_i = p_i - x(phi_i; u) (2-vector, weight w_i on both
+    components: the inverse variance of the point along the curve's normal
+    at phi_i). Everything is written in the ellipse's own frame (turned by
+    -theta): the weights are the same on both components, so the cost and
+    the normal equations are unchanged by the rotation, and the derivatives
+    are simpler there.
+
+    The phase derivative of rho_i is j_i = |j_i| t_i, along the tangent
+    t_i; J_i (2 x 5) is its dense part. With n_i the unit normal,
+    J^T J = J^T n n^T J + J^T t t^T J, and eliminating the diagonal phase
+    block D_i = w_i |j_i|^2 (1 + lam) of the damped normal equations (the
+    Schur complement C + lam diag(C) - B^T D^-1 B of :func:`fit_ellipse`)
+    leaves the 5 x 5 system
+
+        S(lam) = Sn + lam / (1 + lam) St + lam diag(Sn + St)
+        rhs(lam) = -(Gn + lam / (1 + lam) Gt)
+
+    with Sn = sum w hn hn^T, St = sum w ht ht^T, Gn = sum w hn rn, Gt =
+    sum w ht rt, hn = J^T n, ht = J^T t, rn = n . rho, rt = t . rho; the
+    phases follow by back-substitution, dphi_i = -(rt_i + ht_i . du) /
+    (|j_i| (1 + lam)). This is the textbook form rearranged, without its
+    cancellation, and the two 5 x 5 matrices serve every damping tried.
+
+    Each fit keeps its own damping and stops on its own, exactly as alone;
+    the arrays are (fits, points, ...), the shorter point sets padded by
+    weight-0 copies of their first point, and a fit's row is dropped when it
+    stops.
+
+    Returns
+    -------
+    list of (params, converged, iterations)
     """
-    _, _, a, b, th = p
-    c, s = np.cos(th), np.sin(th)
-    m = len(cp)
-    # Written out component by component: the (m, 2, 5) products and
-    # column_stack of the textbook form cost more than the arithmetic.
-    acp, bsp = a * cp, b * sp
-    # Jacobians of rho (= minus those of x): phase part j = -Q (-a sin, b cos).
-    asp, bcp = a * sp, b * cp
-    jx = c * asp + s * bcp
-    jy = s * asp - c * bcp
-    # Dense part, x and y components of the five columns.
-    Jx = np.empty((m, 5))
-    Jy = np.empty((m, 5))
-    Jx[:, 0], Jy[:, 0] = -1.0, 0.0
-    Jx[:, 1], Jy[:, 1] = 0.0, -1.0
-    Jx[:, 2], Jy[:, 2] = -c * cp, -s * cp
-    Jx[:, 3], Jy[:, 3] = s * sp, -c * sp
-    Jx[:, 4] = c * bsp + s * acp
-    Jy[:, 4] = s * bsp - c * acp
-    D = w * (jx * jx + jy * jy)
-    B = w[:, None] * (jx[:, None] * Jx + jy[:, None] * Jy)  # (m, 5)
-    wJx, wJy = Jx * w[:, None], Jy * w[:, None]
-    C = wJx.T @ Jx + wJy.T @ Jy
-    g_phi = w * (jx * rx + jy * ry)
-    g_u = wJx.T @ rx + wJy.T @ ry
-    return D, B, C, g_phi, g_u
+    F = len(xys)
+    M = max(len(xy) for xy in xys)
+    xy1 = np.ones((F, M, 3))
+    cparts = np.empty((F, M, 3))
+    cparts[:] = (1.0, 0.0, 1.0)
+    mask = np.zeros((F, M))
+    phi = np.zeros((F, M))
+    p = np.empty((F, 5))
+    for k, (xy, cov, (p0, phi0)) in enumerate(zip(xys, covs, starts)):
+        m = len(xy)
+        xy1[k, :m, :2] = xy
+        xy1[k, m:, :2] = xy[0]
+        mask[k, :m] = 1.0
+        phi[k, :m] = phi0
+        p[k] = p0
+        if cov is not None:
+            cov = np.asarray(cov, float)
+            if cov.ndim == 1:  # a variance along the normal, whatever the normal
+                cparts[k, :m, 0] = cparts[k, :m, 2] = cov
+                cparts[k, :m, 1] = 0.0
+            else:
+                # Parts of n^T cov n for n = (nx, ny): nx^2, nx ny, ny^2.
+                cparts[k, :m, 0] = cov[:, 0, 0]
+                cparts[k, :m, 1] = cov[:, 0, 1] + cov[:, 1, 0]
+                cparts[k, :m, 2] = cov[:, 1, 1]
+        # (without cov: unit weights)
+
+    out = [None] * F
+    ids = np.arange(F)  # the fit of each row
+    lam = np.full(F, 1e-3)
+    cs = _lm_cos_sin(phi)
+    r = _lm_residual(p, cs, xy1)
+    converged = np.zeros(F, bool)
+    for it in range(1, max_iter + 1):
+        n = len(ids)
+        sy = _lm_system(p, cs, r, mask, cparts)
+        f0, w = sy[0], sy[1]
+        lam_t = lam.copy()
+        done = np.zeros(n, bool)  # a step was accepted
+        j = None  # rows still trying a damping (None: all of them)
+        while True:
+            if j is None:
+                sy_j, lam_j, p_j, phi_j, xy1_j, w_j, f0_j = sy, lam_t, p, phi, xy1, w, f0
+            else:
+                sy_j = tuple(x[j] for x in sy)
+                lam_j, p_j, phi_j, xy1_j, w_j, f0_j = lam_t[j], p[j], phi[j], xy1[j], w[j], f0[j]
+            du, dphi = _lm_step(sy_j, lam_j)
+            p_new = p_j + du
+            phi_new = phi_j + dphi
+            cs_new = _lm_cos_sin(phi_new)
+            r_new = _lm_residual(p_new, cs_new, xy1_j)
+            # The cost with the weights of the current iterate; a step to a
+            # semi-axis <= 0 is refused too.
+            f1 = np.einsum("fm,fmc,fmc->f", w_j, r_new, r_new)
+            acc = (p_new[:, 2] > 0) & (p_new[:, 3] > 0) & (f1 <= f0_j * (1 + 1e-12))
+            # Largest displacement of the curve the step causes, px; a
+            # rotation moves an ellipse by at most (a - b) |dtheta| (nothing
+            # for a circle, whose theta is free).
+            moved = np.abs(du[:, :4]).sum(axis=1) + np.abs(p_j[:, 2] - p_j[:, 3]) * np.abs(du[:, 4])
+            small = moved < tol * np.maximum(1.0, p_j[:, 2])
+            if j is None and acc.all():
+                # Every fit took its first step (the common case).
+                done[:] = True
+                converged, p, phi, cs, r = small, p_new, phi_new, cs_new, r_new
+                break
+            rows = np.arange(n) if j is None else j
+            ra = rows[acc]
+            done[ra] = True
+            converged[ra] = small[acc]
+            p[ra], phi[ra], cs[ra], r[ra] = p_new[acc], phi_new[acc], cs_new[acc], r_new[acc]
+            rej = rows[~acc]
+            lam_t[rej] *= 10
+            j = rej[lam_t[rej] <= 1e12]
+            if not len(j):
+                break
+        lam = np.where(done, np.maximum(lam_t / 10, 1e-9), lam_t)
+        # Rows that stop: converged, or no damping helped (lam beyond 1e12).
+        stop = ~done | converged
+        if it == max_iter:
+            stop[:] = True
+        for row in np.flatnonzero(stop):
+            out[ids[row]] = (p[row].copy(), bool(done[row] and converged[row]), it)
+        if stop.all():
+            break
+        if stop.any():
+            keep = ~stop
+            ids, p, phi, cs, r, lam = ids[keep], p[keep], phi[keep], cs[keep], r[keep], lam[keep]
+            xy1, cparts, mask, converged = xy1[keep], cparts[keep], mask[keep], converged[keep]
+    return out
 
 
-def _gander_solve(blocks, lam):
-    """One Levenberg-Marquardt step from the blocks, the phases eliminated.
+def _lm_cos_sin(phi):
+    """(..., 2): cos phi, sin phi."""
+    cs = np.empty(phi.shape + (2,))
+    np.cos(phi, out=cs[..., 0])
+    np.sin(phi, out=cs[..., 1])
+    return cs
 
-    The normal equations are solved by the Schur complement of the diagonal
-    phase block (a 5x5 system), O(m) [2]_.
+
+def _lm_residual(p, cs, xy1):
+    """(fits, points, 2): rho in the ellipse frame, Q(theta)^T (p_i - c) - (a cos, b sin)."""
+    c, s = np.cos(p[:, 4]), np.sin(p[:, 4])
+    rot = np.empty((len(p), 3, 2))
+    rot[:, 0, 0], rot[:, 0, 1] = c, -s
+    rot[:, 1, 0], rot[:, 1, 1] = s, c
+    rot[:, 2, 0] = -c * p[:, 0] - s * p[:, 1]
+    rot[:, 2, 1] = s * p[:, 0] - c * p[:, 1]
+    return xy1 @ rot - cs * p[:, None, 2:4]
+
+
+def _lm_system(p, cs, r, mask, cparts):
+    """Weights, cost and the parts of the phase-eliminated system at an
+    iterate (see :func:`_lm_ellipses`).
+
+    Returns
+    -------
+    tuple
+        cost (F,), w (F, M), Sn, St, diag(Sn + St) (F, 5, 5), Gn, Gt (F, 5),
+        the rows ht (F, M, 5), rt (F, M) and -1 / |j| (F, M).
     """
-    D, B, C, g_phi, g_u = blocks
-    D = D * (1.0 + lam)
-    C = C + lam * np.diag(np.diag(C))
-    BD = B / D[:, None]
-    S = C - BD.T @ B
-    S = 0.5 * (S + S.T)  # symmetric up to rounding; eigh reads one triangle
-    rhs = -g_u + BD.T @ g_phi
-    du = _solve_sym(S, rhs, 1e-14)
-    dphi = (-g_phi - B @ du) / D
+    a, b = p[:, 2:3], p[:, 3:4]
+    c, s = np.cos(p[:, 4]), np.sin(p[:, 4])
+    n = len(p)
+    # k = (b cos, a sin, a sin, -b cos): the normal and tangent times |j|.
+    k = cs.take(_NT_INDEX, axis=2) * (p.take(_AB_INDEX, axis=1) * _AB_SIGN)[:, None, :]
+    j2 = k[..., 0] * k[..., 0] + k[..., 1] * k[..., 1]
+    nil = -1.0 / np.sqrt(j2)
+    # Normal and tangent in the image frame, times |j|.
+    rot = np.zeros((n, 4, 4))
+    rot[:, 0, 0] = rot[:, 1, 1] = rot[:, 2, 2] = rot[:, 3, 3] = c
+    rot[:, 0, 1] = rot[:, 2, 3] = s
+    rot[:, 1, 0] = rot[:, 3, 2] = -s
+    nt = k @ rot
+    q = nt.take(_Q_LEFT, axis=2) * nt.take(_Q_RIGHT, axis=2)
+    w = mask * j2 / (q * cparts).sum(axis=2)
+    # Rows hn (columns 0-4) and ht (5-9), the derivatives of n . rho and
+    # t . rho: for (xc, yc) minus the image-frame normal and tangent, for
+    # (a, b) -(b cos^2, a sin^2) and -(a sin cos, -b cos sin), for theta
+    # (b^2 - a^2) sin cos and a b; all over |j|.
+    H = np.empty(k.shape[:2] + (10,))
+    H[..., _H_XY] = nt
+    H[..., _H_AB] = k * cs.take(_CS_INDEX, axis=2)
+    H[..., 4] = ((a - b) * (a + b)) * (cs[..., 0] * cs[..., 1])
+    H[..., 9] = -a * b
+    H *= nil[..., None]
+    # n . rho and t . rho.
+    rnt = np.einsum("fmij,fmj->fmi", k.reshape(n, -1, 2, 2), r) * -nil[..., None]
+    wHt = (H * w[..., None]).transpose(0, 2, 1)
+    X = wHt @ H  # one (10, 10) product instead of two (5, 5) ones
+    G = wHt @ rnt
+    d = X.diagonal(axis1=1, axis2=2)
+    Cd = (d[:, :5] + d[:, 5:])[:, :, None] * _EYE5  # diag(Sn + St)
+    cost = np.einsum("fm,fmc,fmc->f", w, r, r)
+    return (cost, w, X[:, :5, :5], X[:, 5:, 5:], Cd, G[:, :5, 0], G[:, 5:, 1],
+            H[..., 5:], rnt[..., 1], nil)
+
+
+def _lm_step(sy, lam):
+    """One Levenberg-Marquardt step (du, dphi) per fit from :func:`_lm_system`:
+    Marquardt damping lam diag(C) on the parameters, lam D on the phases."""
+    _, _, Sn, St, Cd, Gn, Gt, Ht, rt, nil = sy
+    k = lam / (1.0 + lam)
+    S = Sn + k[:, None, None] * St + lam[:, None, None] * Cd
+    rhs = -(Gn + k[:, None] * Gt)
+    du = _solve_spd(S, rhs)
+    dphi = (rt + (Ht @ du[..., None])[..., 0]) * (nil / (1.0 + lam)[:, None])
     return du, dphi
+
+
+def _solve_spd(S, rhs):
+    """Solve the stacked 5 x 5 systems S x = rhs of the iteration.
+
+    S is positive definite (lam diag(C) > 0 is added): a Cholesky solve is
+    enough, several times cheaper than the eigenvalue form of
+    :func:`_solve_sym`, which stays the fallback. LAPACK is called directly
+    for a few systems (numpy's stacked solve costs more in overhead than in
+    work there), numpy's stacked solve for many.
+    """
+    if len(S) <= 8:
+        out = np.empty_like(rhs)
+        for i in range(len(S)):
+            _, x, info = _dposv(S[i], rhs[i])
+            out[i] = x if info == 0 else _solve_sym_safe(S[i], rhs[i])
+        return out
+    try:
+        return np.linalg.solve(S, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.array([_solve_sym_safe(Si, bi) for Si, bi in zip(S, rhs)])
+
+
+def _solve_sym_safe(S, rhs):
+    """_solve_sym, or NaN where it fails (a NaN system): the step is then
+    refused and the fit stops unconverged, as alone it would fail."""
+    try:
+        return _solve_sym(S, rhs, 1e-14)
+    except np.linalg.LinAlgError:
+        return np.full(len(rhs), np.nan)
+
+
+_NT_INDEX = np.array([0, 1, 1, 0])
+_CS_INDEX = np.array([0, 1, 0, 1])
+_Q_LEFT = np.array([0, 0, 1])
+_Q_RIGHT = np.array([0, 1, 1])
+_H_XY = np.array([0, 1, 5, 6])
+_H_AB = np.array([2, 3, 7, 8])
+_AB_INDEX = np.array([3, 2, 2, 3])
+_AB_SIGN = np.array([1.0, 1.0, 1.0, -1.0])
+_EYE5 = np.eye(5)
 
 
 def _theta_gauge(p, h, s, covp):

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from partinspect.vision.contours import chain_edges, segment_contours
 from partinspect.vision.edges import edge_points
@@ -50,3 +51,27 @@ def test_rectangle_and_circle():
         for s in segs:
             # The corners' points are left out of the line fits.
             assert len(s.fit_index) < len(s.index) or s.kind == "arc"
+
+
+def test_contours_segmented_together_as_one_by_one():
+    # segment_contours runs the contours' split and merge side by side and
+    # their trial fits together; each contour must come out as
+    # segment_contour makes it alone.
+    from partinspect.vision.contours import segment_contour
+
+    shapes = [(rectangle(120.2, 99.7, 150, 90, -0.1), 170.0), (Disc(260, 110, 45), 180.0),
+              (Disc(90, 170, 22), 60.0), (rectangle(250, 180, 60, 25, 0.5), 200.0)]
+    for seed in range(2):
+        ep, cs, segs = _segments(shapes, 220, 340, seed)
+        alone = [s for k, c in enumerate(cs) if len(c) >= 10 for s in segment_contour(ep, c, contour_id=k)]
+        assert len(cs) >= 4 and len(segs) == len(alone)
+        for a, b in zip(alone, segs):
+            assert a.kind == b.kind and a.contour == b.contour
+            assert np.array_equal(a.index, b.index) and np.array_equal(a.fit_index, b.fit_index)
+            assert np.allclose(a.fit.params, b.fit.params, rtol=0, atol=1e-7)
+    # The options reach every contour, and unknown ones are refused.
+    loose = segment_contours(ep, cs, alpha=1e-6, refit=False)
+    assert [s.kind for s in loose] == [s.kind for k, c in enumerate(cs) if len(c) >= 10
+                                       for s in segment_contour(ep, c, contour_id=k, alpha=1e-6, refit=False)]
+    with pytest.raises(TypeError):
+        segment_contours(ep, cs, contour_id=3)
