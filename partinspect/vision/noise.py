@@ -21,11 +21,14 @@ import cv2
 import numpy as np
 from scipy import special
 
-__all__ = ["estimate_noise"]
+__all__ = ["estimate_noise", "QUANTISATION_STD"]
 
 # Immerkaer's mask: the difference of two Laplacians, zero on any quadratic.
 _MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 _MASK_NORM = 6.0  # sqrt(sum(_MASK**2)) = sqrt(36)
+QUANTISATION_STD = 1.0 / np.sqrt(12.0)
+"""Grey levels: the standard deviation of rounding to integers, the least
+noise an integer image's edge pixels carry."""
 
 
 def _truncated_variance_factor(k):
@@ -64,7 +67,9 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
     float
         Standard deviation of the pixel noise, grey levels. Quantisation is a
         part of it: an 8-bit image with Gaussian noise sigma reads as
-        sqrt(sigma^2 + 1/12), which is the noise the pixels actually carry.
+        sqrt(sigma^2 + 1/12), which is the noise the pixels actually carry;
+        an integer image reads at least ``QUANTISATION_STD``, even one with
+        (almost) no noise, whose flat areas round alike.
 
     Notes
     -----
@@ -103,6 +108,8 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
         raise ValueError("no unsaturated pixels to estimate the noise from")
     # Start from the median absolute deviation, robust to the edge outliers.
     sigma = float(np.median(np.abs(r))) / 0.6744897501960817 / _MASK_NORM
+    if sigma == 0.0 and top is None:
+        sigma = float(np.sqrt(np.mean(r * r))) / _MASK_NORM  # most responses exactly zero: start from the RMS
     for _ in range(iterations):
         # Each Sobel component has noise std sqrt(12) sigma, so |g| exceeds
         # k sqrt(12) sigma with probability exp(-k^2 / 2) without an edge.
@@ -118,4 +125,10 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
             if sel.size == 0:
                 break
             sigma = float(np.sqrt(sel.mean() / _truncated_variance_factor(clip))) / _MASK_NORM
+    if top is not None:
+        # An integer image with noise well under a grey level reads as
+        # nearly noise-free where it is flat, where rounding is the same for
+        # every pixel; across an edge, where the grey levels change, each
+        # pixel still carries the rounding error of 1/sqrt(12) grey levels.
+        sigma = max(sigma, QUANTISATION_STD)
     return sigma
