@@ -305,13 +305,30 @@ def _fit(kind, ideal, corr_length, start=None):
     return fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=start)
 
 
-OUTLIER_Z = 5.0
-"""Edge points farther than this many of their own standard uncertainties
-from their feature's fit are outliers (for Gaussian noise one in 1.7
-million is): corner-rounded ends, a neighbouring edge's smoothing."""
+OUTLIER_ALPHA = 0.05
+"""Chance that a feature of N clean points loses one to the outlier test:
+a point is an outlier when its residual exceeds ``norm.isf(OUTLIER_ALPHA /
+(2 N))`` (Chauvenet's criterion at this level: 3.6 for 150 points, 4.0 for
+900) times its own standard uncertainty, scaled up by the robust spread of
+the normalised residuals when that exceeds 1 (a very clean image whose
+sub-pixel ripple is as large as its noise). Outliers are corner-rounded
+ends and a neighbouring edge's smoothing; one of them sets a form zone, which
+is the maximum residual."""
+OUTLIER_Z_MAX = 5.0
+"""The threshold never exceeds this (one Gaussian point in 1.7 million)."""
 MAX_OUTLIER_FRACTION = 0.1
 """At most this fraction of a feature's points is rejected: more means the
 model (line / ellipse) is wrong, which the segmentation's test must see."""
+
+
+def _outlier_threshold(z):
+    """Chauvenet's threshold for |normalised residuals| ``z`` (see ``OUTLIER_ALPHA``)."""
+    from scipy.special import ndtri
+
+    n = len(z)
+    t = min(float(-ndtri(OUTLIER_ALPHA / (2.0 * n))), OUTLIER_Z_MAX)
+    spread = 1.4826 * float(np.median(z))  # MAD of z about zero
+    return t * max(1.0, spread)
 
 
 def _make_feature(kind, seg_ids, segments, edges, K, D):
@@ -334,7 +351,7 @@ def _make_feature(kind, seg_ids, segments, edges, K, D):
         fit = _fit(kind, ideal, edges.sigma, start)
         z = np.abs(fit.residuals) / np.maximum(fit.point_std, 1e-12)
         worst = int(np.argmax(z))
-        if z[worst] <= OUTLIER_Z or budget == 0:
+        if z[worst] <= _outlier_threshold(z) or budget == 0:
             break
         keep = np.delete(keep, worst)
         budget -= 1
@@ -422,10 +439,14 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         Arcs: largest ``|log(a1 / a2)|`` (twice that for the minor axes).
     merge_ratio, max_misfit : float
         The union is accepted when the RMS of its residuals is at most
-        ``merge_ratio`` times the worse piece's, or at most ``max_misfit``
-        px: two different edges leave a misfit far larger than the noise,
-        while the pieces of one small ellipse may show a few hundredths of
-        a pixel of systematic misfit that a ratio test alone would refuse.
+        ``merge_ratio`` times the worse piece's, or, for arcs, at most
+        ``max_misfit`` px: two different edges leave a misfit far larger
+        than the noise, while the pieces of one small ellipse may show a
+        few hundredths of a pixel of systematic misfit that a ratio test
+        alone would refuse. Lines get the ratio test only: two straight
+        edges meeting at a shallow angle differ by a few hundredths of a
+        pixel over a long stretch, which passed ``max_misfit`` and bent
+        the merged line out of straightness by 30 um.
 
     Returns
     -------
@@ -459,7 +480,8 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
                 tried[key] = None
             else:
                 u = make(a.kind, a.segments + b.segments)
-                tried[key] = (_rms(u), max(merge_ratio * max(_rms(a), _rms(b)), max_misfit), u)
+                limit = merge_ratio * max(_rms(a), _rms(b))
+                tried[key] = (_rms(u), max(limit, max_misfit) if a.kind == "arc" else limit, u)
         return tried[key]
 
     changed = True
