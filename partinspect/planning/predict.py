@@ -584,7 +584,8 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
     from partinspect.vision.stereo import (
-        _make_feature3d, calibration_covariance, calibration_parameters, feature_views, fit_feature)
+        _make_feature3d, calibration_covariance, calibration_parameters, corrected_correspondences, feature_views,
+        fit_feature)
 
     geo = geo if geo is not None else epipolar_geometry(calib)
     fid, kind = feature.id, feature.kind
@@ -624,12 +625,13 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     try:
         fviews = feature_views(fl, fr, model.sigma, calib)
         fit = fit_feature(fl, fr, fviews, corr.points)
+        corr = corrected_correspondences(fl, fr, fviews, corr, geo, model.sigma)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return FeaturePrediction(status="failed", reason=f"{fid}: 3D fit failed ({exc})", **base)
     n = 6 if kind2 == "line" else 7
     cal = calibration_covariance(fit, kind2, fl, fr, model.sigma, calib) if calibration_parameters(calib) \
         else np.zeros((n, n))
-    f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo)
+    f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0])
     return FeaturePrediction(status="measured", record=f3, **base)
 
 

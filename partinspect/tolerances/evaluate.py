@@ -457,6 +457,12 @@ def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, see
     return [evaluate_characteristic(c, parts, registration, inventory, k=k, seed=seed, n_mc=n_mc) for c in characteristics]
 
 
+def _errors(record):
+    """The measured record's draws of its points' correlated errors, or None (independent draws)."""
+    model = getattr(record, "point_errors", None)
+    return None if model is None else model.draw
+
+
 def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC):
     """One characteristic; ``parts`` as ``registration.features_in_part_frame()`` returns."""
     picked = [_pick(parts, fid) for fid in c.features]
@@ -476,7 +482,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         pts, pcs = getattr(rec[0], "points", None), getattr(rec[0], "point_covs", None)
         if pts is None or pcs is None or len(pts) < 5:
             return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
-        fr = (straightness if t == "straightness" else circularity)(pts, pcs, rng)
+        fr = (straightness if t == "straightness" else circularity)(pts, pcs, rng, errors=_errors(rec[0]))
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points)
     if t in ("distance", "angle"):
@@ -505,7 +511,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         details = {"fitted": value}
         pts, pcs = getattr(rec[0], "points", None), getattr(rec[0], "point_covs", None)
         if form_fn is not None and pts is not None and pcs is not None and len(pts) >= 5:
-            fr = form_fn(pts, pcs, rng)
+            fr = form_fn(pts, pcs, rng, errors=_errors(rec[0]))
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias)
         return _result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", **details)

@@ -12,8 +12,10 @@ Method (JCGM 101-style Monte Carlo of the noise-only case):
 1. Fit the reference (least squares) to the points and take the raw form
    value ``F_raw`` about it.
 2. Simulate ``n_draws`` noise-only data sets: points on the fitted reference
-   at the measured points' positions, disturbed by noise drawn from each
-   point's 3x3 covariance; fit and evaluate each the same way. Their mean
+   at the measured points' positions, disturbed by errors drawn as the
+   measurement makes them (``errors``: correlated along the edge, with the
+   Type B displacements of the edge points; or, without it, independently
+   from each point's 3x3 covariance); fit and evaluate each the same way. Their mean
    ``b`` is the expected noise-only form value for that many points and
    that noise; their standard deviation ``s``.
 3. Report ``F = F_raw - b`` with standard uncertainty ``s``.
@@ -157,16 +159,22 @@ def _noise_factors(covs):
     return V * np.sqrt(np.clip(w, 0, None))[:, None, :]
 
 
-def _corrected(P, covs, zone, ideal, rng, n_draws):
+def _corrected(P, covs, zone, ideal, rng, n_draws, errors):
     raw = zone(P)
-    L = _noise_factors(covs)  # once: the draws differ only in their normal deviates
-    z = np.stack([rng.standard_normal((len(covs), 3)) for _ in range(n_draws)])
-    sims = (_line_zones if zone is _line_zone else _circle_zones)(ideal + np.einsum("nij,dnj->dni", L, z))
+    if errors is None:
+        L = _noise_factors(covs)  # once: the draws differ only in their normal deviates
+        z = np.stack([rng.standard_normal((len(covs), 3)) for _ in range(n_draws)])
+        e = np.einsum("nij,dnj->dni", L, z)
+    else:
+        e = np.asarray(errors(rng, n_draws), float)
+        if e.shape != (n_draws,) + P.shape:
+            raise ValueError(f"errors drew shape {e.shape}, expected {(n_draws,) + P.shape}")
+    sims = (_line_zones if zone is _line_zone else _circle_zones)(ideal + e)
     b, s = float(sims.mean()), float(sims.std(ddof=1))
     return FormResult(raw - b, s, raw, b, len(P))
 
 
-def straightness(points, point_covs, rng=None, n_draws=N_DRAWS):
+def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None):
     """Noise-corrected straightness of measured edge points.
 
     Parameters
@@ -178,6 +186,13 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS):
     rng : numpy.random.Generator, optional
         Seeded for reproducible results (default seed 0).
     n_draws : int
+    errors : callable, optional
+        ``errors(rng, n_draws)`` -> simulated errors of the points, shape
+        (n_draws, M, 3), mm, with their correlations (e.g.
+        :meth:`partinspect.vision.pointerrors.PointErrorModel.draw`); by
+        default each point's error is drawn independently from its
+        ``point_covs``, which overstates the noise-only zone of an edge
+        whose neighbouring points share smoothed noise.
 
     Returns
     -------
@@ -190,10 +205,10 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS):
     rng = np.random.default_rng(0) if rng is None else rng
     c, d = fit_line_points(P)
     ideal = c + np.outer((P - c) @ d, d)
-    return _corrected(P, covs, _line_zone, ideal, rng, n_draws)
+    return _corrected(P, covs, _line_zone, ideal, rng, n_draws, errors)
 
 
-def circularity(points, point_covs, rng=None, n_draws=N_DRAWS):
+def circularity(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None):
     """Noise-corrected circularity (roundness) of measured edge points.
 
     Parameters and returns as :func:`straightness`; at least 5 points
@@ -207,4 +222,4 @@ def circularity(points, point_covs, rng=None, n_draws=N_DRAWS):
     c, n, r, E = fit_circle_points(P)
     q = (P - c) @ E
     ideal = c + (r * q / np.linalg.norm(q, axis=1)[:, None]) @ E.T
-    return _corrected(P, covs, _circle_zone, ideal, rng, n_draws)
+    return _corrected(P, covs, _circle_zone, ideal, rng, n_draws, errors)

@@ -61,6 +61,12 @@ class Correspondences:
     dropped : int
         Left points without a usable partner: their epipolar line misses the
         right curve or crosses it at less than ``min_angle``.
+    jac_left : ndarray, shape (N, 3, 2)
+        d(points) / d(left), mm/px.
+    jac_fit : ndarray, shape (N, 3, k)
+        d(points) / d(right fitted curve's parameters).
+    fit_cov : ndarray, shape (k, k)
+        The right fit's covariance used (free directions zeroed).
     """
 
     left_index: np.ndarray
@@ -69,6 +75,9 @@ class Correspondences:
     points: np.ndarray
     cov: np.ndarray
     dropped: int
+    jac_left: np.ndarray | None = None
+    jac_fit: np.ndarray | None = None
+    fit_cov: np.ndarray | None = None
 
     def __len__(self):
         return len(self.points)
@@ -209,7 +218,7 @@ def _near_points(y, pts, margin):
     return out
 
 
-def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margin=2.0):
+def correspond(left, right, geo, *, xy=None, min_angle=np.deg2rad(10.0), step=1e-4, margin=2.0):
     """Triangulated correspondences along a matched pair of image features.
 
     Parameters
@@ -217,6 +226,9 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margi
     left, right : ImageFeature
         A matched pair (:func:`partinspect.vision.matching.match_features`).
     geo : EpipolarGeometry
+    xy : ndarray, shape (N, 2), optional
+        The left feature's points to use instead of ``left.ideal.xy`` (same
+        order), e.g. corrected for the shading beside a rim, ideal px.
     min_angle : float
         Points whose epipolar line crosses the right curve at less than
         this angle, rad, are dropped (their partner is ill-determined).
@@ -233,7 +245,7 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margi
     Correspondences
     """
     kind = left.kind
-    x = left.ideal.xy
+    x = left.ideal.xy if xy is None else np.asarray(xy, float)
     pr = np.asarray(right.fit.params, float)
     pl = np.asarray(left.fit.params, float)
     y, sin_a, rank = _partners(geo, kind, x, pr, pl)
@@ -289,4 +301,4 @@ def correspond(left, right, geo, *, min_angle=np.deg2rad(10.0), step=1e-4, margi
     cov_x = left.ideal.cov[idx]
     cov = np.einsum("nij,njk,nlk->nil", Jx, cov_x, Jx) + np.einsum("nij,jk,nlk->nil", Jp, cov_p, Jp)
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
-    return Correspondences(idx, x, y, X, cov, int(len(keep) - n))
+    return Correspondences(idx, x, y, X, cov, int(len(keep) - n), Jx, Jp, cov_p)

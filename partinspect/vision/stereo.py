@@ -94,14 +94,16 @@ import numpy as np
 
 from partinspect.vision.contours import chain_edges, segment_contours
 from partinspect.vision.correspondences import correspond, deblurred
+from partinspect.vision.pointerrors import point_error_model
 from partinspect.vision.edges import BACKGROUND_NOISE, edge_points
+from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.fit3d import View, _basis, _circle_residuals, _line_residuals, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.matching import ImageFeature, epipolar_geometry, image_features, match_features
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "fit_feature", "calibration_covariance", "calibration_parameters"]
+           "feature_views", "as_fitted", "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
 
 # Points of arcs: the corrections and the Type B component of the module
 # notes, "Rims of holes" (the numbers there).
@@ -124,6 +126,8 @@ correction, in units of its (averaged) ``EdgePoints.background_bound``."""
 EDGE_BIAS_CORR_ANGLE = 0.2
 """Correlation length of that remainder along the edge, rad of the ellipse
 (times its semi-major axis gives px)."""
+CHI2_1_MEDIAN = 0.454936423119572
+"""Median of a chi-square variable with one degree of freedom."""
 
 
 @dataclass(frozen=True)
@@ -195,6 +199,10 @@ class Feature3D:
         remains of the displacement of the edge points of circles and arcs
         by the shading beside the rim after its correction (module notes,
         "Rims of holes"); zeros for lines.
+    point_errors : PointErrorModel or None
+        Draws of the errors of ``points`` with their correlations along the
+        edge (:mod:`partinspect.vision.pointerrors`), for the form's Monte
+        Carlo.
     """
 
     kind: str
@@ -218,6 +226,7 @@ class Feature3D:
     fit: object
     correspondences: object
     param_cov_systematic: np.ndarray | None = None
+    point_errors: object = None
 
     @property
     def points(self):
@@ -587,16 +596,96 @@ def _on_plane(xy, K, R, T, center, normal):
     return X[np.isfinite(X).all(axis=1) & (s > 0)]
 
 
-def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo):
+def corrected_correspondences(fl, fr, views, corr, geo, corr_length):
+    """An arc's correspondences redone on its points as the 3D fit uses them (:func:`as_fitted`).
+
+    Those are the triangulated points the form is judged on. The 3D fit
+    itself is started from the correspondences as found (``corr``): a
+    start from the corrected ones sent a short arc of a washer to another
+    local minimum. Lines, and arcs left with fewer than 6 corrected
+    correspondences, keep ``corr``.
+    """
+    if fl.kind != "arc":
+        return corr
+    new = correspond(fl, as_fitted(fr, views[1], corr_length), geo, xy=views[0].xy)
+    return new if len(new) >= 6 else corr
+
+
+def as_fitted(f, view, corr_length):
+    """An arc with the points of its fit3d ``view`` (corrected as :func:`feature_views` does) and its ellipse refitted to them.
+
+    The correspondences place each left point's partner on the right
+    fitted ellipse: fitted to the points as found, a rim's shading bends
+    that ellipse away from the corrected rim the 3D fit measures, and the
+    triangulated points (whose zone is the circularity) with it. Lines
+    are returned as they are (their points are not corrected).
+    """
+    if f.kind != "arc":
+        return f
+    fit = fit_ellipse(view.xy, f.ideal.cov, corr_length=corr_length, start=f.fit.params)
+    return replace(f, ideal=replace(f.ideal, xy=view.xy), fit=fit)
+
+
+def _short_scale_ratio(r, sigma, xy, length):
+    """How much the residuals scatter from point to point, against what the noise model predicts.
+
+    Successive differences of the residuals about the fitted curve see
+    what varies from one edge point to the next and not a smooth form
+    deviation of the edge. Their squares over the variances the model
+    predicts for them (``sigma`` correlated as ``exp(-d^2 / (4 length^2))``)
+    are chi-square with one degree of freedom when the model is right; the
+    median (robust to a few local defects) over its expected 0.455 is the
+    ratio returned (a variance ratio), with its standard error: 2.55 /
+    sqrt(pairs) for neighbours correlated as the edge filter makes them
+    (simulated; NaN, NaN with too few pairs).
+    """
+    d = np.diff(r)
+    step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    rho = np.exp(-step * step / (4.0 * length * length)) if length else np.zeros_like(step)
+    pred = sigma[:-1] ** 2 + sigma[1:] ** 2 - 2.0 * rho * sigma[:-1] * sigma[1:]
+    ok = (step < 2.0) & (pred > 0)  # neighbours, not across a gap
+    if ok.sum() < 10:
+        return float("nan"), float("nan")
+    return float(np.median(d[ok] ** 2 / pred[ok]) / CHI2_1_MEDIAN), 2.55 / np.sqrt(ok.sum())
+
+
+def _point_errors(fl, corr, view):
+    """The :class:`~partinspect.vision.pointerrors.PointErrorModel` of a feature's triangulated points.
+
+    The left points' random part (``view.sigma``, correlated over the edge
+    filter's scale) and the Type B rest of a rim's shading displacement
+    (``view.bias``, over its own length), as the 3D fit models them. Where
+    the residuals scatter significantly more from point to point than that
+    noise predicts (:func:`_short_scale_ratio` above 1 by more than twice
+    its standard error: on a very clean image the sub-pixel estimator's own
+    ripple, 0.003-0.012 px depending on the edge's direction, is as large
+    as the noise), the random part is scaled up to what the residuals show:
+    a Type A evaluation of the scatter the form is judged against. It is
+    never scaled down: a ratio below 1 may hide structure longer than the
+    differences see.
+    """
+    sigma = np.asarray(view.sigma, float) * np.ones(len(fl.ideal.xy))
+    ratio, se = _short_scale_ratio(fl.fit.residuals, sigma, fl.ideal.xy, view.corr_length)
+    if ratio > 1.0 + 2.0 * se:
+        sigma = sigma * np.sqrt(ratio)
+    comps = [(sigma, view.corr_length)]
+    if view.bias is not None:
+        comps.append((view.bias, view.bias_corr_length))
+    return point_error_model(corr, fl.ideal.normal, comps)
+
+
+def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
     kind = fl.kind
     img_cov, sys_cov = _image_param_cov(fit, kind)
     total = img_cov + cal_cov + sys_cov
+    errors = _point_errors(fl, corr, view)
     if kind == "line":
         t = (corr.points - fit.point) @ fit.direction
         return Feature3D("line", match.left, match.right, fit.point, fit.direction,
                          fit.point + t.min() * fit.direction, fit.point + t.max() * fit.direction,
                          None, None, float("nan"), float("nan"), float("nan"),
-                         total[:3, :3], float("nan"), total[3:, 3:], total, img_cov, cal_cov, fit, corr, sys_cov)
+                         total[:3, :3], float("nan"), total[3:, 3:], total, img_cov, cal_cov, fit, corr, sys_cov,
+                         errors)
     # The fit used each image's own edge points, so the rim it measured is
     # what either image sees; the correspondences cover only what both do.
     pts = np.vstack([_on_plane(fl.ideal.xy, geo.K1, np.eye(3), np.zeros(3), fit.center, fit.normal),
@@ -607,7 +696,7 @@ def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo):
         a0, a1 = 0.0, 2 * np.pi
     return Feature3D(kind3, match.left, match.right, None, None, None, None, fit.center, fit.normal,
                      float(fit.radius), a0, a1, total[:3, :3], float(np.sqrt(total[6, 6])), total[3:6, 3:6],
-                     total, img_cov, cal_cov, fit, corr, sys_cov)
+                     total, img_cov, cal_cov, fit, corr, sys_cov, errors)
 
 
 def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_options=None, edge_options=None,
@@ -657,10 +746,11 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         try:
             views = feature_views(fl, fr, corr_length, calib)
             fit = fit_feature(fl, fr, views, corr.points)
+            corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
         except (np.linalg.LinAlgError, ValueError) as exc:
             failed.append((m, f"3D fit failed: {exc}"))
             continue
         cal_cov = calibration_covariance(fit, fl.kind, fl, fr, corr_length, calib) if with_cal else \
             np.zeros((6, 6) if fl.kind == "line" else (7, 7))
-        feats.append(_make_feature3d(m, fl, fr, fit, corr, cal_cov, geo))
+        feats.append(_make_feature3d(m, fl, fr, fit, corr, cal_cov, geo, views[0]))
     return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), with_cal)

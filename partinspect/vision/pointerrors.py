@@ -1,0 +1,150 @@
+"""Simulated errors of one feature's triangulated edge points, correlated as the chain makes them.
+
+The form of an edge (straightness, circularity) is judged on its triangulated
+points, and the noise in them widens the form zone. How much depends on more
+than each point's 3x3 covariance:
+
+- a point's error comes from its left edge point's displacement across the
+  edge (through the left ray and, along the epipolar line, into its right
+  partner), and neighbouring edge points share smoothed noise: their
+  displacements are correlated as ``exp(-d^2 / (4 l^2))`` over the edge
+  filter's scale ``l`` (:func:`partinspect.vision.fitting.information_matrices`),
+  so a zone sees fewer independent deviations than there are points;
+- what remains of the shading displacement of a rim (the Type B component
+  of :mod:`partinspect.vision.stereo`, ``View.bias``) is correlated over a
+  much longer stretch: it bends the rim out of round rather than adding
+  noise to it;
+- the right fitted curve's error is common to all points (a smooth
+  deformation of the whole edge, which moves the reference more than the
+  zone).
+
+:class:`PointErrorModel` keeps these parts apart and draws them together,
+for the Monte Carlo of :mod:`partinspect.tolerances.form` (JCGM 101: the
+input quantities' distributions, their correlations included, propagated
+by simulation).
+
+References
+----------
+.. [1] JCGM 101:2008, Evaluation of measurement data -- Supplement 1 to the
+       GUM -- Propagation of distributions using a Monte Carlo method,
+       section 6.4.8 (multivariate Gaussian inputs).
+.. [2] JCGM 100:2008, section 4.3 (Type B evaluation), 5.2 (correlated
+       input quantities).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["PointErrorModel", "correlated_field", "point_error_model"]
+
+
+def correlated_field(s, length, rng, n_draws):
+    """Gaussian random fields along an edge with unit variance and correlation ``exp(-d^2 / (4 length^2))``.
+
+    White noise on a grid of arc length, smoothed by a Gaussian of standard
+    deviation ``length`` (whose autocorrelation is the one wanted) and read
+    at the points: O(points) per draw where a Cholesky factor of the
+    points' correlation matrix would be O(points^3).
+
+    Parameters
+    ----------
+    s : ndarray, shape (N,)
+        Arc length of each point along the edge, px (any order; points far
+        apart in ``s`` are uncorrelated).
+    length : float
+        Correlation length, px; 0 or None: independent points.
+    rng : numpy.random.Generator
+    n_draws : int
+
+    Returns
+    -------
+    ndarray, shape (n_draws, N)
+    """
+    from scipy.ndimage import gaussian_filter1d
+
+    s = np.asarray(s, float)
+    if not length or len(s) == 0:
+        return rng.standard_normal((n_draws, len(s)))
+    h = length / 4.0  # grid step: neighbouring nodes correlate at 0.996, so interpolation keeps the variance
+    pad = 5.0 * length
+    s0 = s.min() - pad
+    n_grid = int(np.ceil((s.max() + pad - s0) / h)) + 2
+    sg = length / h
+    w = gaussian_filter1d(rng.standard_normal((n_draws, n_grid)), sg, axis=1, mode="wrap")
+    impulse = np.zeros(int(10 * sg) + 1)
+    impulse[len(impulse) // 2] = 1.0
+    w /= np.sqrt((gaussian_filter1d(impulse, sg, mode="constant") ** 2).sum())
+    u = (s - s0) / h
+    i = np.clip(np.floor(u).astype(int), 0, n_grid - 2)
+    t = u - i
+    return w[:, i] * (1.0 - t) + w[:, i + 1] * t
+
+
+@dataclass(frozen=True)
+class PointErrorModel:
+    """Errors of a feature's triangulated points: parts along the edge and a common part.
+
+    Attributes
+    ----------
+    arc_length : ndarray, shape (N,)
+        Position of each point's left edge point along the edge, px (ideal
+        pixels, cumulative distance in the points' order).
+    normal_jacobian : ndarray, shape (N, 3)
+        Displacement of each 3D point per px of its left edge point across
+        the edge, mm/px (rig frame).
+    components : tuple of (ndarray (N,), float)
+        Displacements of the left edge points across the edge: per point
+        standard uncertainty, px, and correlation length along the edge,
+        px; independent of each other.
+    common_jacobian : ndarray, shape (N, 3, k)
+        d(3D point)/d(right fitted curve's parameters), mm.
+    common_cov : ndarray, shape (k, k)
+        Covariance of those parameters.
+    """
+
+    arc_length: np.ndarray
+    normal_jacobian: np.ndarray
+    components: tuple
+    common_jacobian: np.ndarray | None = None
+    common_cov: np.ndarray | None = None
+
+    def draw(self, rng, n_draws):
+        """Simulated errors of the points, shape (n_draws, N, 3), mm."""
+        n = len(self.arc_length)
+        out = np.zeros((n_draws, n, 3))
+        for std, length in self.components:
+            f = correlated_field(self.arc_length, length, rng, n_draws) * std
+            out += f[:, :, None] * self.normal_jacobian
+        if self.common_jacobian is not None and self.common_cov is not None:
+            w, V = np.linalg.eigh(self.common_cov)
+            L = V * np.sqrt(np.clip(w, 0.0, None))
+            dp = rng.standard_normal((n_draws, len(w))) @ L.T
+            out += np.einsum("nik,dk->dni", self.common_jacobian, dp)
+        return out
+
+
+def point_error_model(corr, normals, components):
+    """The :class:`PointErrorModel` of a feature's correspondences.
+
+    Parameters
+    ----------
+    corr : Correspondences
+        With ``jac_left``, ``jac_fit`` and ``fit_cov``.
+    normals : ndarray, shape (M, 2)
+        Unit normals of all the left feature's points (ideal pixels), of
+        which ``corr.left_index`` picks the used ones.
+    components : sequence of (ndarray (M,), float)
+        Per point standard uncertainties across the edge, px, of all the
+        left feature's points, with their correlation lengths, px.
+    """
+    idx = corr.left_index
+    steps = np.linalg.norm(np.diff(corr.left, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(steps)]
+    n = np.asarray(normals, float)[idx]
+    J = np.einsum("nij,nj->ni", corr.jac_left, n)
+    comps = tuple((np.asarray(std, float)[idx] if np.ndim(std) else np.full(len(idx), float(std)), length)
+                  for std, length in components)
+    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov)
