@@ -143,6 +143,11 @@ class Evaluation:
         d["method"] = self.method
         if self.reason:
             d["reason"] = self.reason
+        if self.details:
+            # Intermediate figures a user needs to judge the value (a form's
+            # raw zone and the noise zone subtracted from it), same unit.
+            d["details"] = {k: round(float(v), 12) if isinstance(v, (float, np.floating)) else v
+                            for k, v in self.details.items()}
         return d
 
 

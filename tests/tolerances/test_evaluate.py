@@ -120,6 +120,10 @@ def test_form_noise_bias_is_removed(plate):
     assert np.all(np.abs(val.mean(0)) < 0.5 * u.mean(0))
     rms = np.sqrt(np.mean((val / u) ** 2, axis=0))
     assert np.all((rms > 0.65) & (rms < 1.4)), rms
+    # report.json carries what was subtracted, so a user can judge the value.
+    d = ev[0].to_dict()["details"]
+    assert d["raw"] - d["noise_bias"] == pytest.approx(ev[0].measured)
+    assert d["noise_bias"] > 0 and d["n_points"] > 0
 
 
 def test_true_form_is_measured():
