@@ -627,17 +627,24 @@ def as_fitted(f, view, corr_length):
 
 
 def _short_scale_ratio(r, sigma, xy, length):
-    """How much the residuals scatter from point to point, against what the noise model predicts.
+    """How much more the residuals scatter from point to point than the noise model predicts.
 
     Successive differences of the residuals about the fitted curve see
     what varies from one edge point to the next and not a smooth form
     deviation of the edge. Their squares over the variances the model
     predicts for them (``sigma`` correlated as ``exp(-d^2 / (4 length^2))``)
-    are chi-square with one degree of freedom when the model is right; the
-    median (robust to a few local defects) over its expected 0.455 is the
-    ratio returned (a variance ratio), with its standard error: 2.55 /
-    sqrt(pairs) for neighbours correlated as the edge filter makes them
-    (simulated; NaN, NaN with too few pairs).
+    are chi-square with one degree of freedom when the model is right, and
+    so are the squared residuals over ``sigma^2``; the medians (robust to
+    a few local defects) over the expected 0.455 give two variance ratios.
+    The smaller is returned: an added ripple raises both, a smooth form
+    deviation only the second, noise less correlated than modelled only
+    the first. With it its standard error, 2.55 / sqrt(pairs) for
+    neighbours correlated as the edge filter makes them (simulated).
+
+    Returns
+    -------
+    ratio, standard error : float
+        NaN, NaN with fewer than 10 neighbouring pairs.
     """
     d = np.diff(r)
     step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
@@ -646,7 +653,9 @@ def _short_scale_ratio(r, sigma, xy, length):
     ok = (step < 2.0) & (pred > 0)  # neighbours, not across a gap
     if ok.sum() < 10:
         return float("nan"), float("nan")
-    return float(np.median(d[ok] ** 2 / pred[ok]) / CHI2_1_MEDIAN), 2.55 / np.sqrt(ok.sum())
+    short = float(np.median(d[ok] ** 2 / pred[ok]) / CHI2_1_MEDIAN)
+    whole = float(np.median((r / sigma) ** 2) / CHI2_1_MEDIAN)
+    return min(short, whole), 2.55 / np.sqrt(ok.sum())
 
 
 def _point_errors(fl, corr, view):

@@ -92,3 +92,17 @@ def test_short_scale_ratio_sees_point_scatter_not_form():
     ratio, se = _short_scale_ratio(r, sigma, xy, 1.0)
     assert ratio == pytest.approx(1.0, abs=0.15)
     assert se == pytest.approx(2.55 / np.sqrt(n - 1))
+
+
+def test_short_scale_ratio_is_not_fooled_by_less_correlated_noise():
+    # White noise where the model expects neighbours to share smoothed
+    # noise: successive differences scatter more than predicted, the
+    # residuals themselves do not, and the noise level is right.
+    from partinspect.vision.stereo import _short_scale_ratio
+
+    rng = np.random.default_rng(4)
+    n = 3000
+    xy = np.c_[np.arange(n) * 1.0, np.zeros(n)]
+    sigma = np.full(n, 0.01)
+    ratio, _ = _short_scale_ratio(sigma * rng.standard_normal(n), sigma, xy, 1.0)
+    assert ratio == pytest.approx(1.0, abs=0.15)
