@@ -43,10 +43,13 @@ from scipy.sparse.csgraph import connected_components
 from partinspect.vision.fitting import (
     _as_points,
     _ellipse_geometry,
+    _ellipse_with_covariance,
     _ellipse_start,
     _EllipseJob,
     _fit_ellipses,
+    _fit_line,
     _foot_phases,
+    _line_with_covariance,
     _normal_std,
     fit_line,
 )
@@ -207,11 +210,15 @@ def _test_pieces(requests, min_arc=12, max_iter=30):
     """
     out = [None] * len(requests)
     jobs, where = [], []
+    # The fits are made without their covariances (cov and ci95 None): a
+    # test needs only the consistency, most pieces tested are not kept, and
+    # the kept ones are refitted (_make_segments, which completes them
+    # without the refit).
     for k, (xy, cov, corr_length, alpha, floor, kinds) in enumerate(requests):
         cov_t = cov + (floor * floor) * np.eye(2) if floor else cov
         if "line" in kinds:
             try:
-                fit = fit_line(xy, cov_t, corr_length=corr_length)
+                fit = _fit_line(xy, cov_t, corr_length, False)
             except (ValueError, np.linalg.LinAlgError):
                 fit = None
             if fit is not None and fit.consistency.p_value >= alpha:
@@ -228,7 +235,7 @@ def _test_pieces(requests, min_arc=12, max_iter=30):
             where.append(k)
     # A fit that does not converge is rejected (see segment_contour): it
     # comes back as None, without its covariance computed.
-    fits = _fit_ellipses(jobs, max_iter, _TOL, need_converged=True)
+    fits = _fit_ellipses(jobs, max_iter, _TOL, need_converged=True, with_cov=False)
     for k, job, fit in zip(where, jobs, fits):
         if fit is None or not np.all(np.isfinite(fit.params)):
             continue
@@ -488,6 +495,12 @@ def _make_segments(edges, contours, contour_ids, accepted, refit):
                                            t[4].params)))
         for (t, _), fit in zip(arcs, _fit_ellipses([job for _, job in arcs])):
             t[4] = fit
+    else:
+        # The test's fits (of the points with the floor added), with the
+        # covariances _test_pieces made them without.
+        for t in todo:
+            complete = _line_with_covariance if t[3] == "line" else _ellipse_with_covariance
+            t[4] = complete(t[4], edges.xy[t[5]], cl)
     return [Segment(kind, contour.index[pos], fit_index, fit, cid)
             for contour, cid, pos, kind, fit, fit_index in todo]
 

@@ -118,22 +118,29 @@ def deblurred(xy, fit, blur):
 def intersect_line(lines, params):
     """Intersections of lines (N, 3) with one line ``A x + B y + C = 0``.
 
+    ``params`` may also be (N, 3), one line per row (the perturbed fits of
+    the Jacobians, all in one call).
+
     Returns
     -------
     points : ndarray, shape (N, 2)
     sin_angle : ndarray, shape (N,)
         Sine of the angle between each line and the fixed one.
     """
-    h = np.cross(lines, np.asarray(params, float))
+    params = np.asarray(params, float)
+    h = np.cross(lines, params)
     with np.errstate(divide="ignore", invalid="ignore"):
         pts = h[:, :2] / h[:, 2:]
     ln = lines[:, :2] / np.hypot(lines[:, 0], lines[:, 1])[:, None]
-    nn = np.asarray(params[:2], float) / np.hypot(params[0], params[1])
-    return pts, np.abs(ln[:, 0] * nn[1] - ln[:, 1] * nn[0])
+    nn = params[..., :2] / np.hypot(params[..., 0], params[..., 1])[..., None]
+    return pts, np.abs(ln[:, 0] * nn[..., 1] - ln[:, 1] * nn[..., 0])
 
 
 def intersect_ellipse(lines, params):
     """Both intersections of lines (N, 3) with the ellipse (xc, yc, a, b, theta).
+
+    ``params`` may also be (N, 5), one ellipse per row (the perturbed fits
+    of the Jacobians, all in one call).
 
     Returns
     -------
@@ -145,24 +152,32 @@ def intersect_ellipse(lines, params):
         The foot point and the unit direction of each line, so the points
         are ``foot + s[:, k, None] * direction``.
     """
-    xc, yc, a, b, th = params
+    params = np.asarray(params, float)
+    xc, yc, a, b, th = (params[..., k] for k in range(5))
     ln = lines / np.hypot(lines[:, 0], lines[:, 1])[:, None]
-    d = np.c_[ln[:, 1], -ln[:, 0]]
-    c = np.array([xc, yc])
-    foot = c - (ln[:, :2] @ c + ln[:, 2])[:, None] * ln[:, :2]
+    lx, ly = ln[:, 0], ln[:, 1]
+    d = np.empty((len(ln), 2))
+    d[:, 0], d[:, 1] = ly, -lx
+    # Foot of the perpendicular from the centre.
+    off = lx * xc + ly * yc + ln[:, 2]
+    fx, fy = xc - off * lx, yc - off * ly
     ct, st = np.cos(th), np.sin(th)
-    # Into the ellipse frame: u = Q^T (p - c).
-    u0 = np.c_[(foot - c) @ np.array([ct, st]), (foot - c) @ np.array([-st, ct])]
-    du = np.c_[d @ np.array([ct, st]), d @ np.array([-st, ct])]
-    w = np.array([1.0 / (a * a), 1.0 / (b * b)])
-    A = (du * du) @ w
-    B = (du * u0) @ w
-    C = (u0 * u0) @ w - 1.0
+    # Into the ellipse frame: u = Q^T (p - c), for the foot and the direction.
+    qx, qy = fx - xc, fy - yc
+    u0x, u0y = qx * ct + qy * st, -qx * st + qy * ct
+    dux, duy = ly * ct - lx * st, -ly * st - lx * ct
+    wa, wb = 1.0 / (a * a), 1.0 / (b * b)
+    A = dux * dux * wa + duy * duy * wb
+    B = dux * u0x * wa + duy * u0y * wb
+    C = u0x * u0x * wa + u0y * u0y * wb - 1.0
     disc = B * B - A * C
     with np.errstate(invalid="ignore"):
         r = np.sqrt(disc)
-    s = np.c_[(-B - r) / A, (-B + r) / A]
+    s = np.empty((len(ln), 2))
+    s[:, 0], s[:, 1] = (-B - r) / A, (-B + r) / A
     s[disc < 0] = np.nan
+    foot = np.empty((len(ln), 2))
+    foot[:, 0], foot[:, 1] = fx, fy
     return s, foot, d
 
 
@@ -170,17 +185,22 @@ def _ellipse_normal_sin(points, direction, params):
     """|sin| of the angle between a direction and the ellipse's tangent at points on it."""
     xc, yc, a, b, th = params
     ct, st = np.cos(th), np.sin(th)
-    q = points - np.array([xc, yc])
-    u = np.c_[q @ np.array([ct, st]), q @ np.array([-st, ct])]
-    g = u / np.array([a * a, b * b])  # gradient of the implicit form, ellipse frame
-    g = np.c_[g[:, 0] * ct - g[:, 1] * st, g[:, 0] * st + g[:, 1] * ct]
-    g /= np.linalg.norm(g, axis=1)[:, None]
-    return np.abs(np.einsum("ni,ni->n", g, direction))
+    qx, qy = points[:, 0] - xc, points[:, 1] - yc
+    # Gradient of the implicit form in the ellipse frame, turned back to the image.
+    gu, gv = (qx * ct + qy * st) / (a * a), (-qx * st + qy * ct) / (b * b)
+    gx, gy = gu * ct - gv * st, gu * st + gv * ct
+    return np.abs(gx * direction[:, 0] + gy * direction[:, 1]) / np.hypot(gx, gy)
 
 
-def _partners(geo, kind, x, right_params, left_params, rank=None):
-    """Right partners of left points x on the right curve; also the rank used for ellipses."""
-    lines_r = geo.right_lines(x)
+def _partners(geo, kind, x, right_params, left_params, rank=None, lines_r=None, with_sin=True):
+    """Right partners of left points x on the right curve; also the rank used for ellipses.
+
+    ``right_params`` may be one row per point (perturbed fits); ``lines_r``
+    the points' right epipolar lines if known already; without
+    ``with_sin`` the sines are not computed (None).
+    """
+    if lines_r is None:
+        lines_r = geo.right_lines(x)
     if kind == "line":
         y, sin_a = intersect_line(lines_r, right_params)
         return y, sin_a, None
@@ -194,7 +214,7 @@ def _partners(geo, kind, x, right_params, left_params, rank=None):
     s_r, foot_r, d_r = intersect_ellipse(lines_r, right_params)
     s = np.take_along_axis(s_r, rank[:, None], axis=1)[:, 0]
     y = foot_r + s[:, None] * d_r
-    return y, _ellipse_normal_sin(y, d_r, right_params), rank
+    return y, _ellipse_normal_sin(y, d_r, right_params) if with_sin else None, rank
 
 
 def _within_extent(y, pts, margin):
@@ -279,14 +299,20 @@ def correspond(left, right, geo, *, xy=None, min_angle=np.deg2rad(10.0), step=1e
             xp[:, k] += sign * h_x
             xs.append(xp)
     rank_x = None if rank is None else np.tile(rank, 4)
-    ys.append(_partners(geo, kind, np.concatenate(xs[1:]), pr, pl, rank_x)[0])
+    ys.append(_partners(geo, kind, np.concatenate(xs[1:]), pr, pl, rank_x, with_sin=False)[0])
     h_p = np.array([step * max(1.0, abs(v)) if kind == "arc" else step for v in pr])
-    for k in range(len(pr)):
-        for sign in (1.0, -1.0):
-            pp = pr.copy()
-            pp[k] += sign * h_p[k]
-            xs.append(x)
-            ys.append(_partners(geo, kind, x, pp, pl, rank)[0])
+    # The perturbed fits (+-h_p of each parameter in turn) move the partners
+    # along the same epipolar lines: those are computed once, and all the
+    # perturbations intersected in one call.
+    m = 2 * len(pr)
+    pp = np.repeat(pr[None], m, axis=0)
+    pp[0::2][np.diag_indices(len(pr))] += h_p
+    pp[1::2][np.diag_indices(len(pr))] -= h_p
+    lines_r = geo.right_lines(x)
+    rank_p = None if rank is None else np.tile(rank, m)
+    y_p = _partners(geo, kind, None, np.repeat(pp, n, axis=0), pl, rank_p, np.tile(lines_r, (m, 1)), False)[0]
+    xs.extend([x] * m)
+    ys.append(y_p)
     Xall = triangulate(np.concatenate(xs), np.concatenate(ys), K1, K2, R, T).reshape(len(xs), n, 3)
     X = Xall[0]
     Jx = np.empty((n, 3, 2))

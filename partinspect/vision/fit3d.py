@@ -155,6 +155,15 @@ def _cross3(a, b):
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
+def _cross_rows(a, b):
+    """Row-wise cross products of (k, 3) arrays (``np.cross`` without its overhead)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def _gauss_newton(residuals, theta0, max_iter=50, tol=1e-12):
     """Minimise ||r(theta)||^2 with numeric Jacobians; returns (theta, J, r)."""
     theta = np.asarray(theta0, dtype=float)
@@ -216,7 +225,10 @@ def _gram_dense(a, xy, corr_length):
     R = cdist(xy, xy, "sqeuclidean")
     R *= -1.0 / (4.0 * corr_length * corr_length)
     np.exp(R, out=R)
-    return a.T @ R @ a
+    # R a first, by einsum's own loop: OpenBLAS splits an (N, N) x (N, p)
+    # product over threads, which on two cores shared with other work
+    # made it several times slower than the single-threaded loop.
+    return a.T @ np.einsum("ij,jk->ik", R, a)
 
 
 def _covariance(views, J):
@@ -261,7 +273,7 @@ def _line_residuals(views, c0, d0, e1, e2):
         for v, sig in zip(views, total):
             x1 = p @ v.P[:, :3].T + v.P[:, 3]
             x2 = (p + 100.0 * d) @ v.P[:, :3].T + v.P[:, 3]
-            line = np.cross(x1, x2)
+            line = _cross_rows(x1, x2)
             line /= np.hypot(line[:, 0], line[:, 1])[:, None]
             out.append((line[:, :2] @ v.xy.T + line[:, 2:]) / sig)
         return np.concatenate(out, axis=1)
@@ -334,17 +346,42 @@ def circle_image_conic(center, normal, radius, P):
     return C / np.linalg.norm(C)
 
 
+def _circle_image_conics(centers, normals, radii, P):
+    """:func:`circle_image_conic` of many circles at once (rows of ``centers``,
+    ``normals`` (k, 3) and ``radii`` (k,)): the Jacobian evaluates a dozen
+    circles per call, and building and inverting their 3x3 homographies one
+    by one cost more in call overhead than in arithmetic."""
+    n = normals / np.linalg.norm(normals, axis=1)[:, None]
+    # _basis of each row: the helper axis x, unless n is near it, then y.
+    a = np.zeros_like(n)
+    near_x = np.abs(n[:, 0]) >= 0.9
+    a[~near_x, 0] = 1.0
+    a[near_x, 1] = 1.0
+    u = _cross_rows(n, a)
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    v = _cross_rows(n, u)
+    # Homographies plane (x, y, 1) -> image: columns P (u, 0), P (v, 0), P (c, 1).
+    M = np.zeros((len(n), 4, 3))
+    M[:, :3, 0], M[:, :3, 1], M[:, :3, 2], M[:, 3, 2] = u, v, centers, 1.0
+    Hinv = np.linalg.inv(P @ M)
+    D = np.ones((len(n), 3))
+    D[:, 2] = -radii * radii
+    C = np.swapaxes(Hinv, 1, 2) @ (D[:, :, None] * Hinv)
+    return C / np.linalg.norm(C, axis=(1, 2))[:, None, None]
+
+
 def _circle_residuals(views, n0, e1, e2):
     total = [v.total_sigma for v in views]
 
     def batch(thetas):
         # Sampson distances (algebraic residual over its gradient norm) for
-        # each row of thetas (k, 6) -> (k, N): the small conics one by one,
-        # the point-wise arithmetic for all rows at once.
+        # each row of thetas (k, 6) -> (k, N): the conics of all rows, and
+        # the point-wise arithmetic, at once.
         thetas = np.asarray(thetas, float)
+        normals = n0 + thetas[:, 3:4] * e1 + thetas[:, 4:5] * e2
         out = []
         for v, sig in zip(views, total):
-            Cs = np.array([circle_image_conic(t[:3], n0 + t[3] * e1 + t[4] * e2, t[5], v.P) for t in thetas])
+            Cs = _circle_image_conics(thetas[:, :3], normals, thetas[:, 5], v.P)
             u, w = v.xy[:, 0], v.xy[:, 1]
             # Cx = C (u, w, 1) for every conic (rows) and point (columns).
             c = [[Cs[:, i, j, None] for j in range(3)] for i in range(3)]

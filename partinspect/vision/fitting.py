@@ -39,7 +39,7 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -324,6 +324,15 @@ def information_matrices(h, s, xy, corr_length):
     return S, M, trR2
 
 
+def _trR2(xy, corr_length):
+    """The ``trR2`` of :func:`information_matrices` alone (the same sum)."""
+    trR2 = float(len(xy))
+    ks, rho, _ = _band_stack(xy, corr_length)
+    if len(ks):
+        trR2 += 2.0 * float((rho * rho).sum())
+    return trR2
+
+
 def _uncertainty(h, s, xy, corr_length):
     """Sandwich covariance ``S^-1 M S^-1`` (see :func:`information_matrices`).
 
@@ -449,6 +458,13 @@ def fit_line(xy, cov=None, *, corr_length=None):
     With weights from the covariances, two passes are made (the normal
     variances depend on the normal).
     """
+    return _fit_line(xy, cov, corr_length, True)
+
+
+def _fit_line(xy, cov, corr_length, with_cov):
+    """:func:`fit_line`; without ``with_cov`` the covariances and intervals
+    are left out (None), the rest is the same: a test of a piece needs only
+    its consistency, and most pieces tested are not kept."""
     xy = _as_points(xy, 3)
     n_pts = len(xy)
     w = np.ones(n_pts)
@@ -467,17 +483,29 @@ def fit_line(xy, cov=None, *, corr_length=None):
     if cov is None:
         s = np.full(n_pts, np.sqrt((r * r).sum() / max(n_pts - 2, 1)))
         s = np.maximum(s, 1e-12)
-    alpha = float(np.arctan2(nrm[1], nrm[0]))
+    params = np.array([nrm[0], nrm[1], C])
+    if not with_cov:
+        return LineFit(params, None, None, None, r, s, _consistency(r, s, 2, _trR2(xy, corr_length)), c)
+    cov3, cov2, trR2 = _line_cov(params, s, xy, corr_length)
+    return LineFit(params, cov3, cov2, _ci(params, cov3), r, s, _consistency(r, s, 2, trR2), c)
+
+
+def _line_cov(params, s, xy, corr_length):
+    """Covariances of (A, B, C) and (alpha, C) of a line fit, and trR2."""
+    alpha = float(np.arctan2(params[1], params[0]))
     # d r_i / d(alpha, C) with (A, B) = (cos alpha, sin alpha).
-    h = np.column_stack([-np.sin(alpha) * xy[:, 0] + np.cos(alpha) * xy[:, 1], np.ones(n_pts)])
-    # Centre the angle column at the centroid for conditioning (it only
-    # changes the parametrisation internally), then map back.
+    h = np.column_stack([-np.sin(alpha) * xy[:, 0] + np.cos(alpha) * xy[:, 1], np.ones(len(xy))])
     cov2, _, trR2 = _uncertainty(h, s, xy, corr_length)
     G = np.array([[-np.sin(alpha), 0.0], [np.cos(alpha), 0.0], [0.0, 1.0]])
-    cov3 = G @ cov2 @ G.T
-    params = np.array([nrm[0], nrm[1], C])
-    cons = _consistency(r, s, 2, trR2)
-    return LineFit(params, cov3, cov2, _ci(params, cov3), r, s, cons, c)
+    return G @ cov2 @ G.T, cov2, trR2
+
+
+def _line_with_covariance(fit, xy, corr_length):
+    """A LineFit made by ``_fit_line(..., with_cov=False)`` with its covariances and intervals added."""
+    if fit.cov is not None:
+        return fit
+    cov3, cov2, _ = _line_cov(fit.params, fit.point_std, np.asarray(xy, float), corr_length)
+    return replace(fit, cov=cov3, cov_angle_offset=cov2, ci95=_ci(fit.params, cov3))
 
 
 def line_kcr_bound(xy_true, normal, normal_std, corr_length=None):
@@ -740,7 +768,7 @@ class _EllipseJob:
     init: tuple = None
 
 
-def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False):
+def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=True):
     """:func:`fit_ellipse` of several point sets at once.
 
     The Gauss-Newton iterations of all the fits run in lockstep on stacked
@@ -757,6 +785,10 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False):
         Return None for a fit that does not converge within ``max_iter``
         (its covariance and test are then not computed; blurred jobs are
         not supported).
+    with_cov : bool
+        Without it, the fits' ``cov`` and ``ci95`` are None (a test needs
+        only the consistency; :func:`_ellipse_with_covariance` adds them later, the
+        same as computed here).
 
     Returns
     -------
@@ -772,9 +804,12 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False):
             p = _ellipse_start(job.xy) if job.start is None else _canonical(job.start)
             starts.append((p, _foot_phases(job.xy, p)))
     xys = [job.xy for job in jobs]
-    fits = _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged)
+    # A blurred job's fits before its last correction give only the points'
+    # shifts: their covariances are not computed.
+    fits = _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged,
+                              [with_cov and not job.blur for job in jobs])
     blurred = [k for k, job in enumerate(jobs) if job.blur]
-    for _ in range(2 if blurred else 0):
+    for last in (False, True) if blurred else ():
         for k in blurred:
             f, blur = fits[k], jobs[k].blur
             xc, yc, a, b, th = f.params
@@ -787,7 +822,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False):
             p = _canonical(f.params)
             starts[k] = (p, _foot_phases(xys[k], p))
         sub = _fit_ellipses_once([xys[k] for k in blurred], [jobs[k] for k in blurred],
-                                 [starts[k] for k in blurred], max_iter, tol, False)
+                                 [starts[k] for k in blurred], max_iter, tol, False, with_cov and last)
         for k, f in zip(blurred, sub):
             fits[k] = f  # its residuals are of the corrected points
     return fits
@@ -797,9 +832,12 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False):
 _PAD_POINTS = 2000
 
 
-def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged):
+def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged, with_cov=True):
     """The fits of fixed points (the loop of _fit_ellipses), in groups: a
-    group's arrays are padded to its largest fit."""
+    group's arrays are padded to its largest fit. ``with_cov``: for all the
+    fits, or a sequence of one per fit."""
+    if isinstance(with_cov, bool):
+        with_cov = [with_cov] * len(xys)
     out = [None] * len(xys)
     order = sorted(range(len(xys)), key=lambda k: len(xys[k]))
     while order:
@@ -820,15 +858,16 @@ def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged):
             if need_converged and not converged:
                 continue
             try:
-                out[k] = _ellipse_result(xys[k], jobs[k].cov, jobs[k].corr_length, p, converged, it)
+                out[k] = _ellipse_result(xys[k], jobs[k].cov, jobs[k].corr_length, p, converged, it, with_cov[k])
             except (ValueError, np.linalg.LinAlgError):
                 if not need_converged:
                     raise
     return out
 
 
-def _ellipse_result(xy, cov, corr_length, p, converged, it):
-    """EllipseFit at the end of the iteration: foot points, covariance, test."""
+def _ellipse_result(xy, cov, corr_length, p, converged, it, with_cov=True):
+    """EllipseFit at the end of the iteration: foot points, covariance
+    (None without ``with_cov``), test."""
     n_pts = len(xy)
     p = _canonical(p)
     phi = _foot_phases(xy, p, None, iters=20)
@@ -837,10 +876,24 @@ def _ellipse_result(xy, cov, corr_length, p, converged, it):
         s = _normal_std(cov, n)
     else:
         s = np.full(n_pts, max(np.sqrt((r * r).sum() / max(n_pts - 5, 1)), 1e-12))
+    if not with_cov:
+        return EllipseFit(p, None, None, r, phi, s, _consistency(r, s, 5, _trR2(xy, corr_length)), converged, it)
     covp, _, trR2 = _uncertainty(h, s, xy, corr_length)
     covp = _theta_gauge(p, h, s, covp)
     cons = _consistency(r, s, 5, trR2)
     return EllipseFit(p, covp, _ci(p, covp), r, phi, s, cons, converged, it)
+
+
+def _ellipse_with_covariance(fit, xy, corr_length):
+    """An EllipseFit made by ``with_cov=False`` with its covariance and
+    intervals added: from the same foot points and weights, so the same as
+    :func:`_ellipse_result` computes them."""
+    if fit.cov is not None:
+        return fit
+    _, _, h = _ellipse_geometry(xy, fit.params, fit.phases)
+    covp, _, _ = _uncertainty(h, fit.point_std, xy, corr_length)
+    covp = _theta_gauge(fit.params, h, fit.point_std, covp)
+    return replace(fit, cov=covp, ci95=_ci(fit.params, covp))
 
 
 def _lm_ellipses(xys, covs, starts, max_iter, tol):

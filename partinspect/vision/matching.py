@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from partinspect.vision.fitting import fit_ellipse, fit_line
+from partinspect.vision.fitting import _EllipseJob, _as_points, _ellipse_geometry, _fit_ellipses, fit_ellipse, fit_line
 from partinspect.vision.ideal import IdealPoints, ideal_points
 from partinspect.vision.triangulation import fundamental_matrix, triangulate
 
@@ -107,6 +107,24 @@ REASONS = {
 # ----------------------------------------------------------- epipolar geometry
 
 
+def _homogeneous(x):
+    """Points (N, 2) as homogeneous rows (x, y, 1) (``np.c_`` costs more in overhead here)."""
+    x = np.asarray(x, float)
+    out = np.ones((len(x), 3))
+    out[:, :2] = x
+    return out
+
+
+def _cross_point(e, x):
+    """``np.cross(e, (x, y, 1))`` for a 3-vector e and points x (N, 2), written out."""
+    x = np.asarray(x, float)
+    out = np.empty((len(x), 3))
+    out[:, 0] = e[1] - e[2] * x[:, 1]
+    out[:, 1] = e[2] * x[:, 0] - e[0]
+    out[:, 2] = e[0] * x[:, 1] - e[1] * x[:, 0]
+    return out
+
+
 @dataclass(frozen=True)
 class EpipolarGeometry:
     """The epipolar geometry of a rig in ideal pixels.
@@ -143,19 +161,19 @@ class EpipolarGeometry:
     def left_lines(self, x):
         """Epipolar lines (N, 3) in the left image through left points x (N, 2),
         normalised and oriented (normal = ``ref_left`` turned by +90 deg)."""
-        return self._orient(np.cross(self.epipole_left, np.c_[x, np.ones(len(x))]), self.ref_left)
+        return self._orient(_cross_point(self.epipole_left, x), self.ref_left)
 
     def left_lines_of_right(self, y):
         """Left epipolar lines (N, 3) of right points y (N, 2), oriented as :meth:`left_lines`."""
-        return self._orient(np.c_[y, np.ones(len(y))] @ self.F, self.ref_left)
+        return self._orient(_homogeneous(y) @ self.F, self.ref_left)
 
     def right_lines(self, x):
         """Right epipolar lines (N, 3) of left points x (N, 2), oriented by ``ref_right``."""
-        return self._orient(np.c_[x, np.ones(len(x))] @ self.F.T, self.ref_right)
+        return self._orient(_homogeneous(x) @ self.F.T, self.ref_right)
 
     def right_lines_through(self, y):
         """Right epipolar lines (N, 3) through right points y (N, 2)."""
-        return self._orient(np.cross(self.epipole_right, np.c_[y, np.ones(len(y))]), self.ref_right)
+        return self._orient(_cross_point(self.epipole_right, y), self.ref_right)
 
     @staticmethod
     def _orient(lines, ref):
@@ -295,16 +313,6 @@ class ImageFeature:
         return len(self.index)
 
 
-def _fit(kind, ideal, corr_length, start=None):
-    if kind == "line":
-        return fit_line(ideal.xy, ideal.cov, corr_length=corr_length)
-    # No smoothing-bias correction (fit_ellipse's ``blur``): on rendered
-    # parts the rims of holes are not uniform discs, and the edge points lie
-    # on the true ellipse to 0.01-0.02 px as found, while the correction
-    # pushed them 0.03-0.06 px outwards (measured against the truth).
-    return fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=start)
-
-
 OUTLIER_ALPHA = 0.05
 """Chance that a feature of N clean points loses one to the outlier test:
 a point is an outlier when its residual exceeds ``norm.isf(OUTLIER_ALPHA /
@@ -331,43 +339,107 @@ def _outlier_threshold(z):
     return t * max(1.0, spread)
 
 
-def _make_feature(kind, seg_ids, segments, edges, K, D):
-    index = np.concatenate([segments[i].fit_index for i in seg_ids])
-    # The points' ideal coordinates are computed once (each point's are
-    # independent of the others) and subset as outliers go.
-    all_ideal = ideal_points(edges.xy[index], edges.cov[index], K, D, edges.normal[index])
-    keep = np.arange(len(index))
-    # A single displaced point (a corner-rounded end that passed the
-    # segmentation's trim) would otherwise enter the 3D points and make a
-    # straight edge look out of straightness by tenths of a mm: points
-    # inconsistent with the fit are rejected, worst first, and the fit redone.
-    budget = int(MAX_OUTLIER_FRACTION * len(index))
-    start = None
-    while True:
-        ideal = IdealPoints(*(np.ascontiguousarray(getattr(all_ideal, f)[keep])
-                              for f in ("xy", "cov", "normal", "normal_std", "jacobian")))
-        # After dropping one point the previous fit is a start next to the
-        # new minimum (same minimum, fewer iterations).
-        fit = _fit(kind, ideal, edges.sigma, start)
-        z = np.abs(fit.residuals) / np.maximum(fit.point_std, 1e-12)
-        worst = int(np.argmax(z))
-        if z[worst] <= _outlier_threshold(z) or budget == 0:
-            break
-        keep = np.delete(keep, worst)
-        budget -= 1
-        start = fit.params if kind == "arc" else None
-    index = index[keep]
-    uv, cov = edges.xy[index], edges.cov[index]
-    blur = float(np.median(edges.width[index]))
-    if kind == "arc":
-        from partinspect.vision.fitting import _ellipse_geometry
+_IDEAL_FIELDS = ("xy", "cov", "normal", "normal_std", "jacobian")
 
-        _, n_out, _ = _ellipse_geometry(ideal.xy, fit.params, fit.phases)
-        # Edge normals point dark to bright.
-        polarity = 1 if np.mean(np.einsum("ni,ni->n", n_out, ideal.normal)) > 0 else -1
-    else:
-        polarity = 0
-    return ImageFeature(kind, tuple(int(i) for i in seg_ids), index, uv, cov, ideal, fit, blur, polarity)
+
+def _segment_ideal(segments, edges, K, D, used=None):
+    """The fitted points of segments in ideal pixels (IdealPoints per segment, None if not ``used``).
+
+    A point's ideal coordinates do not depend on the other points mapped
+    with it, so they are computed once, in one call for all the segments
+    used (default all), and a feature made of several segments (a merge
+    trial) concatenates them instead of mapping its points again.
+    """
+    used = range(len(segments)) if used is None else sorted(used)
+    index = [np.asarray(segments[i].fit_index) for i in used]
+    out = [None] * len(segments)
+    if not index:
+        return out
+    allidx = np.concatenate(index)
+    ideal = ideal_points(edges.xy[allidx], edges.cov[allidx], K, D, edges.normal[allidx])
+    cuts = np.cumsum([len(i) for i in index])[:-1]
+    parts = [np.split(getattr(ideal, f), cuts) for f in _IDEAL_FIELDS]
+    for i, p in zip(used, zip(*parts)):
+        out[i] = IdealPoints(*p)
+    return out
+
+
+def _make_feature(kind, seg_ids, segments, edges, K, D):
+    """One image feature from segments (see :func:`_make_features`)."""
+    seg_ideal = _segment_ideal(segments, edges, K, D, seg_ids)
+    return _make_features([(kind, list(seg_ids))], segments, edges, seg_ideal)[0]
+
+
+def _make_features(requests, segments, edges, seg_ideal):
+    """Image features of several (kind, segment ids) requests at once.
+
+    Each is fitted, its worst outlier dropped and the fit redone while one
+    remains (below); the ellipse fits of all requests in one such round run
+    together (:func:`partinspect.vision.fitting._fit_ellipses`), each as it
+    would alone.
+    """
+    states = []
+    for kind, seg_ids in requests:
+        index = np.concatenate([segments[i].fit_index for i in seg_ids])
+        all_ideal = IdealPoints(*(np.concatenate([getattr(seg_ideal[i], f) for i in seg_ids])
+                                  for f in _IDEAL_FIELDS))
+        # A single displaced point (a corner-rounded end that passed the
+        # segmentation's trim) would otherwise enter the 3D points and make
+        # a straight edge look out of straightness by tenths of a mm: points
+        # inconsistent with the fit are rejected, worst first, and the fit
+        # redone.
+        states.append(dict(kind=kind, seg_ids=seg_ids, index=index, all_ideal=all_ideal,
+                           keep=np.arange(len(index)), budget=int(MAX_OUTLIER_FRACTION * len(index)),
+                           start=None))
+    active = list(range(len(states)))
+    while active:
+        jobs = []
+        for k in active:
+            st = states[k]
+            keep = st["keep"]
+            st["ideal"] = ideal = IdealPoints(*(np.ascontiguousarray(getattr(st["all_ideal"], f)[keep])
+                                                for f in _IDEAL_FIELDS))
+            if st["kind"] == "line":
+                st["fit"] = fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma)
+            else:
+                # No smoothing-bias correction (fit_ellipse's ``blur``): on
+                # rendered parts the rims of holes are not uniform discs, and
+                # the edge points lie on the true ellipse to 0.01-0.02 px as
+                # found, while the correction pushed them 0.03-0.06 px
+                # outwards (measured against the truth). After dropping one
+                # point the previous fit is a start next to the new minimum
+                # (same minimum, fewer iterations).
+                jobs.append((k, _EllipseJob(_as_points(ideal.xy, 6), ideal.cov, edges.sigma, None, st["start"])))
+        for (k, _), fit in zip(jobs, _fit_ellipses([job for _, job in jobs])):
+            states[k]["fit"] = fit
+        again = []
+        for k in active:
+            st = states[k]
+            fit = st["fit"]
+            z = np.abs(fit.residuals) / np.maximum(fit.point_std, 1e-12)
+            worst = int(np.argmax(z))
+            if z[worst] <= _outlier_threshold(z) or st["budget"] == 0:
+                continue
+            st["keep"] = np.delete(st["keep"], worst)
+            st["budget"] -= 1
+            st["start"] = fit.params if st["kind"] == "arc" else None
+            again.append(k)
+        active = again
+    out = []
+    for st in states:
+        kind, fit, ideal = st["kind"], st["fit"], st["ideal"]
+        index = st["index"][st["keep"]]
+        uv, cov = edges.xy[index], edges.cov[index]
+        blur = float(np.median(edges.width[index]))
+        if kind == "arc":
+            _, n_out, _ = _ellipse_geometry(ideal.xy, fit.params, fit.phases)
+            # Edge normals point dark to bright.
+            polarity = 1 if np.mean(np.einsum("ni,ni->n", n_out, ideal.normal)) > 0 else -1
+        else:
+            polarity = 0
+        out.append(ImageFeature(kind, tuple(int(i) for i in st["seg_ids"]), index, uv, cov, ideal, fit, blur,
+                                polarity))
+    return out
 
 
 def _rms(f):
@@ -454,44 +526,48 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         In the order of their first segment.
     """
     made = {}
+    used = [i for i, s in enumerate(segments) if len(s.fit_index) >= min_fit_points]
+    seg_ideal = _segment_ideal(segments, edges, K, D, used)
 
-    def make(kind, seg_ids):
-        # Each round of the merge loop below re-tries every mergeable pair;
-        # all but those with the last merged feature were tried before.
-        key = (kind, tuple(seg_ids))
-        if key not in made:
-            made[key] = _make_feature(kind, list(seg_ids), segments, edges, K, D)
-        return made[key]
+    def make_all(requests):
+        # A feature is fixed by its kind and segments: each is made once,
+        # those not made yet together (their ellipse fits batched).
+        todo = list(dict.fromkeys((kind, tuple(ids)) for kind, ids in requests if (kind, tuple(ids)) not in made))
+        for key, f in zip(todo, _make_features([(kind, list(ids)) for kind, ids in todo], segments, edges,
+                                               seg_ideal)):
+            made[key] = f
+        return [made[(kind, tuple(ids))] for kind, ids in requests]
 
-    feats = []
-    for i, s in enumerate(segments):
-        if len(s.fit_index) >= min_fit_points:
-            feats.append(make(s.kind, [i]))
+    feats = make_all([(segments[i].kind, [i]) for i in used])
     if not merge:
         return feats
     tried = {}
 
-    def pair(a, b):
-        # A feature is fixed by its kind and segments, so a pair's test and
-        # union need computing once, not in every round.
-        key = (a.kind, a.segments, b.segments)
-        if key not in tried:
-            if not _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
-                tried[key] = None
+    def pair_key(a, b):
+        return (a.kind, a.segments, b.segments)
+
+    def try_pairs(pairs):
+        # A pair's test and union need computing once, not in every round;
+        # the unions of one round are made together.
+        new = [(a, b) for a, b in pairs if pair_key(a, b) not in tried]
+        union = []
+        for a, b in new:
+            if _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
+                union.append((a, b))
             else:
-                u = make(a.kind, a.segments + b.segments)
-                limit = merge_ratio * max(_rms(a), _rms(b))
-                tried[key] = (_rms(u), max(limit, max_misfit) if a.kind == "arc" else limit, u)
-        return tried[key]
+                tried[pair_key(a, b)] = None
+        for (a, b), u in zip(union, make_all([(a.kind, a.segments + b.segments) for a, b in union])):
+            limit = merge_ratio * max(_rms(a), _rms(b))
+            tried[pair_key(a, b)] = (_rms(u), max(limit, max_misfit) if a.kind == "arc" else limit, u)
 
     changed = True
     while changed:
         changed = False
         best = None
+        try_pairs([(feats[i], feats[j]) for i in range(len(feats)) for j in range(i + 1, len(feats))])
         for i in range(len(feats)):
             for j in range(i + 1, len(feats)):
-                a, b = feats[i], feats[j]
-                trial = pair(a, b)
+                trial = tried[pair_key(feats[i], feats[j])]
                 if trial is None:
                     continue
                 ratio, limit, u = trial

@@ -2,12 +2,20 @@
 
 import numpy as np
 
+from partinspect.vision.correspondences import intersect_ellipse, intersect_line
+from partinspect.vision.fit3d import _circle_image_conics, circle_image_conic
 from partinspect.vision.fitting import (
+    _ellipse_with_covariance,
+    _EllipseJob,
+    _fit_ellipses,
+    _fit_line,
     _line_tls,
+    _line_with_covariance,
     _pinv_sym,
     _solve_sym,
     ellipse_points,
     fit_ellipse,
+    fit_line,
 )
 from partinspect.vision.stereo import _along_edge_mean
 
@@ -61,3 +69,54 @@ def test_along_edge_mean_matches_dense_form():
     mean, sd = _along_edge_mean(xy, values, std, 2.0)
     assert np.allclose(mean, w @ values, rtol=0, atol=1e-12)
     assert np.allclose(sd, np.sqrt(var), rtol=1e-10)
+
+
+def test_fits_without_covariance_completed_are_the_full_fits():
+    # The segmentation's tests skip the covariances; completed, a fit is
+    # exactly what fit_line / fit_ellipse return.
+    rng = np.random.default_rng(3)
+    t = np.linspace(-40, 40, 120)
+    xy = np.c_[10 + 0.6 * t, 5 - 0.8 * t] + rng.normal(0, 0.05, (120, 2))
+    cov = np.broadcast_to(0.0025 * np.eye(2), (120, 2, 2)) + np.diag([1e-4, 0.0])
+    full = fit_line(xy, cov, corr_length=1.0)
+    bare = _fit_line(xy, cov, 1.0, False)
+    assert bare.cov is None and bare.consistency == full.consistency
+    done = _line_with_covariance(bare, xy, 1.0)
+    for name in ("params", "cov", "cov_angle_offset", "ci95", "residuals", "point_std", "centroid"):
+        assert np.array_equal(getattr(done, name), getattr(full, name)), name
+
+    xy = ellipse_points([400, 300, 80, 50, 0.4], np.linspace(0.3, 4.0, 200)) + rng.normal(0, 0.05, (200, 2))
+    cov = np.broadcast_to(0.0025 * np.eye(2), (200, 2, 2))
+    full = fit_ellipse(xy, cov, corr_length=1.0)
+    bare, = _fit_ellipses([_EllipseJob(xy, cov, 1.0)], with_cov=False)
+    assert bare.cov is None and bare.consistency == full.consistency
+    done = _ellipse_with_covariance(bare, xy, 1.0)
+    for name in ("params", "cov", "ci95", "residuals", "phases", "point_std"):
+        assert np.array_equal(getattr(done, name), getattr(full, name)), name
+    # With blur the fits before the last correction have no covariance; the result is the same.
+    blurred = fit_ellipse(xy, cov, corr_length=1.0, blur=1.2)
+    assert blurred.cov is not None and np.all(np.isfinite(blurred.cov[:4, :4]))
+
+
+def test_stacked_circle_conics_match_one_by_one():
+    rng = np.random.default_rng(4)
+    P = np.c_[np.diag([7000.0, 7000.0, 1.0]), [10.0, -5.0, 1.0]]
+    centers = rng.normal(0, 20, (12, 3)) + [0, 0, 400]
+    normals = rng.normal(size=(12, 3))
+    normals[0] = [1.0, 0.05, 0.02]  # near the first helper axis: the other one is used
+    radii = rng.uniform(2, 10, 12)
+    one = np.array([circle_image_conic(c, n, r, P) for c, n, r in zip(centers, normals, radii)])
+    assert np.allclose(_circle_image_conics(centers, normals, radii, P), one, rtol=0, atol=1e-14)
+
+
+def test_intersections_with_one_curve_per_line_match_one_curve_for_all():
+    rng = np.random.default_rng(5)
+    lines = np.c_[rng.normal(size=(50, 2)), rng.normal(0, 300, 50)]
+    ell = np.array([[5.0, -3.0, 200.0, 120.0, 0.3], [0.0, 10.0, 150.0, 149.0, -1.2]])
+    lin = np.array([[0.6, 0.8, -20.0], [-0.8, 0.6, 5.0]])
+    for params, f in ((ell, intersect_ellipse), (lin, intersect_line)):
+        rows = f(np.tile(lines, (2, 1)), np.repeat(params, 50, axis=0))
+        each = [f(lines, p) for p in params]
+        for k, part in enumerate(rows):
+            ref = np.concatenate([e[k] for e in each])
+            assert np.allclose(part, ref, rtol=1e-13, atol=1e-9, equal_nan=True)
