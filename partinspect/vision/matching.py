@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from partinspect.vision.fitting import _EllipseJob, _as_points, _ellipse_geometry, _fit_ellipses, fit_ellipse, fit_line
+from partinspect.vision.fitting import _EllipseJob, _as_points, _ellipse_geometry, _fit_ellipses, fit_line
 from partinspect.vision.ideal import IdealPoints, ideal_points
 from partinspect.vision.triangulation import fundamental_matrix, triangulate
 
@@ -362,12 +362,6 @@ def _segment_ideal(segments, edges, K, D, used=None):
     for i, p in zip(used, zip(*parts)):
         out[i] = IdealPoints(*p)
     return out
-
-
-def _make_feature(kind, seg_ids, segments, edges, K, D):
-    """One image feature from segments (see :func:`_make_features`)."""
-    seg_ideal = _segment_ideal(segments, edges, K, D, seg_ids)
-    return _make_features([(kind, list(seg_ids))], segments, edges, seg_ideal)[0]
 
 
 def _make_features(requests, segments, edges, seg_ideal):

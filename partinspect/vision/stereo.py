@@ -94,7 +94,7 @@ import numpy as np
 
 from partinspect.vision.contours import chain_edges, segment_contours
 from partinspect.vision.correspondences import correspond, deblurred
-from partinspect.vision.pointerrors import point_error_model
+from partinspect.vision.pointerrors import point_error_model, short_scale_ratio
 from partinspect.vision.edges import BACKGROUND_NOISE, edge_points
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.fit3d import View, _basis, _circle_residuals, _line_residuals, fit_circle_3d, fit_line_3d
@@ -126,8 +126,6 @@ correction, in units of its (averaged) ``EdgePoints.background_bound``."""
 EDGE_BIAS_CORR_ANGLE = 0.2
 """Correlation length of that remainder along the edge, rad of the ellipse
 (times its semi-major axis gives px)."""
-CHI2_1_MEDIAN = 0.454936423119572
-"""Median of a chi-square variable with one degree of freedom."""
 
 
 @dataclass(frozen=True)
@@ -626,38 +624,6 @@ def as_fitted(f, view, corr_length):
     return replace(f, ideal=replace(f.ideal, xy=view.xy), fit=fit)
 
 
-def _short_scale_ratio(r, sigma, xy, length):
-    """How much more the residuals scatter from point to point than the noise model predicts.
-
-    Successive differences of the residuals about the fitted curve see
-    what varies from one edge point to the next and not a smooth form
-    deviation of the edge. Their squares over the variances the model
-    predicts for them (``sigma`` correlated as ``exp(-d^2 / (4 length^2))``)
-    are chi-square with one degree of freedom when the model is right, and
-    so are the squared residuals over ``sigma^2``; the medians (robust to
-    a few local defects) over the expected 0.455 give two variance ratios.
-    The smaller is returned: an added ripple raises both, a smooth form
-    deviation only the second, noise less correlated than modelled only
-    the first. With it its standard error, 2.55 / sqrt(pairs) for
-    neighbours correlated as the edge filter makes them (simulated).
-
-    Returns
-    -------
-    ratio, standard error : float
-        NaN, NaN with fewer than 10 neighbouring pairs.
-    """
-    d = np.diff(r)
-    step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    rho = np.exp(-step * step / (4.0 * length * length)) if length else np.zeros_like(step)
-    pred = sigma[:-1] ** 2 + sigma[1:] ** 2 - 2.0 * rho * sigma[:-1] * sigma[1:]
-    ok = (step < 2.0) & (pred > 0)  # neighbours, not across a gap
-    if ok.sum() < 10:
-        return float("nan"), float("nan")
-    short = float(np.median(d[ok] ** 2 / pred[ok]) / CHI2_1_MEDIAN)
-    whole = float(np.median((r / sigma) ** 2) / CHI2_1_MEDIAN)
-    return min(short, whole), 2.55 / np.sqrt(ok.sum())
-
-
 def _point_errors(fl, corr, view):
     """The :class:`~partinspect.vision.pointerrors.PointErrorModel` of a feature's triangulated points.
 
@@ -665,7 +631,7 @@ def _point_errors(fl, corr, view):
     filter's scale) and the Type B rest of a rim's shading displacement
     (``view.bias``, over its own length), as the 3D fit models them. Where
     the residuals scatter significantly more from point to point than that
-    noise predicts (:func:`_short_scale_ratio` above 1 by more than twice
+    noise predicts (:func:`~partinspect.vision.pointerrors.short_scale_ratio` above 1 by more than twice
     its standard error: on a very clean image the sub-pixel estimator's own
     ripple, 0.003-0.012 px depending on the edge's direction, is as large
     as the noise), the random part is scaled up to what the residuals show:
@@ -674,7 +640,7 @@ def _point_errors(fl, corr, view):
     differences see.
     """
     sigma = np.asarray(view.sigma, float) * np.ones(len(fl.ideal.xy))
-    ratio, se = _short_scale_ratio(fl.fit.residuals, sigma, fl.ideal.xy, view.corr_length)
+    ratio, se = short_scale_ratio(fl.fit.residuals, sigma, fl.ideal.xy, view.corr_length)
     if ratio > 1.0 + 2.0 * se:
         sigma = sigma * np.sqrt(ratio)
     comps = [(sigma, view.corr_length)]
