@@ -20,7 +20,13 @@ Per characteristic the table shows
   beside shaded surfaces, which ``inspect plan`` reports; ``chain u``: the
   mean u the chain reported; ``RMS err``: the RMS error of the measured
   values about the true (nominal) value, which includes the render's
-  systematic errors that the Type B term is there to cover, and ``tot/RMS``.
+  systematic errors that the Type B term is there to cover, and ``tot/RMS``;
+- the chain's honesty draw by draw: ``z RMS``, the RMS of the normalised
+  errors ``(value - true) / u`` with the u the chain reported in that draw
+  (1 for an honest u), and ``in +-U``, the share of draws whose true value
+  lies within the chain's ``U = 2 u`` (95 % claimed). Comparing a mean u
+  with an RMS error instead misleads where a draw that lost part of an
+  edge is far off *and says so* with a larger u.
 
 The acceptance of issue 9 is ``|pred/MC - 1| <= 0.2`` for every
 characteristic of both parts. Where the chain's segmentation keeps a
@@ -112,12 +118,17 @@ def compare(name, size, draws, seed):
         rep = float(np.nanmean(rep)) if np.isfinite(rep).any() else float("nan")
         n = int(np.isfinite(chk.values[cid]).sum())
         robust = robust_spread(chk, cid)
+        true = 0.0 if cp.characteristic.type == "position" else cp.characteristic.nominal
+        z = (chk.values[cid] - true) / chk.reported_u[cid]
+        z = z[np.isfinite(z)]
         rows.append({
             "id": cid, "type": cp.characteristic.type, "source": cp.characteristic.source,
             "pred": cr.u if math.isfinite(cr.u) else None, "pred_total": cp.u if math.isfinite(cp.u) else None,
             "chain": rep if math.isfinite(rep) else None, "rms_error": rms if math.isfinite(rms) else None,
             "mc": mc if math.isfinite(mc) else None, "mc_robust": robust if math.isfinite(robust) else None,
             "measured_draws": n, "measured_fraction": frac,
+            "z_rms": float(np.sqrt(np.mean(z * z))) if len(z) >= 3 else None,
+            "covered": float(np.mean(np.abs(z) <= 2.0)) if len(z) >= 3 else None,
             "pred_status": "measured" if math.isfinite(cp.u) else cp.reason,
             "warning": cp.warning,
             "values": [None if not math.isfinite(v) else float(v) for v in chk.values[cid]],
@@ -134,7 +145,7 @@ def print_table(res):
     lo, hi = chance_interval(res["draws"])
     print(f"a ratio of spreads from {res['draws']} draws lies in [{lo:.2f}, {hi:.2f}] by chance alone (95 %)")
     head = (f"{'characteristic':34s} {'type':12s} {'pred u':>9s} {'MC u':>9s} {'pred/MC':>8s} {'pred/MAD':>8s} "
-            f"{'u total':>9s} {'chain u':>9s} {'RMS err':>9s} {'tot/RMS':>8s}  note")
+            f"{'u total':>9s} {'chain u':>9s} {'RMS err':>9s} {'tot/RMS':>8s} {'z RMS':>6s} {'in +-U':>6s}  note")
     print(head)
     print("-" * len(head))
     ok = bad = 0
@@ -165,8 +176,10 @@ def print_table(res):
         if r.get("warning"):
             note += " [plan warns: flat ellipse]"
         rt = f"{r['pred_total'] / r['rms_error']:8.2f}" if r["pred_total"] and r["rms_error"] else "-"
+        zr = f"{r['z_rms']:6.2f}" if r.get("z_rms") is not None else "-"
+        cv = f"{100 * r['covered']:5.0f}%" if r.get("covered") is not None else "-"
         print(f"{r['id']:34s} {r['type']:12s} {f(r['pred'])} {f(r['mc'])} {rp:>8s} {rm:>8s} "
-              f"{f(r['pred_total'])} {f(r['chain'])} {f(r['rms_error'])} {rt:>8s}  {note}")
+              f"{f(r['pred_total'])} {f(r['chain'])} {f(r['rms_error'])} {rt:>8s} {zr:>6s} {cv:>6s}  {note}")
     print(f"within 20 %: {ok} of {ok + bad} characteristics measured by both")
     return ok, bad
 
