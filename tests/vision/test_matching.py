@@ -162,3 +162,18 @@ def test_short_pieces_of_one_rim_are_tried_as_one_within_their_uncertainty():
     assert _mergeable(p1, p2, np.deg2rad(3.0), 3.0, 0.1)
     q1, q2 = piece(80, 30, 0.0, 6.0, 0.02), piece(80, 30, 0.0, 6.0, 0.02, x0=408.0)
     assert not _mergeable(q1, q2, np.deg2rad(3.0), 3.0, 0.1)
+
+
+def test_faded_points_of_an_arc_are_left_out_at_its_segment_ends_and_anywhere_beyond_five_times():
+    from partinspect.vision.matching import _unfaded
+
+    std = np.full(40, 0.03)
+    std[:3] = [0.3, 0.2, 0.09]      # a fading start: all three beyond 2.5 x the median
+    std[10] = 0.1                   # inside, 3.3 x: kept
+    std[20] = 0.2                   # inside, 6.7 x: left out
+    std[24] = 0.09                  # the last point of the first segment (25 points)
+    std[25:27] = 0.09               # the first two of the second
+    kept = set(_unfaded(std, [25, 15]).tolist())
+    assert kept == set(range(40)) - {0, 1, 2, 20, 24, 25, 26}
+    # Too short to trim: kept whole.
+    assert len(_unfaded(np.r_[np.full(5, 0.03), 1.0, 1.0], [7])) == 7
