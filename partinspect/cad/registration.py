@@ -952,6 +952,13 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
 
     if pose_hint is not None:
         hyps = [(np.asarray(pose_hint, float)[:3, :3], np.asarray(pose_hint, float)[:3, 3])]
+    elif _symmetric_model(cad):
+        # A property of the model, whatever was measured (its short arcs
+        # may even be measured as circles off the axis).
+        raise RegistrationError(
+            f"alignment is ambiguous: the CAD model's {len(cad.round_ids)} circles share one axis and it has no "
+            "straight edge, so the rotation about that axis is undetermined (a rotationally symmetric part)"
+        )
     else:
         hyps = _circle_hypotheses(meas, cad)
         if not hyps:
@@ -1025,6 +1032,18 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
         _lines=lines,
         _fit={"J": r["J"], "rows": r["rows"]},
     )
+
+
+def _symmetric_model(cad):
+    """True when the model's edges are circles on one axis and nothing else (exactly, as CAD is)."""
+    if len(cad.line_ids) or len(cad.round_ids) == 0:
+        return False
+    n0 = _unit(cad.normals[0])
+    d = cad.centers - cad.centers[0]
+    off_axis = d - np.outer(d @ n0, n0)
+    scale = max(1.0, float(np.max(cad.radii)))
+    return bool(np.all(np.abs(cad.normals @ n0) > 1.0 - 1e-9)
+                and np.all(np.linalg.norm(off_axis, axis=1) < 1e-6 * scale))
 
 
 def _coaxial(circles, rel=0.1, angle=np.deg2rad(10.0)):

@@ -1,6 +1,7 @@
 """Registration of synthetic measured features to the sample parts' CAD models."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -171,6 +172,28 @@ def test_symmetric_part_is_ambiguous():
     with pytest.raises(RegistrationError, match="alignment is ambiguous") as info:
         register(m.circles, m.lines, inv)
     assert isinstance(info.value, InputError)
+
+
+def test_rotationally_symmetric_model_is_ambiguous_whatever_is_measured():
+    """A washer's edges are circles on one axis: no measurement fixes its rotation about
+    it, so registration says so from the model, even when a poorly measured short arc
+    makes the measured circles look off-axis (NIST ftc_11 at 612 x 512)."""
+    import cadquery as cq
+
+    washer = cq.Workplane("XY").circle(12).circle(5).extrude(3).edges().chamfer(0.5).val()
+    inv = inventory(washer)
+    assert not [f for f in inv.features if f.kind == "line" and not f.smooth]
+    T = default_pose(washer, default_rig())
+    m = measure_features(inv, T, facing_feature_ids(inv, T), np.random.default_rng(3), n_points=0)
+    off_axis = replace(m.circles[0], center=m.circles[0].center + np.array([3.0, 0.0, 0.0]))
+    for circles in (m.circles, (off_axis,) + tuple(m.circles[1:])):
+        with pytest.raises(RegistrationError, match="share one axis"):
+            register(circles, m.lines, inv)
+    # With a hole off the axis the model is no longer symmetric.
+    holed = cq.Workplane("XY").circle(12).circle(5).extrude(3).faces(">Z").workplane().center(8, 0).hole(2).val()
+    from partinspect.cad.registration import _cad_arrays, _symmetric_model
+
+    assert _symmetric_model(_cad_arrays(inv)) and not _symmetric_model(_cad_arrays(inventory(holed)))
 
 
 def test_too_few_constraints(scene):
