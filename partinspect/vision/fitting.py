@@ -35,6 +35,12 @@ References
        ``fitEllipseDirect``).
 .. [6] Satterthwaite, F. E. (1946). An approximate distribution of estimates
        of variance components. Biometrics Bulletin 2(6), 110-114.
+.. [7] Transtrum, M. K., Sethna, J. P. (2012). Improvements to the
+       Levenberg-Marquardt algorithm for nonlinear least-squares
+       minimization. arXiv:1201.5885 (geodesic acceleration).
+.. [8] Madsen, K., Nielsen, H. B., Tingleff, O. (2004). Methods for
+       non-linear least squares problems, 2nd ed. IMM, DTU, section 3.2
+       (the damping update from the gain ratio).
 """
 
 from __future__ import annotations
@@ -698,6 +704,41 @@ def _ellipse_geometry(xy, params, phi):
     return r, n, h
 
 
+# An "ellipse" far larger than its points is no ellipse they show: the
+# fits of the 2D chain (segmentation, features) stop before their
+# semi-major axis exceeds this many times the points' extent (see
+# _lm_ellipses); such a piece's best conic is a parabola or a hyperbola.
+MAX_AXIS_SPANS = 50.0
+
+
+def _axis_bound(xy):
+    """The largest semi-major axis of a plausible ellipse through points xy, px."""
+    return MAX_AXIS_SPANS * max(float(np.ptp(xy, axis=0).max()), 1.0)
+
+
+def _ellipse_plausible(xy, cov, factor=9.0):
+    """Cheap screen before the iterative fit: the direct algebraic fit's
+    orthogonal residuals must not exceed the point noise by far (their mean
+    square within ``factor`` times the expected); the geometric fit improves
+    on the algebraic one by much less than that for data that are not an
+    ellipse, and skipping it keeps the merge tests on corners cheap.
+
+    Returns
+    -------
+    tuple or None
+        (params, phases): the algebraic fit and its foot phases, the start
+        of the geometric fit (computed here already), or None if the
+        points fail the screen.
+    """
+    p = _ellipse_start(xy)
+    if p[3] <= 0 or not np.all(np.isfinite(p)):
+        return None
+    phi = _foot_phases(xy, p)
+    r, n, _ = _ellipse_geometry(xy, p, phi)
+    s2 = _normal_std(cov, n) ** 2
+    return (p, phi) if float((r * r / s2).mean()) < factor else None
+
+
 def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=1e-9, start=None):
     """Geometric ellipse fit in parametric form (Gander, Golub & Strebel 1994).
 
@@ -766,9 +807,10 @@ class _EllipseJob:
     blur: float = None
     start: object = None
     init: tuple = None
+    max_axis: float = None
 
 
-def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=True):
+def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=True, sigma_tol=None):
     """:func:`fit_ellipse` of several point sets at once.
 
     The Gauss-Newton iterations of all the fits run in lockstep on stacked
@@ -789,6 +831,13 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
         Without it, the fits' ``cov`` and ``ci95`` are None (a test needs
         only the consistency; :func:`_ellipse_with_covariance` adds them later, the
         same as computed here).
+    sigma_tol : float, optional
+        Also converged when the remaining Gauss-Newton step is below this
+        many standard uncertainties in every direction (see
+        :func:`_lm_ellipses`); with ``tol=None`` it is the only criterion.
+
+    A job's ``max_axis`` stops its fit before a step that would take the
+    semi-major axis beyond it (not converged; see :func:`_lm_ellipses`).
 
     Returns
     -------
@@ -807,7 +856,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
     # A blurred job's fits before its last correction give only the points'
     # shifts: their covariances are not computed.
     fits = _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged,
-                              [with_cov and not job.blur for job in jobs])
+                              [with_cov and not job.blur for job in jobs], sigma_tol)
     blurred = [k for k, job in enumerate(jobs) if job.blur]
     for last in (False, True) if blurred else ():
         for k in blurred:
@@ -822,7 +871,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
             p = _canonical(f.params)
             starts[k] = (p, _foot_phases(xys[k], p))
         sub = _fit_ellipses_once([xys[k] for k in blurred], [jobs[k] for k in blurred],
-                                 [starts[k] for k in blurred], max_iter, tol, False, with_cov and last)
+                                 [starts[k] for k in blurred], max_iter, tol, False, with_cov and last, sigma_tol)
         for k, f in zip(blurred, sub):
             fits[k] = f  # its residuals are of the corrected points
     return fits
@@ -832,7 +881,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
 _PAD_POINTS = 2000
 
 
-def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged, with_cov=True):
+def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged, with_cov=True, sigma_tol=None):
     """The fits of fixed points (the loop of _fit_ellipses), in groups: a
     group's arrays are padded to its largest fit. ``with_cov``: for all the
     fits, or a sequence of one per fit."""
@@ -853,7 +902,8 @@ def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged, with_co
             n_group, total = n_group + 1, total + m
         group, order = order[:n_group], order[n_group:]
         res = _lm_ellipses([xys[k] for k in group], [jobs[k].cov for k in group],
-                           [starts[k] for k in group], max_iter, tol)
+                           [starts[k] for k in group], max_iter, tol, sigma_tol,
+                           [jobs[k].max_axis for k in group])
         for k, (p, converged, it) in zip(group, res):
             if need_converged and not converged:
                 continue
@@ -896,7 +946,7 @@ def _ellipse_with_covariance(fit, xy, corr_length):
     return replace(fit, cov=covp, ci95=_ci(fit.params, covp))
 
 
-def _lm_ellipses(xys, covs, starts, max_iter, tol):
+def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None):
     """Damped Gauss-Newton of Gander et al. [2]_ on several point sets in lockstep.
 
     Unknowns u = (xc, yc, a, b, theta) and one phase phi_i per point; the
@@ -922,6 +972,46 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol):
     phases follow by back-substitution, dphi_i = -(rt_i + ht_i . du) /
     (|j_i| (1 + lam)). This is the textbook form rearranged, without its
     cancellation, and the two 5 x 5 matrices serve every damping tried.
+
+    Two things keep the iteration short where the data fix the ellipse
+    poorly (a short arc: the cost has a long, curved, nearly flat valley,
+    in which plain Levenberg-Marquardt creeps by steps that the curvature
+    of the valley keeps small, for hundreds of iterations):
+
+    - geodesic acceleration [7]_: each step v (the damped Gauss-Newton
+      step above) gets the second-order correction a / 2, where a solves
+      the same damped system with the residuals replaced by their second
+      directional derivative along v (a finite difference of the residuals
+      at x + h v); the step follows the valley's bend instead of leaving
+      it. A correction larger than ``_ACCEL_RATIO`` / 2 of the
+      step (in the damping's scaled norm) marks the step as too long: it
+      is refused and the damping raised;
+    - the damping is updated from the gain ratio rho of the actual to the
+      predicted decrease of the cost (Nielsen's rule [8]_: lam times
+      max(1/3, 1 - (2 rho - 1)^3) after a success, times 2, 4, 8, ...
+      after successive failures), not divided by ten after every success,
+      which had each iteration try a step too bold first and be refused.
+
+    A fit stops when it has converged, on either criterion given:
+
+    - ``tol``: the accepted step moves the curve by less than ``tol``
+      times max(1, a) px (fit_ellipse's criterion);
+    - ``sigma_tol``: the undamped Gauss-Newton step from the current
+      iterate is below ``sigma_tol`` standard uncertainties in every
+      direction of parameter space: du^T Sn du <= sigma_tol^2 with du =
+      -Sn^-1 Gn (the Newton decrement, by Cauchy-Schwarz the largest
+      |c . du| / sd(c . u) over all c, with the uncertainty S^-1 of
+      independent point errors, the smaller one). It is also the decrease
+      of the cost that the linearised model still expects, so the
+      chi-square of the residuals is then settled to about sigma_tol^2:
+      the criterion of a fit that is only tested.
+
+    or when no damping up to 1e12 makes a step acceptable, after
+    ``max_iter`` steps, or (with ``max_axis``, one bound per fit) when a
+    step would take its semi-major axis beyond the bound, or further
+    beyond it: the iterate before that step is returned, the best ellipse
+    within the bound the iteration has found (or, for a fit that starts
+    beyond it, the start or the smallest iterate).
 
     Each fit keeps its own damping and stops on its own, exactly as alone;
     the arrays are (fits, points, ...), the shorter point sets padded by
@@ -958,69 +1048,168 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol):
                 cparts[k, :m, 1] = cov[:, 0, 1] + cov[:, 1, 0]
                 cparts[k, :m, 2] = cov[:, 1, 1]
         # (without cov: unit weights)
+    bound = np.full(F, np.inf) if max_axis is None else np.array(
+        [np.inf if b is None else float(b) for b in max_axis])
 
     out = [None] * F
     ids = np.arange(F)  # the fit of each row
     lam = np.full(F, 1e-3)
+    nu = np.full(F, 2.0)
     cs = _lm_cos_sin(phi)
     r = _lm_residual(p, cs, xy1)
-    converged = np.zeros(F, bool)
     for it in range(1, max_iter + 1):
         n = len(ids)
         sy = _lm_system(p, cs, r, mask, cparts)
-        f0, w = sy[0], sy[1]
-        lam_t = lam.copy()
+        if sigma_tol is not None:
+            settled = _newton_decrement(sy) <= sigma_tol * sigma_tol
+            if settled.any():
+                for row in np.flatnonzero(settled):
+                    out[ids[row]] = (p[row].copy(), True, it - 1)
+                keep = ~settled
+                if not keep.any():
+                    break
+                ids, p, phi, cs, r, lam, nu = ids[keep], p[keep], phi[keep], cs[keep], r[keep], lam[keep], nu[keep]
+                xy1, cparts, mask, bound = xy1[keep], cparts[keep], mask[keep], bound[keep]
+                sy = tuple(x[keep] for x in sy)
+                n = len(ids)
+        f0 = sy[0]
+        p_before = p.copy()
+        lam_t, nu_t = lam.copy(), nu.copy()
         done = np.zeros(n, bool)  # a step was accepted
-        j = None  # rows still trying a damping (None: all of them)
-        while True:
-            if j is None:
-                sy_j, lam_j, p_j, phi_j, xy1_j, w_j, f0_j = sy, lam_t, p, phi, xy1, w, f0
+        converged = np.zeros(n, bool)
+        j = np.arange(n)  # rows still trying a damping
+        while len(j):
+            if len(j) == n:  # every row (the first try): no copies
+                sy_j, p_j, phi_j, r_j, xy1_j = sy, p, phi, r, xy1
             else:
                 sy_j = tuple(x[j] for x in sy)
-                lam_j, p_j, phi_j, xy1_j, w_j, f0_j = lam_t[j], p[j], phi[j], xy1[j], w[j], f0[j]
-            du, dphi = _lm_step(sy_j, lam_j)
+                p_j, phi_j, r_j, xy1_j = p[j], phi[j], r[j], xy1[j]
+            du, dphi, acc_ok, pred = _lm_accelerated_step(sy_j, lam_t[j], p_j, phi_j, r_j, xy1_j)
             p_new = p_j + du
             phi_new = phi_j + dphi
             cs_new = _lm_cos_sin(phi_new)
             r_new = _lm_residual(p_new, cs_new, xy1_j)
             # The cost with the weights of the current iterate; a step to a
             # semi-axis <= 0 is refused too.
-            f1 = np.einsum("fm,fmc,fmc->f", w_j, r_new, r_new)
-            acc = (p_new[:, 2] > 0) & (p_new[:, 3] > 0) & (f1 <= f0_j * (1 + 1e-12))
+            f1 = np.einsum("fm,fmc,fmc->f", sy_j[1], r_new, r_new)
+            acc = acc_ok & (p_new[:, 2] > 0) & (p_new[:, 3] > 0) & (f1 <= sy_j[0] * (1 + 1e-12))
             # Largest displacement of the curve the step causes, px; a
             # rotation moves an ellipse by at most (a - b) |dtheta| (nothing
             # for a circle, whose theta is free).
-            moved = np.abs(du[:, :4]).sum(axis=1) + np.abs(p_j[:, 2] - p_j[:, 3]) * np.abs(du[:, 4])
-            small = moved < tol * np.maximum(1.0, p_j[:, 2])
-            if j is None and acc.all():
-                # Every fit took its first step (the common case).
-                done[:] = True
-                converged, p, phi, cs, r = small, p_new, phi_new, cs_new, r_new
-                break
-            rows = np.arange(n) if j is None else j
-            ra = rows[acc]
+            if tol is not None:
+                moved = np.abs(du[:, :4]).sum(axis=1) + np.abs(p_j[:, 2] - p_j[:, 3]) * np.abs(du[:, 4])
+                small = moved < tol * np.maximum(1.0, p_j[:, 2])
+            else:
+                small = np.zeros(len(j), bool)
+            ra = j[acc]
             done[ra] = True
             converged[ra] = small[acc]
             p[ra], phi[ra], cs[ra], r[ra] = p_new[acc], phi_new[acc], cs_new[acc], r_new[acc]
-            rej = rows[~acc]
-            lam_t[rej] *= 10
+            # (A step within the cost's rounding counts as a gain of 0:
+            # lam doubles; beyond 1 the rule's factor is 1/3 anyway.)
+            gain = np.clip((f0[ra] - f1[acc]) / np.maximum(pred[acc], 1e-300), 0.0, 1.0)
+            lam_t[ra] = np.maximum(lam_t[ra] * np.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
+            nu_t[ra] = 2.0
+            rej = j[~acc]
+            lam_t[rej] *= nu_t[rej]
+            nu_t[rej] *= 2.0
             j = rej[lam_t[rej] <= 1e12]
-            if not len(j):
-                break
-        lam = np.where(done, np.maximum(lam_t / 10, 1e-9), lam_t)
-        # Rows that stop: converged, or no damping helped (lam beyond 1e12).
-        stop = ~done | converged
+        lam, nu = lam_t, nu_t
+        # Rows that stop: converged, no damping helped (lam beyond 1e12),
+        # or grown beyond their bound (returned as before that step: the
+        # best ellipse within the bound the iteration found).
+        # (a and b are not ordered during the iteration.)
+        size = p[:, 2:4].max(axis=1)
+        beyond = (size > bound) & (size > p_before[:, 2:4].max(axis=1))
+        stop = ~done | converged | beyond
         if it == max_iter:
             stop[:] = True
         for row in np.flatnonzero(stop):
-            out[ids[row]] = (p[row].copy(), bool(done[row] and converged[row]), it)
+            q = p_before[row] if beyond[row] else p[row]
+            out[ids[row]] = (q.copy(), bool(done[row] and converged[row] and not beyond[row]), it)
         if stop.all():
             break
         if stop.any():
             keep = ~stop
-            ids, p, phi, cs, r, lam = ids[keep], p[keep], phi[keep], cs[keep], r[keep], lam[keep]
-            xy1, cparts, mask, converged = xy1[keep], cparts[keep], mask[keep], converged[keep]
+            ids, p, phi, cs, r, lam, nu = ids[keep], p[keep], phi[keep], cs[keep], r[keep], lam[keep], nu[keep]
+            xy1, cparts, mask, bound = xy1[keep], cparts[keep], mask[keep], bound[keep]
     return out
+
+
+# Step used for the second directional derivative of the residuals, and
+# largest ratio 2 |a| / |v| of the geodesic acceleration a to the step v:
+# the values of Transtrum & Sethna [7]_.
+_ACCEL_H = 0.1
+_ACCEL_RATIO = 0.75
+
+
+def _lm_accelerated_step(sy, lam, p, phi, r, xy1):
+    """The step v + a / 2 of :func:`_lm_ellipses` with geodesic acceleration.
+
+    Returns
+    -------
+    du : ndarray, shape (F, 5)
+    dphi : ndarray, shape (F, M)
+    ok : ndarray of bool, shape (F,)
+        The acceleration is small against the step (else the step is to be
+        refused).
+    pred : ndarray, shape (F,)
+        Decrease of the cost that the linearised model predicts for v.
+    """
+    du, dphi = _lm_step(sy, lam)
+    w, nil, rt, Ht, rn, Hn = sy[1], sy[9], sy[8], sy[7], sy[10], sy[11]
+    # The model's change of the residuals along v, J v, in normal and
+    # tangent components: hn . du and ht . du + |j| dphi.
+    jn = (Hn @ du[..., None])[..., 0]
+    jt = (Ht @ du[..., None])[..., 0] - dphi / nil
+    # Second directional derivative of the residuals along v by a forward
+    # difference [7]_, 2 / h ((rho(x + h v) - rho(x)) / h - J v), from the
+    # residuals at x + h v turned into the current iterate's frame (in which
+    # the rows of the system are written).
+    h = _ACCEL_H
+    k, wHt = sy[12], sy[13]
+    moved = _lm_residual_in(p, p + h * du, phi + h * dphi, xy1)
+    rnt = np.einsum("fmij,fmj->fmi", k.reshape(len(k), -1, 2, 2), moved) * -nil[..., None]
+    rnt[..., 0] = (2.0 / h) * ((rnt[..., 0] - rn) / h - jn)
+    rnt[..., 1] = (2.0 / h) * ((rnt[..., 1] - rt) / h - jt)
+    G = wHt @ rnt
+    au, aphi = _lm_step(sy, lam, (G[:, :5, 0], G[:, 5:, 1], rnt[..., 1]))
+    # Norms scaled by the damping's diagonal: diag(C) for the parameters,
+    # w |j|^2 for the phases.
+    Cd = sy[4]
+    wj = w / (nil * nil)
+    dd = np.einsum("fi,fii,fi->f", du, Cd, du) + np.einsum("fm,fm->f", wj, dphi * dphi)
+    aa = np.einsum("fi,fii,fi->f", au, Cd, au) + np.einsum("fm,fm->f", wj, aphi * aphi)
+    ok = 4.0 * aa <= (_ACCEL_RATIO * _ACCEL_RATIO) * dd
+    # Decrease predicted for v: the cost minus that of the model's residuals
+    # after v, rho + J v.
+    en, et = rn + jn, rt + jt
+    pred = sy[0] - np.einsum("fm,fm->f", w, en * en + et * et)
+    return du + 0.5 * au, dphi + 0.5 * aphi, ok, pred
+
+
+def _lm_residual_in(p0, p, phi, xy1):
+    """Residuals at (p, phi) in the frame of the ellipse p0 (turned by
+    -theta0): ``Q(theta - theta0)`` times those of :func:`_lm_residual`."""
+    r = _lm_residual(p, _lm_cos_sin(phi), xy1)
+    d = p[:, 4] - p0[:, 4]
+    c, s = np.cos(d)[:, None], np.sin(d)[:, None]
+    out = np.empty_like(r)
+    out[..., 0] = c * r[..., 0] - s * r[..., 1]
+    out[..., 1] = s * r[..., 0] + c * r[..., 1]
+    return out
+
+
+def _newton_decrement(sy):
+    """du^T Sn du for the undamped Gauss-Newton step du = -Sn^-1 Gn, per fit.
+
+    A circle leaves theta undetermined (Sn singular along it, and Gn
+    without a component there): a ridge of 1e-12 diag(Sn + St) makes the
+    system solvable without changing the decrement.
+    """
+    Sn, Cd, Gn = sy[2], sy[4], sy[5]
+    x = _solve_spd(Sn + 1e-12 * Cd, -Gn)
+    return np.maximum(-np.einsum("fi,fi->f", x, Gn), 0.0)
 
 
 def _lm_cos_sin(phi):
@@ -1050,7 +1239,10 @@ def _lm_system(p, cs, r, mask, cparts):
     -------
     tuple
         cost (F,), w (F, M), Sn, St, diag(Sn + St) (F, 5, 5), Gn, Gt (F, 5),
-        the rows ht (F, M, 5), rt (F, M) and -1 / |j| (F, M).
+        the rows ht (F, M, 5), rt (F, M), -1 / |j| (F, M), rn (F, M), the
+        rows hn (F, M, 5), and for other residuals (the geodesic
+        acceleration) the normal and tangent times |j| in the ellipse frame
+        (F, M, 4) and the weighted rows transposed (F, 10, M).
     """
     a, b = p[:, 2:3], p[:, 3:4]
     c, s = np.cos(p[:, 4]), np.sin(p[:, 4])
@@ -1086,18 +1278,25 @@ def _lm_system(p, cs, r, mask, cparts):
     Cd = (d[:, :5] + d[:, 5:])[:, :, None] * _EYE5  # diag(Sn + St)
     cost = np.einsum("fm,fmc,fmc->f", w, r, r)
     return (cost, w, X[:, :5, :5], X[:, 5:, 5:], Cd, G[:, :5, 0], G[:, 5:, 1],
-            H[..., 5:], rnt[..., 1], nil)
+            H[..., 5:], rnt[..., 1], nil, rnt[..., 0], H[..., :5], k, wHt)
 
 
-def _lm_step(sy, lam):
+def _lm_step(sy, lam, rhs_parts=None):
     """One Levenberg-Marquardt step (du, dphi) per fit from :func:`_lm_system`:
-    Marquardt damping lam diag(C) on the parameters, lam D on the phases."""
-    _, _, Sn, St, Cd, Gn, Gt, Ht, rt, nil = sy
+    Marquardt damping lam diag(C) on the parameters, lam D on the phases.
+    ``rhs_parts``: (Gn, Gt, rt) of other residuals in place of the
+    system's own."""
+    Sn, St, Cd, Gn, Gt, Ht, rt, nil = sy[2:10]
+    if rhs_parts is not None:
+        Gn, Gt, rt = rhs_parts
     k = lam / (1.0 + lam)
-    S = Sn + k[:, None, None] * St + lam[:, None, None] * Cd
-    rhs = -(Gn + k[:, None] * Gt)
-    du = _solve_spd(S, rhs)
-    dphi = (rt + (Ht @ du[..., None])[..., 0]) * (nil / (1.0 + lam)[:, None])
+    # (A fit gone astray, semi-axes of 1e16 px, overflows here: its step
+    # comes out non-finite and is refused.)
+    with np.errstate(over="ignore", invalid="ignore"):
+        S = Sn + k[:, None, None] * St + lam[:, None, None] * Cd
+        rhs = -(Gn + k[:, None] * Gt)
+        du = _solve_spd(S, rhs)
+        dphi = (rt + (Ht @ du[..., None])[..., 0]) * (nil / (1.0 + lam)[:, None])
     return du, dphi
 
 

@@ -13,7 +13,8 @@ right features are then paired:
   must overlap [2]_;
 - their shapes must agree: the same kind; the same polarity (the grey level
   rises in the same sense along the epipolar lines, or for arcs on the same
-  side of the ellipse); for arcs, the same 3D radius once each ellipse's
+  side of the ellipse; not compared for an arc merged from pieces of
+  opposite polarity); for arcs, the same 3D radius once each ellipse's
   size is scaled by its depth (centres triangulated); for lines, similar
   angles to the epipolar lines and a triangulated middle in front of both
   cameras;
@@ -62,12 +63,24 @@ References
        ``linear_sum_assignment``).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from partinspect.vision.fitting import _EllipseJob, _as_points, _ellipse_geometry, _fit_ellipses, fit_line
+from partinspect.vision.fitting import (
+    _EllipseJob,
+    _as_points,
+    _axis_bound,
+    _ellipse_geometry,
+    _ellipse_start,
+    _ellipse_with_covariance,
+    _fit_ellipses,
+    _fit_line,
+    _foot_phases,
+    _line_with_covariance,
+)
 from partinspect.vision.ideal import IdealPoints, ideal_points
 from partinspect.vision.triangulation import fundamental_matrix, triangulate
 
@@ -296,7 +309,15 @@ class ImageFeature:
     polarity : int
         Lines: +1 if the grey level rises along ``ref`` of the epipolar
         geometry, -1 if it falls (0 before matching). Arcs: +1 if brighter
-        outside the ellipse, -1 if brighter inside.
+        outside the ellipse, -1 if brighter inside (of most points, when
+        ``mixed_polarity``).
+    mixed_polarity : bool
+        An arc merged from pieces of opposite polarity: the faces on the two
+        sides of the edge exchange brightness along it (a hole's rim against
+        its inner wall, lit on one side and in shadow on the other). Its
+        polarity is then not compared in matching: where the exchange
+        happens depends on the view (each camera sees another part of the
+        wall).
     """
 
     kind: str
@@ -308,10 +329,20 @@ class ImageFeature:
     fit: object
     blur: float
     polarity: int
+    mixed_polarity: bool = False
 
     def __len__(self):
         return len(self.index)
 
+
+FIT_SIGMA_TOL = 1e-3
+"""Ellipse fits of features are converged when the remaining Gauss-Newton
+step is below this many standard uncertainties in every direction (or at
+fit_ellipse's pixel tolerance, whichever comes first)."""
+FIT_ITERATIONS = 30
+"""Iterations of an ellipse fit of a feature at most: well-determined ones
+converge in a few (from the segment's fit, or after dropping a point from
+the previous one)."""
 
 OUTLIER_ALPHA = 0.05
 """Chance that a feature of N clean points loses one to the outlier test:
@@ -413,11 +444,15 @@ def _make_features(requests, segments, edges, seg_ideal):
     ``FADE_END_RATIO``); each feature is fitted, its worst outlier dropped
     and the fit redone while one remains (below); the ellipse fits of all requests in one such round run
     together (:func:`partinspect.vision.fitting._fit_ellipses`), each as it
-    would alone.
+    would alone. The fits come without their covariances (``cov`` None):
+    most features made are merge trials that are not kept;
+    :func:`_with_covariance` completes the kept ones, as the fits would
+    have computed them.
     """
     states = []
     for kind, seg_ids in requests:
         index = np.concatenate([segments[i].fit_index for i in seg_ids])
+        piece = np.repeat(np.arange(len(seg_ids)), [len(segments[i].fit_index) for i in seg_ids])
         all_ideal = IdealPoints(*(np.concatenate([getattr(seg_ideal[i], f) for i in seg_ids])
                                   for f in _IDEAL_FIELDS))
         keep = np.arange(len(index)) if kind == "line" else _unfaded(all_ideal.normal_std, [
@@ -427,9 +462,15 @@ def _make_features(requests, segments, edges, seg_ideal):
         # a straight edge look out of straightness by tenths of a mm: points
         # inconsistent with the fit are rejected, worst first, and the fit
         # redone.
-        states.append(dict(kind=kind, seg_ids=seg_ids, index=index, all_ideal=all_ideal,
+        # One arc segment: its own fit (of the same points, in distorted
+        # pixels, corrected for the smoothing) starts the fit next to its
+        # minimum; the direct fit can start a short piece far from it.
+        start = None
+        if kind == "arc" and len(seg_ids) == 1 and segments[seg_ids[0]].kind == "arc":
+            start = segments[seg_ids[0]].fit.params
+        states.append(dict(kind=kind, seg_ids=seg_ids, index=index, piece=piece, all_ideal=all_ideal,
                            keep=keep, budget=int(MAX_OUTLIER_FRACTION * len(index)),
-                           start=None))
+                           start=start))
     active = list(range(len(states)))
     while active:
         jobs = []
@@ -439,7 +480,7 @@ def _make_features(requests, segments, edges, seg_ideal):
             st["ideal"] = ideal = IdealPoints(*(np.ascontiguousarray(getattr(st["all_ideal"], f)[keep])
                                                 for f in _IDEAL_FIELDS))
             if st["kind"] == "line":
-                st["fit"] = fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma)
+                st["fit"] = _fit_line(ideal.xy, ideal.cov, edges.sigma, False)
             else:
                 # No smoothing-bias correction (fit_ellipse's ``blur``): on
                 # rendered parts the rims of holes are not uniform discs, and
@@ -448,8 +489,16 @@ def _make_features(requests, segments, edges, seg_ideal):
                 # outwards (measured against the truth). After dropping one
                 # point the previous fit is a start next to the new minimum
                 # (same minimum, fewer iterations).
-                jobs.append((k, _EllipseJob(_as_points(ideal.xy, 6), ideal.cov, edges.sigma, None, st["start"])))
-        for (k, _), fit in zip(jobs, _fit_ellipses([job for _, job in jobs])):
+                jobs.append((k, _EllipseJob(_as_points(ideal.xy, 6), ideal.cov, edges.sigma, None, st["start"],
+                                            max_axis=_axis_bound(ideal.xy))))
+        # Converged at fit_ellipse's pixel tolerance or once the remaining
+        # step is below a thousandth of the parameters' standard
+        # uncertainties: a short piece's ellipse is uncertain by pixels, and
+        # its cost so flat that the pixel tolerance takes a hundred
+        # iterations to reach, for nothing; such a fit (or a union of two
+        # edges) stops after FIT_ITERATIONS, as the segmentation's.
+        for (k, _), fit in zip(jobs, _fit_ellipses([job for _, job in jobs], FIT_ITERATIONS, with_cov=False,
+                                                   sigma_tol=FIT_SIGMA_TOL)):
             states[k]["fit"] = fit
         again = []
         for k in active:
@@ -470,23 +519,75 @@ def _make_features(requests, segments, edges, seg_ideal):
         index = st["index"][st["keep"]]
         uv, cov = edges.xy[index], edges.cov[index]
         blur = float(np.median(edges.width[index]))
+        # Edge normals point dark to bright: their component along the
+        # fit's normal (outward for arcs) tells each point's polarity.
         if kind == "arc":
             _, n_out, _ = _ellipse_geometry(ideal.xy, fit.params, fit.phases)
-            # Edge normals point dark to bright.
-            polarity = 1 if np.mean(np.einsum("ni,ni->n", n_out, ideal.normal)) > 0 else -1
         else:
-            polarity = 0
+            n_out = fit.normal[None, :]
+        along = np.einsum("ni,ni->n", n_out, ideal.normal)
+        polarity = (1 if along.mean() > 0 else -1) if kind == "arc" else 0
+        # Polarity per piece (the mean over its points), so that a stray
+        # point does not make a feature mixed.
+        piece = st["piece"][st["keep"]]
+        sums = np.bincount(piece, along, minlength=len(st["seg_ids"]))
+        signs = np.sign(sums[np.bincount(piece, minlength=len(st["seg_ids"])) > 0])
+        mixed = bool(signs.min() != signs.max())
         out.append(ImageFeature(kind, tuple(int(i) for i in st["seg_ids"]), index, uv, cov, ideal, fit, blur,
-                                polarity))
+                                polarity, mixed))
     return out
+
+
+def _with_covariance(f, corr_length):
+    """Feature f (of :func:`_make_features`) with its fit's covariance."""
+    if f.fit.cov is not None:
+        return f
+    complete = _line_with_covariance if f.kind == "line" else _ellipse_with_covariance
+    return replace(f, fit=complete(f.fit, f.ideal.xy, corr_length))
 
 
 def _rms(f):
     return float(np.sqrt(np.mean(f.fit.residuals ** 2)))
 
 
-def _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
-    """Cheap geometric pre-test before the union is refitted."""
+def _kept(part, union):
+    """Fraction of the points of feature ``part`` that feature ``union`` keeps
+    (the rest are among its rejected outliers)."""
+    return np.count_nonzero(np.isin(part.index, union.index)) / max(len(part.index), 1)
+
+
+def _mergeable(a, b, max_angle, max_offset, max_axis_ratio, limit=np.inf):
+    """Cheap geometric pre-test before the union is refitted.
+
+    Lines: nearly parallel, each piece's centroid near the other's line.
+    Arcs: the two ellipses agree within the fixed tolerances, or, the
+    pieces' own ellipses aside, the direct (algebraic) ellipse fit of the
+    union leaves residuals whose RMS is within ``MERGE_SCREEN`` times
+    ``limit``, the RMS the refitted union must reach to be accepted.
+
+    The second is needed because a short piece of a rim fixes its own
+    ellipse poorly, and worse than its first-order uncertainty says: its
+    cost is flat along a curved valley (a rim piece of 60 points had its
+    centre 17 px off at a stated 3 px), so comparing the pieces' ellipses
+    refuses pieces of one rim; the points themselves tell. The geometric
+    fit improves on the direct one by far less than ``MERGE_SCREEN`` in
+    RMS for points of one ellipse (the direct fit is biased, not far off)
+    and for points of two (both leave the misfit between them), so a union
+    failing the screen would fail its test too.
+
+    Arcs of opposite polarity are tried: a hole's rim is brighter outside
+    along one stretch and darker along another, against its inner wall lit
+    on one side and in shadow on the other (see
+    ``ImageFeature.mixed_polarity``); two different rims are told apart by
+    the refit of their union, whose residuals then show the two. Lines of
+    opposite polarity are not: two pieces of one straight edge along which
+    the faces exchange brightness and two different edges that happen to
+    be collinear in this image (common in a view at grazing incidence) are
+    alike in one image, both one line within the noise (on the grazing
+    render of the sample plate in tests/test_degenerate.py two such edges,
+    12 px apart, gave a union with chi-square p = 0.52; merged, neither
+    matched, and the registration became ambiguous).
+    """
     if a.kind != b.kind:
         return False
     if a.kind == "line":
@@ -494,36 +595,31 @@ def _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
         if na @ nb < np.cos(max_angle) and -(na @ nb) < np.cos(max_angle):
             return False
         if np.mean(np.einsum("ni,i->n", a.ideal.normal, na)) * np.mean(np.einsum("ni,i->n", b.ideal.normal, na)) < 0:
-            return False  # opposite polarity: two edges
+            return False  # opposite polarity (see above)
         da = abs(b.fit.centroid @ na + a.fit.params[2])
         db = abs(a.fit.centroid @ nb + b.fit.params[2])
         return max(da, db) < max_offset
-    if a.polarity != b.polarity:
-        return False
     pa, pb = a.fit.params, b.fit.params
-    # A short piece of a rim fixes its own ellipse poorly (a third of a small
-    # hole: centre and axes uncertain by several px), so the pieces are
-    # compared within their fits' uncertainties too; the refit of the union
-    # then decides.
-    ca, cb = _finite_cov(a.fit.cov), _finite_cov(b.fit.cov)
-    s_c = np.sqrt(ca[0, 0] + ca[1, 1] + cb[0, 0] + cb[1, 1])
-    size = max(pa[2], pb[2])
-    s_a = np.sqrt(ca[2, 2] / pa[2] ** 2 + cb[2, 2] / pb[2] ** 2)
-    s_b = np.sqrt(ca[3, 3] / pa[3] ** 2 + cb[3, 3] / pb[3] ** 2)
-    return bool(np.hypot(*(pa[:2] - pb[:2])) <= max(max_offset, 0.05 * size) + MERGE_SIGMAS * s_c
-                and abs(np.log(pa[2] / pb[2])) < max_axis_ratio + MERGE_SIGMAS * s_a
-                and abs(np.log(pa[3] / pb[3])) < 2 * max_axis_ratio + MERGE_SIGMAS * s_b)
+    if (np.hypot(*(pa[:2] - pb[:2])) <= max(max_offset, 0.05 * max(pa[2], pb[2]))
+            and abs(np.log(pa[2] / pb[2])) < max_axis_ratio
+            and abs(np.log(pa[3] / pb[3])) < 2 * max_axis_ratio):
+        return True
+    xy = np.concatenate([a.ideal.xy, b.ideal.xy])
+    try:
+        p = _ellipse_start(xy)
+        if not (np.all(np.isfinite(p)) and p[3] > 0 and p[2] <= _axis_bound(xy)):
+            return False
+        r, _, _ = _ellipse_geometry(xy, p, _foot_phases(xy, p))
+    except (ValueError, np.linalg.LinAlgError, cv2.error):
+        return False
+    return bool(np.sqrt(np.mean(r * r)) <= MERGE_SCREEN * limit)
 
 
-MERGE_SIGMAS = 4.0
-"""Arcs: pieces whose ellipses differ by less than this many of their
-combined standard uncertainties (on top of the fixed tolerances) are tried
-as one edge."""
-
-
-def _finite_cov(C):
-    C = np.asarray(C, float)
-    return np.where(np.isfinite(C), C, 0.0)
+MERGE_SCREEN = 3.0
+"""Arcs whose ellipses disagree are still tried as one edge when the direct
+ellipse fit of their union has an RMS residual within this factor of the
+RMS the union must reach (see :func:`_mergeable`); the same factor (9 in
+mean square) as the segmentation's screen of its trial fits."""
 
 
 def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_angle=np.deg2rad(3.0),
@@ -548,6 +644,8 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         line, px; arcs: of the two centres (or 5 % of the major axis).
     max_axis_ratio : float
         Arcs: largest ``|log(a1 / a2)|`` (twice that for the minor axes).
+        Arcs whose ellipses disagree beyond these are still tried when the
+        direct fit of their points passes a screen (see :func:`_mergeable`).
     merge_ratio, max_misfit : float
         The union is accepted when the RMS of its residuals is at most
         ``merge_ratio`` times the worse piece's, or, for arcs, at most
@@ -557,7 +655,11 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         alone would refuse. Lines get the ratio test only: two straight
         edges meeting at a shallow angle differ by a few hundredths of a
         pixel over a long stretch, which passed ``max_misfit`` and bent
-        the merged line out of straightness by 30 um.
+        the merged line out of straightness by 30 um. The union must also
+        keep more than half of each part's points (see the notes in the
+        code); an arc it mostly rejects is dropped as an outlier stretch.
+        Arcs of opposite polarity are merged (``ImageFeature.mixed_polarity``),
+        lines not (see :func:`_mergeable`).
 
     Returns
     -------
@@ -579,8 +681,16 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
 
     feats = make_all([(segments[i].kind, [i]) for i in used])
     if not merge:
-        return feats
+        return [_with_covariance(f, edges.sigma) for f in feats]
     tried = {}
+
+    rms = {}
+
+    def feature_rms(f):
+        key = (f.kind, f.segments)
+        if key not in rms:
+            rms[key] = _rms(f)
+        return rms[key]
 
     def pair_key(a, b):
         return (a.kind, a.segments, b.segments)
@@ -590,34 +700,61 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         # the unions of one round are made together.
         new = [(a, b) for a, b in pairs if pair_key(a, b) not in tried]
         union = []
+        limits = {}
         for a, b in new:
-            if _mergeable(a, b, max_angle, max_offset, max_axis_ratio):
+            if a.kind != b.kind:
+                tried[pair_key(a, b)] = None
+                continue
+            limit = merge_ratio * max(feature_rms(a), feature_rms(b))
+            limit = max(limit, max_misfit) if a.kind == "arc" else limit
+            if _mergeable(a, b, max_angle, max_offset, max_axis_ratio, limit):
                 union.append((a, b))
+                limits[pair_key(a, b)] = limit
             else:
                 tried[pair_key(a, b)] = None
         for (a, b), u in zip(union, make_all([(a.kind, a.segments + b.segments) for a, b in union])):
-            limit = merge_ratio * max(_rms(a), _rms(b))
-            tried[pair_key(a, b)] = (_rms(u), max(limit, max_misfit) if a.kind == "arc" else limit, u)
+            tried[pair_key(a, b)] = (feature_rms(u), limits[pair_key(a, b)], u, _kept(a, u), _kept(b, u))
 
+    # The union's RMS is pooled: a short stretch of another edge, or a
+    # displaced stretch of this one (a rim beside a second edge closer than
+    # the filter resolves), barely raises it, and the outlier rejection hides
+    # it further by dropping its points. A union is taken only if it keeps
+    # more than half of the points of each part. An arc most of whose points
+    # the union rejects, while the union fits the other part within the
+    # limit, is an outlier stretch of that rim: it is dropped, as its points
+    # would have been had the two been found as one piece. (On the sample
+    # renders, pieces of one edge lose at most a fifth of their points to
+    # the union, displaced stretches half or more. Lines are only not
+    # merged: a short edge parallel to a long one and within the merge
+    # offset may be an edge of its own, a chamfer's.)
     changed = True
     while changed:
         changed = False
         best = None
+        outlier = None
         try_pairs([(feats[i], feats[j]) for i in range(len(feats)) for j in range(i + 1, len(feats))])
         for i in range(len(feats)):
             for j in range(i + 1, len(feats)):
                 trial = tried[pair_key(feats[i], feats[j])]
                 if trial is None:
                     continue
-                ratio, limit, u = trial
-                if ratio <= limit and (best is None or ratio < best[0]):
-                    best = (ratio, i, j, u)
+                ratio, limit, u, kept_i, kept_j = trial
+                if ratio > limit:
+                    continue
+                if kept_i > 0.5 and kept_j > 0.5:
+                    if best is None or ratio < best[0]:
+                        best = (ratio, i, j, u)
+                elif outlier is None and u.kind == "arc" and (kept_i > 0.5 or kept_j > 0.5):
+                    outlier = j if kept_i > 0.5 else i
         if best is not None:
             _, i, j, u = best
             feats = [f for k, f in enumerate(feats) if k not in (i, j)] + [u]
             feats.sort(key=lambda f: f.segments[0])
             changed = True
-    return feats
+        elif outlier is not None:
+            feats = [f for k, f in enumerate(feats) if k != outlier]
+            changed = True
+    return [_with_covariance(f, edges.sigma) for f in feats]
 
 
 # -------------------------------------------------------------------- matching
@@ -826,7 +963,8 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
     (matched lines keep their order along the epipolar lines).
 
     The cost of a candidate pair is ``(1 - IoU of the bands) + shape cost``;
-    polarity disagreement, a kind mismatch or a triangulated point outside
+    polarity disagreement (unless either feature is of mixed polarity), a
+    kind mismatch or a triangulated point outside
     the depth range exclude the pair. The assignment is solved with dummy
     rows and columns of cost ``max_cost / 2`` so that leaving both features
     unmatched is preferred to any pair costing more than ``max_cost``.
@@ -869,7 +1007,7 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
             if fl.kind != fr.kind:
                 continue
             same_kind_in_band[i, j] = True
-            if pol_l[i] != pol_r[j]:
+            if pol_l[i] != pol_r[j] and not (fl.mixed_polarity or fr.mixed_polarity):
                 continue
             if not (usable_l[i] and usable_r[j]):
                 blocked[i, j] = True

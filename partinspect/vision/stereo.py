@@ -426,12 +426,56 @@ def _initial_circle(points):
 
 
 def fit_feature(fl, fr, views, points):
-    """The two-view 3D fit of one matched pair, initialised from triangulated points."""
+    """The two-view 3D fit of one matched pair, initialised from triangulated points.
+
+    An arc (part of a rim) is fitted from a second start as well, and the
+    fit with the smaller chi-square kept: the circle through the
+    triangulated points of a short arc can be far off, and the two-view
+    fit then stops in another minimum of its cost (a hole's far rim seen
+    over 65 degrees through the hole: from the points' circle, radius
+    8.2 mm for 6 mm and the centre 5.9 mm off, chi-square 231; from the
+    second start 6.01 mm, 0.1 mm off, chi-square 151). The second start
+    takes the centre and radius from the two images' ellipses (centres
+    triangulated, semi-major axes scaled by depth, as the matching
+    compares them) and the normal from the points.
+    """
     if fl.kind == "line":
         p0, d0 = _initial_line(points)
         return fit_line_3d(views, p0, d0)
     c0, n0, r0 = _initial_circle(points)
-    return fit_circle_3d(views, c0, n0, r0)
+    fit = fit_circle_3d(views, c0, n0, r0)
+    if fl.kind == "arc":
+        start = _ellipse_start_3d(fl.fit.params, fr.fit.params, views[0].P, views[1].P)
+        if start is not None:
+            try:
+                alt = fit_circle_3d(views, start[0], n0, start[1])
+            except (np.linalg.LinAlgError, ValueError):
+                alt = None
+            if alt is not None and np.isfinite(alt.chi2) and alt.chi2 < fit.chi2 * (1.0 - 1e-9):
+                fit = alt
+    return fit
+
+
+def _ellipse_start_3d(pl, pr, P1, P2):
+    """Centre (3,) and radius of a circle from its two image ellipses (ideal
+    px) and cameras: the centres triangulated (linear, two views), the
+    radius the mean of the semi-major axes times depth over focal length.
+    None if the centre is not in front of both cameras."""
+    A = np.stack([pl[0] * P1[2] - P1[0], pl[1] * P1[2] - P1[1], pr[0] * P2[2] - P2[0], pr[1] * P2[2] - P2[1]])
+    X = np.linalg.svd(A)[2][-1]
+    if abs(X[3]) < 1e-12:
+        return None
+    X = X[:3] / X[3]
+    radii = []
+    for (a, b), P in ((pl[2:4], P1), (pr[2:4], P2)):
+        depth = P[2, :3] @ X + P[2, 3]
+        # K K^T = M M^T for M = K R: the focal length from its first row.
+        MM = P[:, :3] @ P[:, :3].T
+        f = np.sqrt(max(MM[0, 0] - MM[0, 2] ** 2, 1e-12))
+        if depth <= 0:
+            return None
+        radii.append(max(a, b) * depth / f)
+    return X, float(np.mean(radii))
 
 
 def _angular_extent(points, center, normal):

@@ -93,10 +93,10 @@ def test_stacked_ellipse_fits_follow_each_fit_alone():
         s2 = rng.uniform(0.5, 1.5, m) * 0.03 ** 2
         cov = {"full": s2[:, None, None] * np.array([[1.0, 0.2], [0.2, 0.8]]), "normal": s2, "none": None}[cov_kind]
         jobs.append(_EllipseJob(xy, cov, 1.0))
-    alone = [fit_ellipse(j.xy, j.cov, corr_length=j.corr_length, max_iter=30) for j in jobs]
+    alone = [fit_ellipse(j.xy, j.cov, corr_length=j.corr_length, max_iter=10) for j in jobs]
     # Twice over: more than eight fits take the stacked solve, fewer the
     # per-fit one.
-    together = _fit_ellipses(jobs + jobs, max_iter=30)
+    together = _fit_ellipses(jobs + jobs, max_iter=10)
     assert not all(f.converged for f in alone)  # the stop at max_iter is exercised
     for a, b in zip(alone + alone, together):
         assert (a.converged, a.iterations) == (b.converged, b.iterations)
@@ -105,7 +105,7 @@ def test_stacked_ellipse_fits_follow_each_fit_alone():
             assert np.allclose(a.cov, b.cov, rtol=1e-6, atol=0)
             assert a.consistency.p_value == pytest.approx(b.consistency.p_value, rel=1e-9)
     # need_converged drops the unconverged fits only.
-    kept = _fit_ellipses(jobs, max_iter=30, need_converged=True)
+    kept = _fit_ellipses(jobs, max_iter=10, need_converged=True)
     assert [f is not None for f in kept] == [f.converged for f in alone]
     # With blur (the segment refits), as fit_ellipse with blur alone.
     blurred = [_EllipseJob(j.xy, j.cov, 1.0, 1.2, a.params) for j, a in zip(jobs, alone) if a.converged]
