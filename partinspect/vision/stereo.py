@@ -97,7 +97,8 @@ from partinspect.vision.correspondences import correspond, deblurred
 from partinspect.vision.pointerrors import point_error_model, short_scale_ratio
 from partinspect.vision.edges import BACKGROUND_NOISE, edge_points
 from partinspect.vision.fitting import fit_ellipse
-from partinspect.vision.fit3d import View, _basis, _circle_residuals, _line_residuals, fit_circle_3d, fit_line_3d
+from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
+                                      fit_circle_3d, fit_line_3d)
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.matching import ImageFeature, epipolar_geometry, image_features, match_features
 from partinspect.vision.noise import estimate_noise
@@ -123,6 +124,14 @@ reading over about one)."""
 EDGE_BIAS_FACTOR = 0.75
 """Standard uncertainty of what remains of a point's displacement after the
 correction, in units of its (averaged) ``EdgePoints.background_bound``."""
+MISMATCH_P = 1e-6
+"""A matched pair of arcs whose 3D circle fits both images worse than their
+two ellipses by more than this chance allows
+(:func:`partinspect.vision.fit3d.circle_consistency`) is not kept: arcs of
+two different holes (a left rim matched to the right image's rim of a hole
+of similar size beside it gave p = 0, 10^6 above the ellipses). The test's
+p-values run low for true pairs (most 0.003-0.5, a few 1e-4), so only a
+gross misfit (beyond 5 sigma) counts."""
 EDGE_BIAS_CORR_ANGLE = 0.2
 """Correlation length of that remainder along the edge, rad of the ellipse
 (times its semi-major axis gives px)."""
@@ -765,6 +774,12 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         try:
             views = feature_views(fl, fr, corr_length, calib)
             fit = fit_feature(fl, fr, views, corr.points)
+            if fl.kind == "arc":
+                delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
+                if p < MISMATCH_P:
+                    failed.append((m, f"the two images' arcs are not one circle: its fit's chi-square exceeds "
+                                      f"the two ellipses' by {delta:.0f} (p = {p:.1e})"))
+                    continue
             corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
         except (np.linalg.LinAlgError, ValueError) as exc:
             failed.append((m, f"3D fit failed: {exc}"))

@@ -164,3 +164,34 @@ def test_a_rim_fading_against_its_lit_wall_does_not_bend_its_arc():
         assert e @ np.linalg.solve(f.covariance, e) < 16.27, (lab, f.kind, e)  # chi2(3) at 99.9 %
         rims += 1
     assert rims >= 1  # the 10 mm hole (circle-8); the others fade or are seen only through their hole
+
+
+def test_arcs_of_two_different_holes_are_not_one_circle():
+    """The likelihood-ratio test of a matched pair of arcs: the left rim of the
+    12 mm hole with the right rim of the 10 mm hole beside it (a mismatch seen
+    under one of bench_stereo's lights) fails it by far; the true pairs pass."""
+    from partinspect.vision.fit3d import circle_consistency
+    from partinspect.vision.stereo import MISMATCH_P, feature_views, fit_feature, measure_images
+
+    rig, pose, L, R = S.render("plate", 2.0, 0)
+    truths = S.truth_in_rig("plate")
+    P1, P2 = camera_matrices(rig)
+    Lr, Rr = measure_images(L, rig.K1, rig.D1), measure_images(R, rig.K2, rig.D2)
+
+    def arc(res, P, cid):
+        return next(f for f in res.features if f.kind == "arc" and S.label_image_feature(f.ideal.xy, truths, P) == cid)
+
+    def p_value(fl, fr):
+        views = feature_views(fl, fr, Lr.edges.sigma, rig)
+        # Start from the left rim's true circle: the fit's start is not what is tested.
+        t = next(t for t in truths if t["id"] == "circle-4")
+        th = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+        e1 = np.cross(t["normal"], [1.0, 0, 0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(t["normal"], e1)
+        pts = t["center"] + t["radius"] * (np.outer(np.cos(th), e1) + np.outer(np.sin(th), e2))
+        fit = fit_feature(fl, fr, views, pts)
+        return circle_consistency(views, fit, (fl.fit.params, fr.fit.params))[1]
+
+    assert p_value(arc(Lr, P1, "circle-4"), arc(Rr, P2, "circle-4")) > 1e-3
+    assert p_value(arc(Lr, P1, "circle-4"), arc(Rr, P2, "circle-8")) < MISMATCH_P
