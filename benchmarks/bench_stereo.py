@@ -12,12 +12,14 @@ beside an OpenCV baseline
 (Canny + findContours + fitEllipse, ellipse centres matched along epipolar
 lines and triangulated with triangulatePoints, radius = semi-major axis x
 depth / f, averaged over the views). Then the median wall time of
-``measure_stereo`` on a 2448 x 2048 pair.
+``measure_stereo`` on a 2448 x 2048 pair, beside the same runs with the two
+images' 2D chains one after the other (``parallel=False``).
 
     python3 benchmarks/bench_stereo.py [--draws N] [--lights L] [--part plate] [--size 1224 1024]
 """
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -28,6 +30,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from partinspect.simulate.render import DEFAULT_SHADING, blur, camera_in_part, render_radiance, sensor  # noqa: E402
+from partinspect.vision import forked as forked_module  # noqa: E402
+from partinspect.vision.forked import available_cpus  # noqa: E402
 from partinspect.vision.ideal import camera_matrices  # noqa: E402
 from partinspect.vision.stereo import measure_stereo  # noqa: E402
 from tests.vision import stereo_scenes as S  # noqa: E402
@@ -219,12 +223,23 @@ def main():
                       f"above (registration does not take them; median centre error {r['through_median']:.0f} um)")
     if a.timing_runs:
         rig, pose, L, R = S.render(a.part, 2.0, 0, False, (2448, 2048))
-        times = []
+        # The baseline side by side in the same run, interleaved (the machine
+        # is shared): the two images' 2D chains one after the other.
+        times = {True: [], False: []}
+        # The forked path itself is timed, whatever the load (in use it forks
+        # only with a CPU idle: vision.forked.MIN_IDLE_CPUS); the load is printed.
+        forked_module.MIN_IDLE_CPUS = float("-inf")
+        load0 = os.getloadavg()[0]
         for _ in range(a.timing_runs):
-            t = time.perf_counter()
-            measure_stereo(L, R, rig)
-            times.append(time.perf_counter() - t)
-        print(f"measure_stereo on a 2448x2048 pair: median {np.median(times):.2f} s over {a.timing_runs} runs")
+            for parallel in (False, True):
+                t = time.perf_counter()
+                measure_stereo(L, R, rig, parallel=parallel)
+                times[parallel].append(time.perf_counter() - t)
+        print(f"measure_stereo on a 2448x2048 pair ({a.part}): median {np.median(times[True]):.2f} s over "
+              f"{a.timing_runs} runs, the right image's 2D chain in a forked child process "
+              f"(partinspect.vision.forked; {available_cpus()} CPUs); baseline in the same runs, both chains here "
+              f"one after the other (parallel=False): {np.median(times[False]):.2f} s; 1-minute load average "
+              f"{load0:.1f} before, {os.getloadavg()[0]:.1f} after")
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -120,3 +121,41 @@ def test_interrupted_multi_file_write_leaves_no_temporary_files(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         write_files_atomic(Files())
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == PREVIOUS
+
+
+def test_sigint_while_measuring_leaves_no_child_process(work):
+    # The right image's 2D chain runs in a forked child (vision.forked): a
+    # Ctrl-C in the middle of it ends the run as usual and leaves no process
+    # behind (the run gets a session of its own, so whatever it forked is
+    # found by its group even after the parent is gone).
+    plate, out = work
+    env = dict(os.environ, PARTINSPECT_PROGRESS="1", PYTHONUNBUFFERED="1")
+    env.pop("PARTINSPECT_DEBUG", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "partinspect", str(plate / "part.step"), str(plate / "images"), "-o", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO, start_new_session=True,
+    )
+    seen = []
+    try:
+        for line in proc.stderr:
+            seen.append(line)
+            if "edges and segments: left image" in line:
+                time.sleep(0.3)  # the child has started (the left chain takes longer)
+                proc.send_signal(signal.SIGINT)
+                break
+        else:
+            pytest.fail(f"the run never measured: {''.join(seen)}")
+        _, rest = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, "".join(seen) + rest
+    deadline = time.monotonic() + 5
+    while True:
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break  # no process of the run's group is left
+        assert time.monotonic() < deadline, "a process of the interrupted run is still there"
+        time.sleep(0.05)

@@ -37,6 +37,18 @@ def _truncated_variance_factor(k):
     return 1.0 - 2.0 * k * np.exp(-0.5 * k * k) / np.sqrt(2.0 * np.pi) / p
 
 
+def _max3x3_at(a, step):
+    """Maxima of ``a`` over the 3x3 neighbourhoods of its interior pixels on a grid of ``step``.
+
+    The grid is ``a[1:-1:step, 1:-1:step]``; the result equals
+    ``cv2.dilate(a, ones((3, 3)))[1:-1:step, 1:-1:step]`` (maxima are exact)
+    without the neighbourhoods of the pixels that are not kept.
+    """
+    H, W = a.shape
+    rows = np.maximum(np.maximum(a[0:H - 2:step], a[1:H - 1:step]), a[2:H:step])
+    return np.maximum(np.maximum(rows[:, 0:W - 2:step], rows[:, 1:W - 1:step]), rows[:, 2:W:step])
+
+
 def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
     """Standard deviation of the additive image noise, in grey levels.
 
@@ -84,25 +96,21 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
         raise ValueError(f"need a 2-D image of at least 3x3 pixels, got shape {img.shape}")
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
     f = img.astype(np.float32)
-    resp = cv2.filter2D(f, cv2.CV_32F, _MASK, borderType=cv2.BORDER_REFLECT)
-    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
-    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
-    grad = cv2.magnitude(gx, gy)
-    # A pixel is next to an edge when the largest gradient in its 3x3
-    # neighbourhood exceeds the threshold: the 3x3 maximum is taken once
-    # here and thresholded at each iteration, instead of dilating a full
-    # size edge mask per iteration (the same pixels either way).
-    grad_max = cv2.dilate(grad, np.ones((3, 3), np.uint8))
     # A regular subsample of the interior is plenty (the relative precision
     # of the estimate from n samples is about 1 / sqrt(2 n)) and keeps the
     # robust iterations cheap on large images.
-    step = max(1, int(np.sqrt(resp.size / 4e5)))
+    step = max(1, int(np.sqrt(img.size / 4e5)))
     sub = (slice(1, -1, step), slice(1, -1, step))
-    resp, grad_max = resp[sub], grad_max[sub]
+    resp = cv2.filter2D(f, cv2.CV_32F, _MASK, borderType=cv2.BORDER_REFLECT)[sub]
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
+    # A pixel is next to an edge when the largest gradient in its 3x3
+    # neighbourhood exceeds the threshold: that maximum is taken once here,
+    # at the subsample's pixels only, and thresholded at each iteration.
+    grad_max = _max3x3_at(cv2.magnitude(gx, gy), step)
     valid = np.ones(resp.shape, bool)
     if top is not None:
-        sat = ((img == 0) | (img == top)).astype(np.uint8)
-        valid &= cv2.dilate(sat, np.ones((3, 3), np.uint8))[sub] == 0
+        valid &= ~_max3x3_at((img == 0) | (img == top), step)
     r = resp[valid]
     if r.size == 0:
         raise ValueError("no unsaturated pixels to estimate the noise from")
@@ -110,21 +118,34 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
     sigma = float(np.median(np.abs(r))) / 0.6744897501960817 / _MASK_NORM
     if sigma == 0.0 and top is None:
         sigma = float(np.sqrt(np.mean(r * r))) / _MASK_NORM  # most responses exactly zero: start from the RMS
+    # Both loops stop early once nothing can change any more, which gives
+    # the same sigma as running them to the end: the pixels kept at a
+    # threshold are a nested family, so an unchanged count means the very
+    # same pixels, hence the same mean and the same sigma next time round.
+    n_keep, settled = -1, False
     for _ in range(iterations):
         # Each Sobel component has noise std sqrt(12) sigma, so |g| exceeds
         # k sqrt(12) sigma with probability exp(-k^2 / 2) without an edge.
         thr = edge_k * np.sqrt(12.0) * max(sigma, 1e-3)
         keep = valid & ~(grad_max > thr)
-        r = resp[keep]
-        if r.size < 100:
+        n = int(np.count_nonzero(keep))
+        if n < 100 or (n == n_keep and settled):
             break
+        n_keep, settled = n, False
+        r = resp[keep]
         r2 = (r * r).astype(np.float64)
+        n_sel = -1
         for _ in range(5):
             lim = (clip * _MASK_NORM * sigma) ** 2
-            sel = r2[r2 < lim]
-            if sel.size == 0:
+            below = r2 < lim
+            m = int(np.count_nonzero(below))
+            if m == n_sel:
+                settled = True
                 break
-            sigma = float(np.sqrt(sel.mean() / _truncated_variance_factor(clip))) / _MASK_NORM
+            if m == 0:
+                break
+            n_sel = m
+            sigma = float(np.sqrt(r2[below].mean() / _truncated_variance_factor(clip))) / _MASK_NORM
     if top is not None:
         # An integer image with noise well under a grey level reads as
         # nearly noise-free where it is flat, where rounding is the same for

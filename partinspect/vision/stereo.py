@@ -97,6 +97,7 @@ from partinspect.vision.correspondences import correspond, deblurred
 from partinspect.vision.pointerrors import point_error_model, short_scale_ratio
 from partinspect.vision.edges import BACKGROUND_NOISE, edge_points
 from partinspect.vision.fitting import fit_ellipse
+from partinspect.vision.forked import forked
 from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
                                       fit_circle_3d, fit_line_3d)
 from partinspect.vision.ideal import camera_matrices, to_ideal
@@ -728,7 +729,7 @@ def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
 
 
 def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_options=None, edge_options=None,
-                   segment_options=None):
+                   segment_options=None, parallel=True):
     """Measure the 3D lines and circles of a part from a calibrated stereo pair.
 
     Parameters
@@ -748,16 +749,30 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         Keyword arguments of :func:`partinspect.vision.matching.match_features`.
     edge_options, segment_options : dict, optional
         Passed to :func:`measure_images` for both images.
+    parallel : bool
+        Measure the right image in a forked child process while this one
+        measures the left (:func:`partinspect.vision.forked.forked`; made
+        here where no child can run). The results are the same either way,
+        bit for bit; False runs the two one after the other.
 
     Returns
     -------
     StereoResult
     """
     say = progress or (lambda message: None)
+    options = dict(sigma=sigma, edge_options=edge_options, segment_options=segment_options)
     say("edges and segments: left image")
-    L = measure_images(left, calib.K1, calib.D1, sigma=sigma, edge_options=edge_options, segment_options=segment_options)
-    say("edges and segments: right image")
-    R = measure_images(right, calib.K2, calib.D2, sigma=sigma, edge_options=edge_options, segment_options=segment_options)
+    if parallel:
+        # The two 2D chains are independent and mostly Python: a second
+        # process, not a thread, runs one alongside the other.
+        with forked(measure_images, right, calib.K2, calib.D2, **options) as right_result:
+            L = measure_images(left, calib.K1, calib.D1, **options)
+            say("edges and segments: right image")
+            R = right_result()
+    else:
+        L = measure_images(left, calib.K1, calib.D1, **options)
+        say("edges and segments: right image")
+        R = measure_images(right, calib.K2, calib.D2, **options)
     geo = epipolar_geometry(calib)
     say("matching")
     matching = match_features(L.features, R.features, geo, **(match_options or {}))

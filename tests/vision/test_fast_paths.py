@@ -1,7 +1,10 @@
 """The fast paths of the fits agree with the plain numpy forms they replace."""
 
+import cv2
 import numpy as np
+import pytest
 
+from partinspect.vision import noise
 from partinspect.vision.correspondences import intersect_ellipse, intersect_line
 from partinspect.vision.fit3d import _circle_image_conics, circle_image_conic
 from partinspect.vision.fitting import (
@@ -120,3 +123,60 @@ def test_intersections_with_one_curve_per_line_match_one_curve_for_all():
         for k, part in enumerate(rows):
             ref = np.concatenate([e[k] for e in each])
             assert np.allclose(part, ref, rtol=1e-13, atol=1e-9, equal_nan=True)
+
+
+def _noise_whole_image(image, clip=3.0, edge_k=4.0, iterations=3):
+    """estimate_noise as it was: every map over the whole image, subsampled after, all iterations run."""
+    img = np.asarray(image)
+    top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
+    f = img.astype(np.float32)
+    resp = cv2.filter2D(f, cv2.CV_32F, noise._MASK, borderType=cv2.BORDER_REFLECT)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
+    grad_max = cv2.dilate(cv2.magnitude(gx, gy), np.ones((3, 3), np.uint8))
+    step = max(1, int(np.sqrt(resp.size / 4e5)))
+    sub = (slice(1, -1, step), slice(1, -1, step))
+    resp, grad_max = resp[sub], grad_max[sub]
+    valid = np.ones(resp.shape, bool)
+    if top is not None:
+        sat = ((img == 0) | (img == top)).astype(np.uint8)
+        valid &= cv2.dilate(sat, np.ones((3, 3), np.uint8))[sub] == 0
+    r = resp[valid]
+    sigma = float(np.median(np.abs(r))) / 0.6744897501960817 / noise._MASK_NORM
+    if sigma == 0.0 and top is None:
+        sigma = float(np.sqrt(np.mean(r * r))) / noise._MASK_NORM
+    for _ in range(iterations):
+        r = resp[valid & ~(grad_max > edge_k * np.sqrt(12.0) * max(sigma, 1e-3))]
+        if r.size < 100:
+            break
+        r2 = (r * r).astype(np.float64)
+        for _ in range(5):
+            sel = r2[r2 < (clip * noise._MASK_NORM * sigma) ** 2]
+            if sel.size == 0:
+                break
+            sigma = float(np.sqrt(sel.mean() / noise._truncated_variance_factor(clip))) / noise._MASK_NORM
+    return max(sigma, noise.QUANTISATION_STD) if top is not None else sigma
+
+
+@pytest.mark.parametrize("shape", [(3, 3), (7, 9), (480, 640), (1301, 997), (2048, 2448)])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+def test_noise_from_the_kept_pixels_only_is_the_same(shape, dtype):
+    # estimate_noise takes the 3x3 maxima only around the subsample it keeps
+    # and stops iterating once the kept responses stop changing: the same
+    # value, bit for bit, as filtering the whole image and running every
+    # iteration. Edges, saturated pixels and shading included.
+    rng = np.random.default_rng(sum(shape))
+    y, x = np.mgrid[0:shape[0], 0:shape[1]]
+    img = 90 + 0.02 * x + 100 * ((x - shape[1] / 2) ** 2 + (y - shape[0] / 2) ** 2 < (min(shape) / 3) ** 2)
+    img = img + rng.normal(0, 2.0, shape)
+    if min(shape) > 10:  # (a tiny image with one saturated pixel has no other)
+        img[rng.random(shape) < 0.01] = 255
+        img[rng.random(shape) < 0.01] = 0
+    if np.issubdtype(dtype, np.integer):
+        img = np.rint(img) * (257 if dtype == np.uint16 else 1)
+    img = img.astype(dtype)
+    for step in (1, 2, 3, 5):
+        a = rng.normal(size=shape).astype(np.float32)
+        ref = cv2.dilate(a, np.ones((3, 3), np.uint8))[1:-1:step, 1:-1:step]
+        assert np.array_equal(noise._max3x3_at(a, step), ref)
+    assert noise.estimate_noise(img) == _noise_whole_image(img)

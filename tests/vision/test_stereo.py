@@ -1,9 +1,13 @@
 """The whole stereo chain on rendered sample parts, against the truth."""
 
+import dataclasses
+import struct
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
+from partinspect.vision.forked import can_fork
 from partinspect.vision.ideal import camera_matrices
 from partinspect.vision.stereo import measure_stereo
 from tests.vision import stereo_scenes as S
@@ -195,3 +199,59 @@ def test_arcs_of_two_different_holes_are_not_one_circle():
 
     assert p_value(arc(Lr, P1, "circle-4"), arc(Rr, P2, "circle-4")) > 1e-3
     assert p_value(arc(Lr, P1, "circle-4"), arc(Rr, P2, "circle-8")) < MISMATCH_P
+
+
+def first_difference(a, b, path="result"):
+    """Where two results differ, bit for bit (arrays by their bytes, floats by theirs), or None."""
+    if type(a) is not type(b):
+        return f"{path}: {type(a).__name__} vs {type(b).__name__}"
+    if isinstance(a, np.ndarray):
+        if a.dtype == object:
+            return first_difference(list(a.ravel()), list(b.ravel()), path) if a.shape == b.shape else path
+        same = a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+        return None if same else path
+    if isinstance(a, float):
+        return None if struct.pack("d", a) == struct.pack("d", b) else f"{path}: {a!r} vs {b!r}"
+    if dataclasses.is_dataclass(a):
+        pairs = [(f.name, getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)]
+    elif isinstance(a, (list, tuple)):
+        if len(a) != len(b):
+            return f"{path}: {len(a)} vs {len(b)} items"
+        pairs = [(f"[{i}]", x, y) for i, (x, y) in enumerate(zip(a, b))]
+    elif isinstance(a, dict):
+        if a.keys() != b.keys():
+            return f"{path}: keys"
+        pairs = [(f"[{k!r}]", a[k], b[k]) for k in a]
+    elif hasattr(a, "__dict__"):
+        return first_difference(vars(a), vars(b), path)
+    else:
+        return None if a == b else f"{path}: {a!r} vs {b!r}"
+    for name, x, y in pairs:
+        d = first_difference(x, y, f"{path}.{name}" if not name.startswith("[") else path + name)
+        if d:
+            return d
+    return None
+
+
+@pytest.mark.skipif(not can_fork(), reason="no os.fork or fewer than 2 CPUs: both paths are serial")
+def test_parallel_and_serial_results_are_identical():
+    # The right image measured in a forked child: the same bits as measured
+    # here, the edges, segments and features of both images and everything
+    # built on them.
+    rig, pose, L, R = S.render("plate", 2.0, 0, True)
+    serial = measure_stereo(L, R, rig, parallel=False)
+    parallel = measure_stereo(L, R, rig, parallel=True)
+    assert len(parallel.right.segments) > 10 and len(parallel.features) >= 15
+    assert first_difference(serial, parallel) is None, first_difference(serial, parallel)
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_an_exception_in_either_images_chain_is_raised_as_it_is(parallel, side):
+    # A saturated image has no pixels to estimate the noise from: the same
+    # ValueError whether that image was measured here or in the child.
+    rig, pose, L, R = S.render("plate", 2.0, 0)
+    white = np.full_like(L, 255)
+    L, R = (white, R) if side == "left" else (L, white)
+    with pytest.raises(ValueError, match="no unsaturated pixels"):
+        measure_stereo(L, R, rig, parallel=parallel)
