@@ -31,7 +31,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from partinspect.simulate.render import DEFAULT_SHADING, blur, camera_in_part, render_radiance, sensor  # noqa: E402
 from partinspect.vision import forked as forked_module  # noqa: E402
-from partinspect.vision.forked import available_cpus  # noqa: E402
 from partinspect.vision.ideal import camera_matrices  # noqa: E402
 from partinspect.vision.stereo import measure_stereo  # noqa: E402
 from tests.vision import stereo_scenes as S  # noqa: E402
@@ -237,7 +236,7 @@ def main():
                 times[parallel].append(time.perf_counter() - t)
         print(f"measure_stereo on a 2448x2048 pair ({a.part}): median {np.median(times[True]):.2f} s over "
               f"{a.timing_runs} runs, the right image's 2D chain in a forked child process "
-              f"(partinspect.vision.forked; {available_cpus()} CPUs); baseline in the same runs, both chains here "
+              f"(partinspect.vision.forked; {forked_module.available_cpus()} CPUs); baseline in the same runs, both chains here "
               f"one after the other (parallel=False): {np.median(times[False]):.2f} s; 1-minute load average "
               f"{load0:.1f} before, {os.getloadavg()[0]:.1f} after")
 

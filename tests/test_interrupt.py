@@ -41,19 +41,23 @@ def work(tmp_path):
     return d, out
 
 
-def interrupted_run(part, images, out, stage):
-    """Start `python -m partinspect`, send SIGINT when it reports ``stage``; (code, stderr lines)."""
+def interrupted_run(part, images, out, stage, *, delay=0.0, new_session=False):
+    """Start `python -m partinspect`, send SIGINT ``delay`` s after it reports ``stage``;
+    (code, stderr lines, stdout, pid). ``new_session``: the run gets a session (so a
+    process group) of its own, whose id is its pid."""
     env = dict(os.environ, PARTINSPECT_PROGRESS="1", PYTHONUNBUFFERED="1")
     env.pop("PARTINSPECT_DEBUG", None)
     proc = subprocess.Popen(
         [sys.executable, "-m", "partinspect", str(part), str(images), "-o", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO,
+        start_new_session=new_session,
     )
     seen = []
     try:
         for line in proc.stderr:
             seen.append(line)
             if stage in line:
+                time.sleep(delay)
                 proc.send_signal(signal.SIGINT)
                 break
         else:
@@ -63,7 +67,7 @@ def interrupted_run(part, images, out, stage):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    return proc.returncode, seen + rest_err.splitlines(keepends=True), rest_out
+    return proc.returncode, seen + rest_err.splitlines(keepends=True), rest_out, proc.pid
 
 
 def test_sigint_while_loading_the_part_keeps_previous_reports(work):
@@ -71,7 +75,7 @@ def test_sigint_while_loading_the_part_keeps_previous_reports(work):
     before = digest(out)
     inputs = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in plate.rglob("*") if p.is_file()}
     # "loading part.step" comes before seconds of importing cadquery and reading the STEP file.
-    code, err, stdout = interrupted_run(plate / "part.step", plate / "images", out, "loading part.step")
+    code, err, stdout, _ = interrupted_run(plate / "part.step", plate / "images", out, "loading part.step")
     messages = [line for line in err if not PROGRESS.match(line)]
     assert code == 130, "".join(err)
     assert messages == ["inspect: interrupted; earlier outputs are left as they were\n"], "".join(err)
@@ -85,7 +89,7 @@ def test_sigint_while_writing_leaves_one_complete_set(work):
     # The signal lands while rendering or while the files are replaced: either
     # way the folder holds one complete set, the previous or the new, never a mix.
     plate, out = work
-    code, err, _ = interrupted_run(plate / "part.step", plate / "images", out, "writing reports")
+    code, err, _, _ = interrupted_run(plate / "part.step", plate / "images", out, "writing reports")
     assert code in (130, 3), "".join(err)
     assert sorted(p.name for p in out.iterdir()) == sorted(PREVIOUS)
     old = [(out / name).read_bytes() == data for name, data in PREVIOUS.items()]
@@ -129,32 +133,14 @@ def test_sigint_while_measuring_leaves_no_child_process(work):
     # behind (the run gets a session of its own, so whatever it forked is
     # found by its group even after the parent is gone).
     plate, out = work
-    env = dict(os.environ, PARTINSPECT_PROGRESS="1", PYTHONUNBUFFERED="1")
-    env.pop("PARTINSPECT_DEBUG", None)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "partinspect", str(plate / "part.step"), str(plate / "images"), "-o", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO, start_new_session=True,
-    )
-    seen = []
-    try:
-        for line in proc.stderr:
-            seen.append(line)
-            if "edges and segments: left image" in line:
-                time.sleep(0.3)  # the child has started (the left chain takes longer)
-                proc.send_signal(signal.SIGINT)
-                break
-        else:
-            pytest.fail(f"the run never measured: {''.join(seen)}")
-        _, rest = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 130, "".join(seen) + rest
+    # 0.3 s after the left chain starts, the child has started too (the left chain takes longer).
+    code, err, _, pid = interrupted_run(plate / "part.step", plate / "images", out, "edges and segments: left image",
+                                        delay=0.3, new_session=True)
+    assert code == 130, "".join(err)
     deadline = time.monotonic() + 5
     while True:
         try:
-            os.killpg(proc.pid, 0)
+            os.killpg(pid, 0)
         except ProcessLookupError:
             break  # no process of the run's group is left
         assert time.monotonic() < deadline, "a process of the interrupted run is still there"

@@ -32,8 +32,9 @@ References
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import chdtrc
 
-from partinspect.vision.fitting import _band
+from partinspect.vision.fitting import _band, _trR2, fit_ellipse
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
            "circle_consistency"]
@@ -474,10 +475,6 @@ def circle_consistency(views, fit, starts=None):
     .. [1] Kanatani, K. (1996). Statistical Optimization for Geometric
            Computation, ch. 7 (geometric model selection by the residual).
     """
-    from scipy.special import chdtrc
-
-    from partinspect.vision.fitting import _trR2, fit_ellipse
-
     chi2_2d, scale = 0.0, []
     for k, v in enumerate(views):
         t = v.total_sigma

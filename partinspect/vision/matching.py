@@ -374,7 +374,7 @@ under six light directions (36 draws each, 5600 rim points), the rim
 points' errors against the true rim, normalised by their random and Type B
 uncertainties together, had 0.8 % beyond 3 and a largest of 7.5, up to 3 px
 off (the points beyond 2.5 times the median at ends, beyond 5 anywhere,
-RMS 1.6-2.4); without those points (6 % of them), 0.24-0.47 % and 4.4, as
+RMS 1.5-2.4); without those points (6 % of them), 0.24-0.47 % and 4.4, as
 for Gaussian errors (0.27 %)."""
 
 
