@@ -86,10 +86,10 @@ def test_line_ends_beside_a_junction_keep_clear_of_the_other_edge():
     noise."""
     from partinspect.planning.check import render_radiance_pair
     from partinspect.simulate.render import sensor
+    from partinspect.vision.ideal import camera_matrices
     from partinspect.vision.stereo import measure_images
     from tests.vision import stereo_scenes as S
     from tests.vision.stereo_scenes import project
-    from partinspect.vision.ideal import camera_matrices
 
     p = S.part("plate")
     rig = p.rig(False, S.SIZE)
