@@ -41,14 +41,22 @@ def work(tmp_path):
     return d, out
 
 
-def interrupted_run(part, images, out, stage, *, delay=0.0, new_session=False):
+# `python -m partinspect` that forks the right image's chain whatever the machine's load
+# (vision.forked.MIN_IDLE_CPUS), as the tests' own process does (tests/conftest.py).
+FORKING_CLI = ("import sys; from partinspect.vision import forked; forked.MIN_IDLE_CPUS = float('-inf'); "
+               "from partinspect.cli import main; sys.exit(main(sys.argv[1:]))")
+
+
+def interrupted_run(part, images, out, stage, *, delay=0.0, new_session=False, force_fork=False):
     """Start `python -m partinspect`, send SIGINT ``delay`` s after it reports ``stage``;
     (code, stderr lines, stdout, pid). ``new_session``: the run gets a session (so a
-    process group) of its own, whose id is its pid."""
+    process group) of its own, whose id is its pid. ``force_fork``: the run forks its
+    right image's chain even on a busy machine."""
     env = dict(os.environ, PARTINSPECT_PROGRESS="1", PYTHONUNBUFFERED="1")
     env.pop("PARTINSPECT_DEBUG", None)
+    entry = ["-c", FORKING_CLI] if force_fork else ["-m", "partinspect"]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "partinspect", str(part), str(images), "-o", str(out)],
+        [sys.executable, *entry, str(part), str(images), "-o", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO,
         start_new_session=new_session,
     )
@@ -135,7 +143,7 @@ def test_sigint_while_measuring_leaves_no_child_process(work):
     plate, out = work
     # 0.3 s after the left chain starts, the child has started too (the left chain takes longer).
     code, err, _, pid = interrupted_run(plate / "part.step", plate / "images", out, "edges and segments: left image",
-                                        delay=0.3, new_session=True)
+                                        delay=0.3, new_session=True, force_fork=True)
     assert code == 130, "".join(err)
     deadline = time.monotonic() + 5
     while True:
