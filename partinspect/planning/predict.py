@@ -624,7 +624,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
             f"{fid}: only {len(corr)} corresponding points (epipolar lines cross it too obliquely)"), **base)
     try:
         fviews = feature_views(fl, fr, model.sigma, calib)
-        fit = fit_feature(fl, fr, fviews, corr.points)
+        fit = fit_feature(fl, fr, fviews, corr.points, geo)
         corr = corrected_correspondences(fl, fr, fviews, corr, geo, model.sigma)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return FeaturePrediction(status="failed", reason=f"{fid}: 3D fit failed ({exc})", **base)

@@ -36,7 +36,7 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -213,7 +213,7 @@ def _arc_length(xy):
     return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
 
 
-def _test_pieces(requests, min_arc=12, max_iter=None):
+def _test_pieces(requests, min_arc=12, max_iter=_TEST_ITERATIONS):
     """The statistical test of several pieces at once.
 
     Each piece is tried as a line, else (with ``"arc"`` in its kinds) as an
@@ -251,8 +251,6 @@ def _test_pieces(requests, min_arc=12, max_iter=None):
         Per piece, (kind, fit, p_value) of the first primitive accepted, or
         None.
     """
-    if max_iter is None:
-        max_iter = _TEST_ITERATIONS
     out = [None] * len(requests)
     jobs, where = [], []
     # The fits are made without their covariances (cov and ci95 None): a
@@ -514,41 +512,38 @@ def _make_segments(edges, contours, contour_ids, accepted, refit, min_points):
     """
     cl = edges.sigma
     reach = CLEARANCE * float(np.median(edges.width)) if len(edges.width) else 0.0
-    todo = []  # [contour, contour id, positions, kind, fit, fit index, refit]
-    for contour, cid, pieces in zip(contours, contour_ids, accepted):
-        for pos, (kind, fit, _, fit_pos) in pieces:
-            todo.append([contour, cid, pos, kind, fit, contour.index[fit_pos], refit])
+    todo = [(contour, cid, pos, kind, fit, contour.index[fit_pos])
+            for contour, cid, pieces in zip(contours, contour_ids, accepted)
+            for pos, (kind, fit, _, fit_pos) in pieces]
     lines = [k for k, t in enumerate(todo) if t[3] == "line"]
     crowded = _crowded(edges, [todo[k][0].index[todo[k][2]] for k in lines], [todo[k][5] for k in lines], reach)
     ends = dict(zip(lines, map(_end_runs, crowded)))
-    kept = []
-    for k, t in enumerate(todo):
+    out, arcs = [], []
+    for k, (contour, cid, pos, kind, fit, fit_index) in enumerate(todo):
         bad = ends.get(k)
-        if bad is not None and bad.any():
+        trimmed = bad is not None and bool(bad.any())
+        if trimmed:
             if (~bad).sum() < min_points:
                 continue
-            t[5], t[6] = t[5][~bad], True
-        kept.append(t)
-    arcs = []
-    for t in kept:
-        xy, cov = edges.xy[t[5]], edges.cov[t[5]]
-        if not t[6]:
+            fit_index = fit_index[~bad]
+        xy, cov = edges.xy[fit_index], edges.cov[fit_index]
+        if not (refit or trimmed):
             # The test's fit (of the points with the floor added), with the
             # covariance _test_pieces made it without.
-            complete = _line_with_covariance if t[3] == "line" else _ellipse_with_covariance
-            t[4] = complete(t[4], xy, cl)
-        elif t[3] == "line":
-            t[4] = fit_line(xy, cov, corr_length=cl)
+            complete = _line_with_covariance if kind == "line" else _ellipse_with_covariance
+            fit = complete(fit, xy, cl)
+        elif kind == "line":
+            fit = fit_line(xy, cov, corr_length=cl)
         else:
             # The test's fit of the same points (with the floor added to
             # their variances) is a start next to the minimum.
-            arcs.append((t, _EllipseJob(_as_points(xy, 6), cov, cl, float(np.median(edges.width[t[5]])),
-                                       t[4].params, max_axis=_axis_bound(xy))))
+            arcs.append((len(out), _EllipseJob(_as_points(xy, 6), cov, cl, float(np.median(edges.width[fit_index])),
+                                               fit.params, max_axis=_axis_bound(xy))))
+        out.append(Segment(kind, contour.index[pos], fit_index, fit, cid))
     refits = _fit_ellipses([job for _, job in arcs], _TEST_ITERATIONS, sigma_tol=_SIGMA_TOL_REFIT)
-    for (t, _), fit in zip(arcs, refits):
-        t[4] = fit
-    return [Segment(kind, contour.index[pos], fit_index, fit, cid)
-            for contour, cid, pos, kind, fit, fit_index, _ in kept]
+    for (k, _), fit in zip(arcs, refits):
+        out[k] = replace(out[k], fit=fit)
+    return out
 
 
 def _end_runs(bad):

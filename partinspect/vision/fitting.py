@@ -730,13 +730,30 @@ def _ellipse_plausible(xy, cov, factor=9.0):
         of the geometric fit (computed here already), or None if the
         points fail the screen.
     """
+    direct = _direct_residuals(xy)
+    if direct is None:
+        return None
+    p, phi, r, n = direct
+    s2 = _normal_std(cov, n) ** 2
+    return (p, phi) if float((r * r / s2).mean()) < factor else None
+
+
+def _direct_residuals(xy):
+    """The direct fit of points xy and their orthogonal residuals about it.
+
+    Returns
+    -------
+    tuple or None
+        (params, phases, residuals (M,), unit normals (M, 2)) of
+        :func:`_ellipse_start` and :func:`_ellipse_geometry`, or None when
+        the direct fit is no finite ellipse.
+    """
     p = _ellipse_start(xy)
     if p[3] <= 0 or not np.all(np.isfinite(p)):
         return None
     phi = _foot_phases(xy, p)
     r, n, _ = _ellipse_geometry(xy, p, phi)
-    s2 = _normal_std(cov, n) ** 2
-    return (p, phi) if float((r * r / s2).mean()) < factor else None
+    return p, phi, r, n
 
 
 def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=1e-9, start=None):

@@ -73,12 +73,11 @@ from partinspect.vision.fitting import (
     _EllipseJob,
     _as_points,
     _axis_bound,
+    _direct_residuals,
     _ellipse_geometry,
-    _ellipse_start,
     _ellipse_with_covariance,
     _fit_ellipses,
     _fit_line,
-    _foot_phases,
     _line_with_covariance,
 )
 from partinspect.vision.ideal import IdealPoints, ideal_points
@@ -606,12 +605,12 @@ def _mergeable(a, b, max_angle, max_offset, max_axis_ratio, limit=np.inf):
         return True
     xy = np.concatenate([a.ideal.xy, b.ideal.xy])
     try:
-        p = _ellipse_start(xy)
-        if not (np.all(np.isfinite(p)) and p[3] > 0 and p[2] <= _axis_bound(xy)):
-            return False
-        r, _, _ = _ellipse_geometry(xy, p, _foot_phases(xy, p))
+        direct = _direct_residuals(xy)
     except (ValueError, np.linalg.LinAlgError, cv2.error):
         return False
+    if direct is None or direct[0][2] > _axis_bound(xy):
+        return False
+    r = direct[2]
     return bool(np.sqrt(np.mean(r * r)) <= MERGE_SCREEN * limit)
 
 
@@ -879,14 +878,27 @@ def _signed_line_angle(geo, f, side):
     return float(np.arctan2(d[0] * t[1] - d[1] * t[0], d @ t))
 
 
-def _arc_radius(geo, fl, fr):
-    """3D radius seen by each view (depth-scaled major semi-axes) and the centre's depths."""
+def arc_circle(geo, fl, fr):
+    """The 3D circle two matched arcs' ellipses suggest, before any 3D fit.
+
+    Returns
+    -------
+    center : ndarray, shape (3,)
+        The ellipse centres triangulated, rig frame, mm (the centre of the
+        circle's image is not the image of its centre, but close to it for
+        the holes of a part in view).
+    radii : tuple of float
+        Each view's semi-major axis scaled by the centre's depth over the
+        focal length, mm: the 3D radius each image shows.
+    depths : tuple of float
+        The centre's depth in the left and right camera, mm.
+    """
     X = triangulate(fl.fit.center[None], fr.fit.center[None], geo.K1, geo.K2, geo.R, geo.T)[0]
     zl = X[2]
     zr = (geo.R @ X + geo.T)[2]
     rl = fl.fit.params[2] * zl / geo.K1[0, 0]
     rr = fr.fit.params[2] * zr / geo.K2[0, 0]
-    return rl, rr, zl, zr
+    return X, (rl, rr), (zl, zr)
 
 
 def _line_middle_depth(geo, fl, fr, lo, hi):
@@ -1013,7 +1025,7 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
                 blocked[i, j] = True
                 continue
             if fl.kind == "arc":
-                rl, rr, zl, zr = _arc_radius(geo, fl, fr)
+                _, (rl, rr), (zl, zr) = arc_circle(geo, fl, fr)
                 if not (zmin < zl < zmax and zmin < zr < zmax) or rl <= 0 or rr <= 0:
                     continue
                 s = abs(np.log(rl / rr)) / radius_tolerance

@@ -101,7 +101,7 @@ from partinspect.vision.forked import forked
 from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
                                       fit_circle_3d, fit_line_3d)
 from partinspect.vision.ideal import camera_matrices, to_ideal
-from partinspect.vision.matching import ImageFeature, epipolar_geometry, image_features, match_features
+from partinspect.vision.matching import ImageFeature, arc_circle, epipolar_geometry, image_features, match_features
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
@@ -435,7 +435,7 @@ def _initial_circle(points):
     return c + sol[0] * e1 + sol[1] * e2, n, r
 
 
-def fit_feature(fl, fr, views, points):
+def fit_feature(fl, fr, views, points, geo):
     """The two-view 3D fit of one matched pair, initialised from triangulated points.
 
     An arc (part of a rim) is fitted from a second start as well, and the
@@ -445,9 +445,9 @@ def fit_feature(fl, fr, views, points):
     over 65 degrees through the hole: from the points' circle, radius
     8.2 mm for 6 mm and the centre 5.9 mm off, chi-square 231; from the
     second start 6.01 mm, 0.1 mm off, chi-square 151). The second start
-    takes the centre and radius from the two images' ellipses (centres
-    triangulated, semi-major axes scaled by depth, as the matching
-    compares them) and the normal from the points.
+    takes the centre and radius from the two images' ellipses as the
+    matching compares them (:func:`partinspect.vision.matching.arc_circle`;
+    ``geo`` the pair's EpipolarGeometry) and the normal from the points.
     """
     if fl.kind == "line":
         p0, d0 = _initial_line(points)
@@ -455,37 +455,15 @@ def fit_feature(fl, fr, views, points):
     c0, n0, r0 = _initial_circle(points)
     fit = fit_circle_3d(views, c0, n0, r0)
     if fl.kind == "arc":
-        start = _ellipse_start_3d(fl.fit.params, fr.fit.params, views[0].P, views[1].P)
-        if start is not None:
+        center, radii, depths = arc_circle(geo, fl, fr)
+        if min(depths) > 0 and min(radii) > 0:
             try:
-                alt = fit_circle_3d(views, start[0], n0, start[1])
+                alt = fit_circle_3d(views, center, n0, float(np.mean(radii)))
             except (np.linalg.LinAlgError, ValueError):
                 alt = None
             if alt is not None and np.isfinite(alt.chi2) and alt.chi2 < fit.chi2 * (1.0 - 1e-9):
                 fit = alt
     return fit
-
-
-def _ellipse_start_3d(pl, pr, P1, P2):
-    """Centre (3,) and radius of a circle from its two image ellipses (ideal
-    px) and cameras: the centres triangulated (linear, two views), the
-    radius the mean of the semi-major axes times depth over focal length.
-    None if the centre is not in front of both cameras."""
-    A = np.stack([pl[0] * P1[2] - P1[0], pl[1] * P1[2] - P1[1], pr[0] * P2[2] - P2[0], pr[1] * P2[2] - P2[1]])
-    X = np.linalg.svd(A)[2][-1]
-    if abs(X[3]) < 1e-12:
-        return None
-    X = X[:3] / X[3]
-    radii = []
-    for (a, b), P in ((pl[2:4], P1), (pr[2:4], P2)):
-        depth = P[2, :3] @ X + P[2, 3]
-        # K K^T = M M^T for M = K R: the focal length from its first row.
-        MM = P[:, :3] @ P[:, :3].T
-        f = np.sqrt(max(MM[0, 0] - MM[0, 2] ** 2, 1e-12))
-        if depth <= 0:
-            return None
-        radii.append(max(a, b) * depth / f)
-    return X, float(np.mean(radii))
 
 
 def _angular_extent(points, center, normal):
@@ -788,7 +766,7 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
             continue
         try:
             views = feature_views(fl, fr, corr_length, calib)
-            fit = fit_feature(fl, fr, views, corr.points)
+            fit = fit_feature(fl, fr, views, corr.points, geo)
             if fl.kind == "arc":
                 delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
                 if p < MISMATCH_P:

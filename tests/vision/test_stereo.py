@@ -9,6 +9,7 @@ import pytest
 
 from partinspect.vision.forked import can_fork
 from partinspect.vision.ideal import camera_matrices
+from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.stereo import measure_stereo
 from tests.vision import stereo_scenes as S
 
@@ -194,7 +195,7 @@ def test_arcs_of_two_different_holes_are_not_one_circle():
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(t["normal"], e1)
         pts = t["center"] + t["radius"] * (np.outer(np.cos(th), e1) + np.outer(np.sin(th), e2))
-        fit = fit_feature(fl, fr, views, pts)
+        fit = fit_feature(fl, fr, views, pts, epipolar_geometry(rig))
         return circle_consistency(views, fit, (fl.fit.params, fr.fit.params))[1]
 
     assert p_value(arc(Lr, P1, "circle-4"), arc(Rr, P2, "circle-4")) > 1e-3
