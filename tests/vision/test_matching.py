@@ -222,3 +222,42 @@ def test_faded_points_of_an_arc_are_left_out_at_its_segment_ends_and_anywhere_be
     assert kept == set(range(40)) - {0, 1, 2, 20, 24, 25, 26}
     # Too short to trim: kept whole.
     assert len(_unfaded(np.r_[np.full(5, 0.03), 1.0, 1.0], [7])) == 7
+
+
+def test_a_weaker_stretch_of_a_rim_is_not_taken_for_a_fade():
+    """Each segment of an arc is judged against its own median: a piece
+    whose points are uniformly four times as uncertain as the other's (a
+    stretch of lower contrast) is kept whole, its own fading end is not."""
+    from partinspect.vision.matching import _unfaded
+
+    std = np.r_[np.full(60, 0.012), np.full(40, 0.048)]
+    std[-2:] = [0.13, 0.2]  # the weaker piece fades at its end
+    kept = _unfaded(std, [60, 40])
+    assert set(kept.tolist()) == set(range(98))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_rendered_rim_of_mixed_contrast_comes_out_whole(seed):
+    """The plate's 10 mm hole (circle-8) in the left image: a third of its
+    rim has four times the edge points' uncertainty of the rest (0.046 px
+    against 0.012, lower contrast against its inner wall) and is found as
+    separate segments. Judged against the whole arc's median, their points
+    were all "faded" at the ends, the union dropped them and the feature
+    covered 220 degrees of the rim in these draws; now 335-340."""
+    from scipy.spatial import cKDTree
+
+    from partinspect.vision.fit3d import _basis
+    from partinspect.vision.stereo import measure_images
+
+    rig, _, left, _ = S.render("plate", 2.0, seed)
+    t = next(t for t in S.truth_in_rig("plate") if t["id"] == "circle-8")
+    ang = np.linspace(0, 2 * np.pi, 3600, endpoint=False)
+    e1, e2 = _basis(t["normal"])
+    rim = project(P1, t["center"] + t["radius"] * (np.outer(np.cos(ang), e1) + np.outer(np.sin(ang), e2)))
+    tree = cKDTree(rim)
+    covered = []
+    for f in measure_images(left, rig.K1, rig.D1).features:
+        d, j = tree.query(f.ideal.xy)
+        if f.kind == "arc" and np.median(d) < 1.0:
+            covered.append(len(np.unique((ang[j[d < 1.0]] // np.deg2rad(5.0)).astype(int))) * 5)
+    assert max(covered, default=0) >= 300, covered
