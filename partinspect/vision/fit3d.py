@@ -66,6 +66,14 @@ class View:
     bias_corr_length : float or None
         Correlation length of ``bias`` along the edge, px; None: fully
         correlated over the whole view.
+    sigma_correction : ndarray, shape (N,) or None
+        Standard uncertainty across the edge from the noise of a correction
+        applied to the points, px, or None: random (it changes from image
+        to image, as ``sigma``), but correlated along the edge over its own
+        ``correction_corr_length``, longer than the image noise's (the
+        correction is averaged along the edge).
+    correction_corr_length : float or None
+        Its correlation length along the edge, px (same form as ``corr_length``).
     """
 
     xy: np.ndarray
@@ -74,13 +82,23 @@ class View:
     corr_length: float | None = None
     bias: np.ndarray | None = None
     bias_corr_length: float | None = None
+    sigma_correction: np.ndarray | None = None
+    correction_corr_length: float | None = None
+
+    @property
+    def random_sigma(self):
+        """Standard uncertainty of each point from image noise, its correction's included, px."""
+        if self.sigma_correction is None:
+            return self.sigma
+        return np.sqrt(self.sigma * self.sigma + self.sigma_correction * self.sigma_correction)
 
     @property
     def total_sigma(self):
         """Standard uncertainty of each point, random and systematic together, px (the fit's weights)."""
+        s = self.random_sigma
         if self.bias is None:
-            return self.sigma
-        return np.sqrt(self.sigma * self.sigma + self.bias * self.bias)
+            return s
+        return np.sqrt(s * s + self.bias * self.bias)
 
 
 @dataclass(frozen=True)
@@ -239,11 +257,13 @@ def _covariance(views, J):
     ``J`` holds the weighted Jacobian rows of all views stacked in order
     (residuals divided by each point's ``total_sigma``). The estimate is
     ``theta = -S^-1 H_w^T e_w`` to first order, with ``S = H_w^T H_w``; the
-    weighted errors e_w = e / t have the covariance ``D_s R_s D_s + D_b
-    R_b D_b`` (D_s = diag(sigma / t), D_b = diag(bias / t); R_s, R_b the
-    correlations along the edge of the noise and of the systematic
-    displacements), so each part is ``S^-1 (H_w^T D R D H_w) S^-1``. The
-    views' errors are independent of each other.
+    weighted errors e_w = e / t have the covariance ``D_s R_s D_s + D_c
+    R_c D_c + D_b R_b D_b`` (D_s = diag(sigma / t), D_c =
+    diag(sigma_correction / t), D_b = diag(bias / t); R_s, R_c, R_b the
+    correlations along the edge of the noise, of the correction's noise
+    and of the systematic displacements), so each part is ``S^-1 (H_w^T D
+    R D H_w) S^-1``, the first two the random one. The views' errors are
+    independent of each other.
     """
     p = J.shape[1]
     S = J.T @ J
@@ -254,6 +274,8 @@ def _covariance(views, J):
         hw = J[start : start + n]
         t = v.total_sigma
         M += _gram(hw * (v.sigma / t)[:, None], v.xy, v.corr_length)
+        if v.sigma_correction is not None:
+            M += _gram(hw * (v.sigma_correction / t)[:, None], v.xy, v.correction_corr_length)
         if v.bias is not None:
             Mb += _gram_dense(hw * (v.bias / t)[:, None], v.xy, v.bias_corr_length)
         start += n

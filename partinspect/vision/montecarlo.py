@@ -5,7 +5,9 @@ matching-free part of the chain is repeated for every draw: the matched
 features' edge points (distorted pixels) are displaced across the edge by
 Gaussian errors with their standard uncertainties and the along-edge
 correlation of smoothed noise (``exp(-d^2 / (4 l^2))`` between points at
-distance d, l the edge filter's sigma, as the sandwich covariances assume);
+distance d, l the edge filter's sigma, as the sandwich covariances assume),
+and the background correction of the points of rims by its own noise
+(correlated over :func:`partinspect.vision.stereo.correction_corr_length`);
 the calibration parameters with a standard uncertainty are drawn
 independently; the points are mapped to ideal pixels again and the
 two-view 3D fit redone from the nominal solution. The covariance of the
@@ -20,12 +22,13 @@ References
        measurement.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from partinspect.vision.fit3d import fit_circle_3d, fit_line_3d
-from partinspect.vision.stereo import calibration_parameters, feature_views, perturbed_calibration
+from partinspect.vision.stereo import (calibration_parameters, correction_corr_length, feature_views,
+                                       perturbed_calibration)
 
 __all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors"]
 
@@ -137,18 +140,29 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
         fl, fr = result.left.features[f3.left], result.right.features[f3.right]
         kind = "line" if f3.kind == "line" else "arc"
         ref = f3.params
-        noises = []
+        noises, corrections = [], []
         for f, edges in ((fl, result.left.edges), (fr, result.right.edges)):
             normal = edges.normal[f.index]
             s = np.sqrt(np.einsum("ni,nij,nj->n", normal, f.cov_uv, normal))
             z = correlated_normal_errors(f.uv, corr_length, draws, rng) if image_noise else np.zeros((draws, len(f.uv)))
             noises.append((z * s)[:, :, None] * normal[None])
+            # The background correction of a rim's points is read from the
+            # same noisy image: its noise is drawn too, correlated over its
+            # own, longer length.
+            offset, std = getattr(f, "background_offset", None), getattr(f, "background_std", None)
+            if image_noise and kind == "arc" and offset is not None:
+                zc = correlated_normal_errors(f.uv, correction_corr_length(corr_length), draws, rng)
+                corrections.append(offset[None] + (zc * std)[:, :, None] * normal[None])
+            else:
+                corrections.append(None)
         samples = []
         for t in range(draws):
             cal = calib
             if cal_params:
                 cal = perturbed_calibration(calib, {(g, i): s * rng.standard_normal() for g, i, s in cal_params})
-            views = feature_views(fl, fr, corr_length, cal, uv=(fl.uv + noises[0][t], fr.uv + noises[1][t]))
+            fl_t, fr_t = (f if c is None else replace(f, background_offset=c[t])
+                          for f, c in ((fl, corrections[0]), (fr, corrections[1])))
+            views = feature_views(fl_t, fr_t, corr_length, cal, uv=(fl.uv + noises[0][t], fr.uv + noises[1][t]))
             try:
                 if kind == "line":
                     fit = fit_line_3d(views, f3.point, f3.direction)

@@ -65,11 +65,12 @@ standard uncertainty of a hole's radius is 0.2-0.6 um, about 0.004 px):
   uncertainties (RMS) and of radii 0.4, instead of 6 and 23 with the
   curvature bias alone removed; the uncertainties grow accordingly (of a
   hole's depth from 2-3 um to 5-25 um). The random uncertainty of the
-  correction itself is added to each point's (averaged along the edge
-  over ``BACKGROUND_SMOOTHING`` px, it is a tenth of the point's
-  variance); a Monte Carlo of the points' image noise
-  (:mod:`partinspect.vision.montecarlo`) does not draw it, nor the Type B
-  part, and reproduces ``param_cov_image`` to within a few per cent. Lines are not corrected:
+  correction itself is a random component of its own (averaged along the
+  edge over ``BACKGROUND_SMOOTHING`` px, it is a tenth of the point's
+  variance, but correlated over 2.2 px instead of 1:
+  :func:`correction_corr_length`); part of ``param_cov_image``, it is drawn
+  by the Monte Carlo of :mod:`partinspect.vision.montecarlo` beside the
+  points' image noise; the Type B part is not. Lines are not corrected:
   an edge between two planar faces under a directional light has uniform
   grey on both sides.
 
@@ -105,7 +106,7 @@ from partinspect.vision.matching import ImageFeature, arc_circle, epipolar_geome
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "as_fitted", "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
+           "feature_views", "correction_corr_length", "as_fitted", "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
 
 # Points of arcs: the corrections and the Type B component of the module
 # notes, "Rims of holes" (the numbers there).
@@ -382,10 +383,12 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
 
     Points of arcs are corrected first (module notes, "Rims of holes"):
     ``BACKGROUND_CORRECTION`` times the first-order displacement by the
-    shading beside the edge is removed (distorted pixels; its noise is
-    added to the points' random uncertainty), then the curvature bias of
-    the edge detector (:func:`partinspect.vision.correspondences.deblurred`,
-    ideal pixels); each point carries the Type B standard uncertainty
+    shading beside the edge is removed (distorted pixels), then the
+    curvature bias of the edge detector
+    (:func:`partinspect.vision.correspondences.deblurred`, ideal pixels);
+    the correction's noise is the view's ``sigma_correction``, correlated
+    along the edge over :func:`correction_corr_length`, and each point
+    carries the Type B standard uncertainty
     ``EDGE_BIAS_FACTOR * background_bound`` of what remains, correlated
     along the edge over ``EDGE_BIAS_CORR_ANGLE`` times the ellipse's
     semi-major axis. Lines are used as found.
@@ -408,12 +411,30 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
             xy = to_ideal(pts, K, D)
         if arc:
             xy = deblurred(xy, f.fit, f.blur)
+        sigma_c = None
         if offset is not None:
-            sigma = np.sqrt(sigma * sigma + (BACKGROUND_CORRECTION * f.background_std) ** 2)
+            sigma_c = BACKGROUND_CORRECTION * f.background_std
             bias = EDGE_BIAS_FACTOR * f.background_bound
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
-        views.append(View(xy, sigma, P, corr_length, bias, bias_length))
+        views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))
     return views
+
+
+def correction_corr_length(corr_length):
+    """Correlation length along the edge of the noise of the background correction, px.
+
+    The gradients beside the edge are read through the edge filter, so
+    their noise is correlated as the points' own, ``exp(-d^2 / (4 l^2))``
+    with l = ``corr_length``; the Gaussian average over
+    ``BACKGROUND_SMOOTHING`` px along the edge (:func:`_along_edge_mean`)
+    widens that to the same form with l^2 + ``BACKGROUND_SMOOTHING``^2
+    (2.2 px for l = 1). Taken as the image noise's, the correction's
+    share of a rim's radius variance came out 2-2.5 times too small in
+    standard deviation (plate, 16 noise draws: its paired effect 0.17-0.59
+    um against a stated 0.10-0.29); at this length the spread of its means
+    over stretches of 7-10 px is 1.06-1.12 times the stated.
+    """
+    return float(np.hypot(corr_length or 0.0, BACKGROUND_SMOOTHING))
 
 
 def _initial_line(points):
@@ -660,7 +681,8 @@ def _point_errors(fl, corr, view):
     """The :class:`~partinspect.vision.pointerrors.PointErrorModel` of a feature's triangulated points.
 
     The left points' random part (``view.sigma``, correlated over the edge
-    filter's scale) and the Type B rest of a rim's shading displacement
+    filter's scale, and the background correction's noise over its own
+    length) and the Type B rest of a rim's shading displacement
     (``view.bias``, over its own length), as the 3D fit models them. Where
     the residuals scatter significantly more from point to point than that
     noise predicts (:func:`~partinspect.vision.pointerrors.short_scale_ratio` above 1 by more than twice
@@ -676,6 +698,8 @@ def _point_errors(fl, corr, view):
     if ratio > 1.0 + 2.0 * se:
         sigma = sigma * np.sqrt(ratio)
     comps = [(sigma, view.corr_length)]
+    if view.sigma_correction is not None:
+        comps.append((view.sigma_correction, view.correction_corr_length))
     if view.bias is not None:
         comps.append((view.bias, view.bias_corr_length))
     return point_error_model(corr, fl.ideal.normal, comps)

@@ -80,6 +80,36 @@ def test_circle_covariance_is_honest(corr):
     assert 0.8 <= np.sqrt((z * z).mean()) <= 1.25
 
 
+def test_a_corrections_noise_is_propagated_over_its_own_correlation_length():
+    """Points displaced by image noise (correlated over 1 px) and by the
+    noise of a correction averaged along the edge (correlated over 2.2 px,
+    1.5 times as large): the covariance is honest when the correction is
+    a component of its own, and too small when its variance is taken as
+    image noise (what the chain did)."""
+    rng = np.random.default_rng(21)
+    X = circle_points(680)
+    sc, lc = 1.5 * SIGMA, 2.2
+    m_own, m_lumped = [], []
+    for _ in range(60):
+        views = []
+        for P in PS:
+            v = noisy_view(P, X, rng, 1.0)
+            t = np.gradient(v.xy, axis=0)
+            nrm = np.c_[-t[:, 1], t[:, 0]] / np.linalg.norm(t, axis=1)[:, None]
+            d = np.linalg.norm(v.xy[:, None] - v.xy[None], axis=2)
+            L = np.linalg.cholesky(np.exp(-d * d / (4 * lc**2)) + 1e-9 * np.eye(len(d)))
+            views.append(View(v.xy + nrm * (sc * (L @ rng.standard_normal(len(d))))[:, None], v.sigma, P, 1.0,
+                              sigma_correction=np.full(len(d), sc), correction_corr_length=lc))
+        for out, vs in ((m_own, views),
+                        (m_lumped, [View(v.xy, np.hypot(v.sigma, sc), v.P, 1.0) for v in views])):
+            f = fit_circle_3d(vs, CIRCLE["center"], CIRCLE["normal"], 6.0)
+            e = f.center - CIRCLE["center"]
+            out.append(np.r_[e @ np.linalg.solve(f.covariance, e), ((f.radius - CIRCLE["radius"]) / f.radius_std) ** 2])
+    own, lumped = np.sqrt(np.mean(m_own, axis=0) / [3, 1]), np.sqrt(np.mean(m_lumped, axis=0) / [3, 1])
+    assert np.all((0.8 <= own) & (own <= 1.2)), own
+    assert np.all(lumped > 1.2), lumped
+
+
 def test_ignoring_correlation_would_understate_uncertainty():
     """The same correlated data fitted as if independent: covariances come out too small."""
     rng = np.random.default_rng(9)

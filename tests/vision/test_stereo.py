@@ -120,6 +120,28 @@ def test_distorted_images_measured_through_ideal_pixels():
         assert np.linalg.norm(e) < max(0.05, 3.0 * np.sqrt(np.trace(C))), (lab, e, np.sqrt(np.diag(C)))
 
 
+def test_the_background_corrections_noise_has_the_stated_correlation():
+    """The correction of a rim's points is the Gaussian mean along the edge
+    of readings whose noise is correlated as the edge points' own (l = 1
+    px): its noise then has the stated standard deviation and is
+    correlated over correction_corr_length (2.2 px), not over 1 px."""
+    from partinspect.vision.montecarlo import correlated_normal_errors
+    from partinspect.vision.stereo import BACKGROUND_SMOOTHING, _along_edge_mean, correction_corr_length
+
+    xy = np.c_[np.arange(120.0), np.zeros(120)]
+    z = correlated_normal_errors(xy, 1.0, 4000, np.random.default_rng(3))
+    std = np.full(120, 0.02)
+    # The mean is linear in the readings: all draws at once, one per column.
+    means, stated = _along_edge_mean(xy, 0.02 * z.T, std, BACKGROUND_SMOOTHING)
+    assert abs(means[60].std() / stated[60] - 1) < 0.05
+    L = correction_corr_length(1.0)
+    for d in (2, 4, 6):
+        rho = np.corrcoef(means[60], means[60 + d])[0, 1]
+        assert abs(rho - np.exp(-d * d / (4 * L * L))) < 0.04, (d, rho)
+        if d < 6:
+            assert rho - np.exp(-d * d / 4.0) > 0.3  # far from the image noise's correlation
+
+
 def test_calibration_uncertainty_is_added():
     rig, res = measured(0)
     rig_std = replace(rig, std=CAL_STD)
