@@ -106,7 +106,8 @@ class DetectorModel:
         Include the chain's Type B uncertainty of points on curved edges
         beside shaded surfaces (:func:`partinspect.planning.predict.background_terms`);
         False predicts the image-noise part alone (what the spread over
-        noise draws of one rendered scene shows).
+        noise draws of one rendered scene shows; the noise of the chain's
+        correction for that shading included).
     """
 
     noise: float = 2.0

@@ -128,8 +128,10 @@ class ViewSamples:
     background_bound, background_std : ndarray, shape (N,) or None
         Curved edges: what :func:`partinspect.vision.edges.background_gradients`
         would report for the shading beside each point (``W^2 |g_b - g_d| / h``,
-        px) and the noise of the first-order background shift, px (see
-        :func:`background_terms`); None for lines.
+        px; zero without the model's ``systematic``) and the noise of the
+        first-order background shift, px (see :func:`background_terms`),
+        both averaged along the edge as the chain averages them
+        (:func:`partinspect.vision.stereo.smoothed_background`); None for lines.
     """
 
     uv: np.ndarray
@@ -438,8 +440,15 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
         contrast = np.zeros(0)
     std = edge_point_std(contrast, model.pixel_noise, model.blur, model.sigma)
     bound = bstd = None
-    if kind != "line" and len(uv) and model.systematic:
-        bound, bstd = background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading)
+    if kind != "line" and len(uv):
+        from partinspect.vision.stereo import smoothed_background
+
+        raw_bound, raw_std = background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading)
+        # Averaged along the edge as the chain averages its readings. The
+        # correction's noise is random (it varies from image to image) and
+        # stays without the Type B part: the bound is then zero.
+        mean, bstd = smoothed_background(uv, raw_bound[:, None], raw_std)
+        bound = mean[:, 0] if model.systematic else np.zeros(len(uv))
     return ViewSamples(uv, normal, contrast, np.atleast_1d(std), len(tp), fractions, bound, bstd)
 
 

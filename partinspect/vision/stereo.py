@@ -106,7 +106,7 @@ from partinspect.vision.matching import ImageFeature, arc_circle, epipolar_geome
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "correction_corr_length", "as_fitted", "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
+           "feature_views", "correction_corr_length", "smoothed_background", "as_fitted", "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
 
 # Points of arcs: the corrections and the Type B component of the module
 # notes, "Rims of holes" (the numbers there).
@@ -340,6 +340,29 @@ def _along_edge_mean(xy, values, std, length):
     return w @ values, np.sqrt(np.maximum(var, 0.0))
 
 
+def smoothed_background(xy, values, std):
+    """The background readings of an arc's points averaged along the edge, as the chain uses them.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        The points in order along the edge, px.
+    values : ndarray, shape (N, k)
+        Per point readings (the background shift as a 2-vector, its bound).
+    std : ndarray, shape (N,)
+        Standard deviation of each point's shift from image noise, px.
+
+    Returns
+    -------
+    mean : ndarray, shape (N, k)
+        Gaussian means over ``BACKGROUND_SMOOTHING`` px.
+    mean_std : ndarray, shape (N,)
+        Standard deviation of the means' shift from image noise, px
+        (correlated along the edge over :func:`correction_corr_length`).
+    """
+    return _along_edge_mean(xy, values, std, BACKGROUND_SMOOTHING)
+
+
 def _with_edge_data(feature, edges):
     base = {f.name: getattr(feature, f.name) for f in fields(ImageFeature)}
     if edges.background_shift is None or feature.kind != "arc":
@@ -348,7 +371,7 @@ def _with_edge_data(feature, edges):
     W = float(np.median(edges.width))
     std = W * np.sqrt(BACKGROUND_NOISE) * edges.grad_noise / (edges.strength[i] * np.sqrt(2.0 * np.pi))
     values = np.c_[edges.background_shift[i, None] * edges.normal[i], edges.background_bound[i]]
-    mean, mean_std = _along_edge_mean(edges.xy[i], values, std, BACKGROUND_SMOOTHING)
+    mean, mean_std = smoothed_background(edges.xy[i], values, std)
     return EdgeFeature(**base, background_offset=mean[:, :2], background_bound=mean[:, 2], background_std=mean_std)
 
 

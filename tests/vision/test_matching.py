@@ -225,15 +225,18 @@ def test_faded_points_of_an_arc_are_left_out_at_its_segment_ends_and_anywhere_be
 
 
 def test_a_weaker_stretch_of_a_rim_is_not_taken_for_a_fade():
-    """Each segment of an arc is judged against its own median: a piece
-    whose points are uniformly four times as uncertain as the other's (a
-    stretch of lower contrast) is kept whole, its own fading end is not."""
+    """A segment whose points are uniformly four times as uncertain as the
+    rest of the arc's (a stretch of lower contrast) is judged against its
+    own median: kept whole but for its own fading end. One only somewhat
+    weaker is judged against the arc's median, as the others are."""
     from partinspect.vision.matching import _unfaded
 
     std = np.r_[np.full(60, 0.012), np.full(40, 0.048)]
     std[-2:] = [0.13, 0.2]  # the weaker piece fades at its end
-    kept = _unfaded(std, [60, 40])
-    assert set(kept.tolist()) == set(range(98))
+    assert set(_unfaded(std, [60, 40]).tolist()) == set(range(98))
+    std = np.r_[np.full(60, 0.040), np.full(30, 0.045)]
+    std[60:62] = [0.107, 0.113]  # 2.4-2.5 x its median, 2.7-2.8 x the arc's
+    assert set(_unfaded(std, [60, 30]).tolist()) == set(range(90)) - {60, 61}
 
 
 @pytest.mark.parametrize("seed", [1, 2])
