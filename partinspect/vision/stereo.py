@@ -106,7 +106,8 @@ from partinspect.vision.matching import ImageFeature, arc_circle, epipolar_geome
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "correction_corr_length", "smoothed_background", "as_fitted", "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
+           "feature_views", "correction_corr_length", "smoothed_background", "as_fitted",
+           "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
 
 # Points of arcs: the corrections and the Type B component of the module
 # notes, "Rims of holes" (the numbers there).
@@ -346,7 +347,7 @@ def smoothed_background(xy, values, std):
     Parameters
     ----------
     xy : ndarray, shape (N, 2)
-        The points in order along the edge, px.
+        The points of one edge (any order), px.
     values : ndarray, shape (N, k)
         Per point readings (the background shift as a 2-vector, its bound).
     std : ndarray, shape (N,)
@@ -448,7 +449,8 @@ def correction_corr_length(corr_length):
 
     The gradients beside the edge are read through the edge filter, so
     their noise is correlated as the points' own, ``exp(-d^2 / (4 l^2))``
-    with l = ``corr_length``; the Gaussian average over
+    with l = ``corr_length`` (:func:`_along_edge_mean` takes l = 1, the
+    chain's filter); the Gaussian average over
     ``BACKGROUND_SMOOTHING`` px along the edge (:func:`_along_edge_mean`)
     widens that to the same form with l^2 + ``BACKGROUND_SMOOTHING``^2
     (2.2 px for l = 1). Taken as the image noise's, the correction's
