@@ -8,7 +8,8 @@ register -> evaluate, :func:`partinspect.planning.check.monte_carlo_check`).
 Per characteristic the table shows
 
 - ``pred u``: the predicted u from image noise alone (``DetectorModel(
-  systematic=False)``): the part that varies from one noise draw to the next;
+  systematic=False)``: the points weighted as the chain weights them, the
+  Type B part left out): the part that varies from one noise draw to the next;
 - ``MC u``: the measured spread over the draws (standard deviation of the
   values; for position the RMS of 2 |d - mean d|, see check.py), and
   ``pred/MC`` (a ratio of spreads from n draws lies within the printed

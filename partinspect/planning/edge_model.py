@@ -107,7 +107,9 @@ class DetectorModel:
         beside shaded surfaces (:func:`partinspect.planning.predict.background_terms`);
         False predicts the image-noise part alone (what the spread over
         noise draws of one rendered scene shows; the noise of the chain's
-        correction for that shading included).
+        correction for that shading included): the fits still weight the
+        points as the chain does, Type B part included, and only that part
+        is left out of the covariances.
     """
 
     noise: float = 2.0

@@ -128,8 +128,8 @@ class ViewSamples:
     background_bound, background_std : ndarray, shape (N,) or None
         Curved edges: what :func:`partinspect.vision.edges.background_gradients`
         would report for the shading beside each point (``W^2 |g_b - g_d| / h``,
-        px; zero without the model's ``systematic``) and the noise of the
-        first-order background shift, px (see :func:`background_terms`),
+        px) and the noise of the first-order background shift, px (see
+        :func:`background_terms`),
         both averaged along the edge as the chain averages them
         (:func:`partinspect.vision.stereo.smoothed_background`); None for lines.
     """
@@ -444,11 +444,9 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
         from partinspect.vision.stereo import smoothed_background
 
         raw_bound, raw_std = background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading)
-        # Averaged along the edge as the chain averages its readings. The
-        # correction's noise is random (it varies from image to image) and
-        # stays without the Type B part: the bound is then zero.
+        # Averaged along the edge as the chain averages its readings.
         mean, bstd = smoothed_background(uv, raw_bound[:, None], raw_std)
-        bound = mean[:, 0] if model.systematic else np.zeros(len(uv))
+        bound = mean[:, 0]
     return ViewSamples(uv, normal, contrast, np.atleast_1d(std), len(tp), fractions, bound, bstd)
 
 
@@ -640,6 +638,16 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     n = 6 if kind2 == "line" else 7
     cal = calibration_covariance(fit, kind2, fl, fr, model.sigma, calib) if calibration_parameters(calib) \
         else np.zeros((n, n))
+    if not model.systematic and fit.param_cov_systematic is not None:
+        # The chain weights a rim's points by their Type B part too (the
+        # points beside a steep shading count less), which widens its
+        # random part: the noise-only figure keeps those weights and leaves
+        # out only the Type B part (with the bound set to zero instead, the
+        # fit weighted the points by their noise alone and predicted the
+        # random u of rim radii 0.8 times the chain's).
+        fit = dataclasses.replace(fit, param_cov=fit.param_cov - fit.param_cov_systematic,
+                                  param_cov_systematic=np.zeros_like(fit.param_cov_systematic))
+        fviews = [dataclasses.replace(v, bias=None) for v in fviews]
     f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0])
     return FeaturePrediction(status="measured", record=f3, **base)
 

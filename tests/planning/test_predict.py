@@ -80,3 +80,21 @@ def test_prediction_against_a_few_rendered_noise_draws(plate, rig, radiance):
     # With 3 draws one spread is known to +-50 %; the median over the characteristics much better.
     print("spread / predicted u:", np.round(r, 2))
     assert 0.6 < np.median(r) < 1.6, np.round(r, 2)
+
+
+def test_noise_only_prediction_weights_rim_points_as_the_chain_does(plate, rig):
+    """The chain weights a rim's points by their random and Type B variance
+    together; the noise-only prediction (what noise draws of one scene
+    spread) keeps those weights and leaves out the Type B part alone. With
+    noise-only weights instead, the 12 mm hole's radius came out at 0.8
+    times the chain's random u."""
+    from partinspect.planning.predict import predict_feature
+
+    f = next(f for f in plate.inv.features if f.id == "circle-4")
+    full, rand = (predict_feature(f, plate.scene, rig, plate.pose(rig), DetectorModel(systematic=s)).record
+                  for s in (True, False))
+    assert np.all(np.diag(full.param_cov_systematic) > 0)
+    assert np.allclose(rand.param_cov_systematic, 0.0)
+    assert np.allclose(rand.param_cov_image, full.param_cov_image, rtol=1e-9, atol=1e-18)
+    assert np.allclose(rand.param_cov, rand.param_cov_image + rand.param_cov_calibration)
+    assert rand.radius_std == pytest.approx(np.sqrt(full.param_cov_image[6, 6]))
