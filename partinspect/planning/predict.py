@@ -445,7 +445,7 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
 
         raw_bound, raw_std = background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading)
         # Averaged along the edge as the chain averages its readings.
-        mean, bstd = smoothed_background(uv, raw_bound[:, None], raw_std)
+        mean, bstd = smoothed_background(uv, raw_bound[:, None], raw_std, model.sigma)
         bound = mean[:, 0]
     return ViewSamples(uv, normal, contrast, np.atleast_1d(std), len(tp), fractions, bound, bstd)
 

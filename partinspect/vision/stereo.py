@@ -308,12 +308,31 @@ class EdgeFeature(ImageFeature):
     background_std: np.ndarray | None = None
 
 
-def _along_edge_mean(xy, values, std, length):
-    """Gaussian-weighted means of ``values`` over the points of one edge within ~``length`` px.
+def smoothed_background(xy, values, std, corr_length, length=BACKGROUND_SMOOTHING):
+    """The background readings of an arc's points averaged along the edge, as the chain uses them.
 
-    Returns the means and the standard deviations of their image-noise
-    parts, for per-point noise ``std`` correlated along the edge as
-    ``exp(-d^2 / 4)`` (the filtered gradient of sigma = 1 px).
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        The points of one edge (any order), px.
+    values : ndarray, shape (N, k)
+        Per point readings (the background shift as a 2-vector, its bound).
+    std : ndarray, shape (N,)
+        Standard deviation of each point's shift from image noise, px,
+        correlated along the edge as the points' own,
+        ``exp(-d^2 / (4 corr_length^2))`` (read through the edge filter).
+    corr_length : float
+        The edge filter's sigma, px.
+    length : float
+        Standard deviation of the Gaussian weights along the edge, px.
+
+    Returns
+    -------
+    mean : ndarray, shape (N, k)
+        The Gaussian means.
+    mean_std : ndarray, shape (N,)
+        Standard deviation of the means' shift from image noise, px
+        (correlated along the edge over :func:`correction_corr_length`).
     """
     # Imported here: this function's body is all this module needs of them.
     from scipy import sparse
@@ -326,7 +345,7 @@ def _along_edge_mean(xy, values, std, length):
     # dense sums by less than rounding and makes the cost linear in N (at
     # a given point density) instead of the dense O(N^2) matrices and the
     # O(N^3) triple product.
-    radius = np.sqrt(80.0) * max(length, np.sqrt(2.0))
+    radius = np.sqrt(80.0) * max(length, np.sqrt(2.0) * corr_length)
     pairs = cKDTree(xy).query_pairs(radius, output_type="ndarray")
     i = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(n)])
     j = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
@@ -334,34 +353,11 @@ def _along_edge_mean(xy, values, std, length):
     d2 = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]
     w = sparse.csr_matrix((np.exp(-d2 / (2.0 * length * length)), (i, j)), shape=(n, n))
     w = sparse.diags(1.0 / np.asarray(w.sum(axis=1)).ravel()) @ w
-    rho = sparse.csr_matrix((np.exp(-d2 / 4.0), (i, j)), shape=(n, n))
+    rho = sparse.csr_matrix((np.exp(-d2 / (4.0 * corr_length * corr_length)), (i, j)), shape=(n, n))
     a = w @ sparse.diags(std)
     # var_i = sum_jk a_ij rho_jk a_ik, the row sums of (a rho) * a.
     var = np.asarray((a @ rho).multiply(a).sum(axis=1)).ravel()
     return w @ values, np.sqrt(np.maximum(var, 0.0))
-
-
-def smoothed_background(xy, values, std):
-    """The background readings of an arc's points averaged along the edge, as the chain uses them.
-
-    Parameters
-    ----------
-    xy : ndarray, shape (N, 2)
-        The points of one edge (any order), px.
-    values : ndarray, shape (N, k)
-        Per point readings (the background shift as a 2-vector, its bound).
-    std : ndarray, shape (N,)
-        Standard deviation of each point's shift from image noise, px.
-
-    Returns
-    -------
-    mean : ndarray, shape (N, k)
-        Gaussian means over ``BACKGROUND_SMOOTHING`` px.
-    mean_std : ndarray, shape (N,)
-        Standard deviation of the means' shift from image noise, px
-        (correlated along the edge over :func:`correction_corr_length`).
-    """
-    return _along_edge_mean(xy, values, std, BACKGROUND_SMOOTHING)
 
 
 def _with_edge_data(feature, edges):
@@ -372,7 +368,7 @@ def _with_edge_data(feature, edges):
     W = float(np.median(edges.width))
     std = W * np.sqrt(BACKGROUND_NOISE) * edges.grad_noise / (edges.strength[i] * np.sqrt(2.0 * np.pi))
     values = np.c_[edges.background_shift[i, None] * edges.normal[i], edges.background_bound[i]]
-    mean, mean_std = smoothed_background(edges.xy[i], values, std)
+    mean, mean_std = smoothed_background(edges.xy[i], values, std, edges.sigma)
     return EdgeFeature(**base, background_offset=mean[:, :2], background_bound=mean[:, 2], background_std=mean_std)
 
 
@@ -449,9 +445,8 @@ def correction_corr_length(corr_length):
 
     The gradients beside the edge are read through the edge filter, so
     their noise is correlated as the points' own, ``exp(-d^2 / (4 l^2))``
-    with l = ``corr_length`` (:func:`_along_edge_mean` takes l = 1, the
-    chain's filter); the Gaussian average over
-    ``BACKGROUND_SMOOTHING`` px along the edge (:func:`_along_edge_mean`)
+    with l = ``corr_length``; the Gaussian average over
+    ``BACKGROUND_SMOOTHING`` px along the edge (:func:`smoothed_background`)
     widens that to the same form with l^2 + ``BACKGROUND_SMOOTHING``^2
     (2.2 px for l = 1). Taken as the image noise's, the correction's
     share of a rim's radius variance came out 2-2.5 times too small in

@@ -20,7 +20,7 @@ from partinspect.vision.fitting import (
     fit_ellipse,
     fit_line,
 )
-from partinspect.vision.stereo import _along_edge_mean
+from partinspect.vision.stereo import smoothed_background
 
 
 def test_small_symmetric_solvers_match_numpy():
@@ -57,7 +57,7 @@ def test_ellipse_start_values_reach_the_same_minimum():
     assert np.allclose(a.cov, b.cov, rtol=1e-4, atol=0)
 
 
-def test_along_edge_mean_matches_dense_form():
+def test_smoothed_background_matches_dense_form():
     rng = np.random.default_rng(3)
     phi = np.linspace(0, 4, 300)
     xy = np.c_[60 * np.cos(phi), 40 * np.sin(phi)]
@@ -69,7 +69,7 @@ def test_along_edge_mean_matches_dense_form():
     rho = np.exp(-d2 / 4.0)
     a = w * std[None, :]
     var = ((a @ rho) * a).sum(axis=1)
-    mean, sd = _along_edge_mean(xy, values, std, 2.0)
+    mean, sd = smoothed_background(xy, values, std, 1.0, 2.0)
     assert np.allclose(mean, w @ values, rtol=0, atol=1e-12)
     assert np.allclose(sd, np.sqrt(var), rtol=1e-10)
 

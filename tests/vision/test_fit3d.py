@@ -19,18 +19,24 @@ def proj(P, X):
     return x[:, :2] / x[:, 2:]
 
 
+def normals(x):
+    """Unit normals of points x ordered along a curve."""
+    t = np.gradient(x, axis=0)
+    return np.c_[-t[:, 1], t[:, 0]] / np.linalg.norm(t, axis=1)[:, None]
+
+
+def correlated(x, sigma, corr_length, rng):
+    """Normal errors of standard deviation sigma correlated along the curve as exp(-d^2 / (4 l^2))."""
+    d = np.linalg.norm(x[:, None] - x[None], axis=2)
+    L = np.linalg.cholesky(np.exp(-d * d / (4 * corr_length**2)) + 1e-9 * np.eye(len(x)))
+    return sigma * (L @ rng.standard_normal(len(x)))
+
+
 def noisy_view(P, X, rng, corr_length=None):
     """Image points of X with normal noise, optionally correlated along the edge."""
     x = proj(P, X)
-    t = np.gradient(x, axis=0)
-    nrm = np.c_[-t[:, 1], t[:, 0]] / np.linalg.norm(t, axis=1)[:, None]
-    if corr_length:
-        d = np.linalg.norm(x[:, None] - x[None], axis=2)
-        L = np.linalg.cholesky(np.exp(-d * d / (4 * corr_length**2)) + 1e-9 * np.eye(len(x)))
-        e = SIGMA * (L @ rng.standard_normal(len(x)))
-    else:
-        e = rng.normal(0, SIGMA, len(x))
-    return View(x + nrm * e[:, None], np.full(len(x), SIGMA), P, corr_length)
+    e = correlated(x, SIGMA, corr_length, rng) if corr_length else rng.normal(0, SIGMA, len(x))
+    return View(x + normals(x) * e[:, None], np.full(len(x), SIGMA), P, corr_length)
 
 
 CIRCLE = dict(center=np.array([5.0, -3, 400]), normal=np.array([0.3, -0.6, -0.7]) / np.linalg.norm([0.3, -0.6, -0.7]), radius=6.0)
@@ -94,12 +100,9 @@ def test_a_corrections_noise_is_propagated_over_its_own_correlation_length():
         views = []
         for P in PS:
             v = noisy_view(P, X, rng, 1.0)
-            t = np.gradient(v.xy, axis=0)
-            nrm = np.c_[-t[:, 1], t[:, 0]] / np.linalg.norm(t, axis=1)[:, None]
-            d = np.linalg.norm(v.xy[:, None] - v.xy[None], axis=2)
-            L = np.linalg.cholesky(np.exp(-d * d / (4 * lc**2)) + 1e-9 * np.eye(len(d)))
-            views.append(View(v.xy + nrm * (sc * (L @ rng.standard_normal(len(d))))[:, None], v.sigma, P, 1.0,
-                              sigma_correction=np.full(len(d), sc), correction_corr_length=lc))
+            e = correlated(v.xy, sc, lc, rng)
+            views.append(View(v.xy + normals(v.xy) * e[:, None], v.sigma, P, 1.0,
+                              sigma_correction=np.full(len(e), sc), correction_corr_length=lc))
         for out, vs in ((m_own, views),
                         (m_lumped, [View(v.xy, np.hypot(v.sigma, sc), v.P, 1.0) for v in views])):
             f = fit_circle_3d(vs, CIRCLE["center"], CIRCLE["normal"], 6.0)

@@ -126,13 +126,13 @@ def test_the_background_corrections_noise_has_the_stated_correlation():
     px): its noise then has the stated standard deviation and is
     correlated over correction_corr_length (2.2 px), not over 1 px."""
     from partinspect.vision.montecarlo import correlated_normal_errors
-    from partinspect.vision.stereo import BACKGROUND_SMOOTHING, _along_edge_mean, correction_corr_length
+    from partinspect.vision.stereo import correction_corr_length, smoothed_background
 
     xy = np.c_[np.arange(120.0), np.zeros(120)]
     z = correlated_normal_errors(xy, 1.0, 4000, np.random.default_rng(3))
     std = np.full(120, 0.02)
     # The mean is linear in the readings: all draws at once, one per column.
-    means, stated = _along_edge_mean(xy, 0.02 * z.T, std, BACKGROUND_SMOOTHING)
+    means, stated = smoothed_background(xy, 0.02 * z.T, std, 1.0)
     assert abs(means[60].std() / stated[60] - 1) < 0.05
     L = correction_corr_length(1.0)
     for d in (2, 4, 6):
