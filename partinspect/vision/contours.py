@@ -15,7 +15,8 @@ of its orthogonal residuals against the points' own standard uncertainties
 ``alpha``; otherwise it is split at the point farthest from its chord.
 Pieces too short to split further that pass no test are kept pending;
 adjacent pieces are then merged while their union still passes the test,
-which is how a pending piece joins an accepted neighbour (or is dropped).
+which is how a pending piece joins a neighbour, accepted or pending (or is
+dropped).
 Points within ``trim`` px (arc length) of a piece's open ends are left out
 of its fit, and so are a line's points at its ends that lie within
 ``CLEARANCE`` edge widths of another piece's or contour's edge points:
@@ -400,8 +401,8 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
                 continue
             if hi - lo < 2 * min_points:
                 # Failed its test and too short to split further: kept
-                # pending, for the merge pass to test together with an
-                # accepted neighbour, and dropped if none takes it. Dropping
+                # pending, for the merge pass to test together with a
+                # neighbour, and dropped if none takes it. Dropping
                 # these pieces here lost up to half of some hole rims that
                 # one ellipse fits (short stretches next to a displaced one).
                 pieces.append((lo, hi, None))
@@ -429,8 +430,6 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
         for i in range(m if contour.closed else m - 1):
             j = (i + 1) % m
             a, b = pieces[i], pieces[j]
-            if a[2] is None and b[2] is None:
-                continue  # two pending pieces: only an accepted piece takes one
             if a[1] % n != b[0]:
                 continue  # a dropped piece lies between them
             hi = a[1] + (b[1] - b[0])
@@ -449,7 +448,10 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
         j = (i + 1) % m
         pieces = [p for k, p in enumerate(pieces) if k not in (i, j)] + [merged]
         pieces.sort(key=lambda t: t[0])
-    # A pending piece taken by no neighbour is dropped.
+    # A pending piece taken by no neighbour is dropped. Two pending
+    # neighbours are tried together too: a stretch between a tangent line
+    # and a junction came as two pieces too short to pass alone and was
+    # lost (the bracket's arc-2 in the right image, 50 of its 168 degrees).
     return [(np.arange(lo, hi) % n, res) for lo, hi, res in pieces if res is not None]
 
 

@@ -264,3 +264,28 @@ def test_rendered_rim_of_mixed_contrast_comes_out_whole(seed):
         if f.kind == "arc" and np.median(d) < 1.0:
             covered.append(len(np.unique((ang[j[d < 1.0]] // np.deg2rad(5.0)).astype(int))) * 5)
     assert max(covered, default=0) >= 300, covered
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_partial_arc_keeps_its_stretch_between_a_tangent_line_and_a_junction(seed):
+    """The bracket's arc-2 in the right image: a straight edge runs into it
+    tangentially at one end and a third edge meets it 50 degrees further
+    on. The split left that stretch as two short pieces, each too short to
+    pass a test alone and neither taken by its neighbours (the tangent line;
+    the arc beyond the junction, whose first points the junction displaces):
+    the feature covered 104-117 degrees of the 168 visible. Two such pending
+    pieces are now tried together, pass as one arc and merge with the rest:
+    154-163 degrees."""
+    from partinspect.vision.stereo import measure_images
+
+    rig, _, _, right = S.render("bracket", 2.0, seed)
+    truths = S.truth_in_rig("bracket")
+    t = next(t for t in truths if t["id"] == "arc-2")
+    _, P2r = camera_matrices(rig)
+    c = project(P2r, t["center"][None])[0]
+    extents = []
+    for f in measure_images(right, rig.K2, rig.D2).features:
+        if f.kind == "arc" and S.label_image_feature(f.ideal.xy, truths, P2r) == "arc-2":
+            a = np.sort(np.arctan2(f.ideal.xy[:, 1] - c[1], f.ideal.xy[:, 0] - c[0]))
+            extents.append(np.degrees(2 * np.pi - np.diff(np.r_[a, a[0] + 2 * np.pi]).max()))
+    assert max(extents, default=0) >= 150, extents
