@@ -130,14 +130,14 @@ class DetectorModel:
         out of its fit (:func:`partinspect.vision.contours.segment_contour`'s
         ``trim``), counted from where the piece ends, which need not be
         where the visible edge ends; 3 sigma is chosen on counts. On the
-        sample renders (plate, bracket; default
-        pose, noise 2, 3 draws) the prediction at 3 px has 0-2 points more
-        than the chain per short line (4-7 mm), 2-5 per long one; at 2 px
-        (the default before) it had 2-6 more, and the partial arcs' ends,
-        which fix their curvature, were too long (bracket arc-2's radius
-        predicted 0.34 of its spread over 50 draws, 0.50 at 4 px); at 4 px
-        the plate's 4 mm line-9 fell below the matcher's 12 points, which
-        the chain finds in 49 of 50 draws.
+        sample renders (plate, bracket; default pose, noise 2, 3 draws) the
+        prediction at 3 px has 0-2 points more than the chain per short line
+        (4-7 mm), 2-5 per long one; at 2 px (the default before) it had 2-6
+        more, and the partial arcs' ends, which fix their curvature, were
+        too long (bracket arc-2's radius predicted 0.34 of its spread over
+        50 draws, 0.43 at 3 px, 0.50 at 4 px); at 4 px the plate's 4 mm
+        line-9 fell below the matcher's 12 points, which the chain finds in
+        49 of 50 draws.
         """
         return float(self.end_trim) if self.end_trim is not None else 3.0 * self.sigma
 

@@ -450,9 +450,6 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     return ViewSamples(uv, normal, contrast, np.atleast_1d(std), len(tp), fractions, bound, bstd)
 
 
-_BACKGROUND_DISTANCES = (3.0, 3.5, 4.0)  # px, as partinspect.vision.edges.BACKGROUND_DISTANCES
-
-
 def background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading):
     """The shading beside an edge, as the detector's background test would read it.
 
@@ -477,18 +474,19 @@ def background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, mo
     light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
     n = len(uv)
     steps = np.array([[0.5, 0.0], [-0.5, 0.0], [0.0, 0.5], [0.0, -0.5]])
+    dist = np.asarray(edges_mod.BACKGROUND_DISTANCES)
     grads = []
     for sign in (1.0, -1.0):
-        q = (uv[:, None, None, :] + sign * np.asarray(_BACKGROUND_DISTANCES)[None, :, None, None] * normal[:, None, None, :]
+        q = (uv[:, None, None, :] + sign * dist[None, :, None, None] * normal[:, None, None, :]
              + steps[None, None, :, :]).reshape(-1, 2)
         o, d = pixel_rays(q, K, D, R, t)
-        g = shade(scene, cast(scene, o, d), d, light, shading).astype(float).reshape(n, len(_BACKGROUND_DISTANCES), 4)
+        g = shade(scene, cast(scene, o, d), d, light, shading).astype(float).reshape(n, len(dist), 4)
         grads.append(np.stack([g[..., 0] - g[..., 1], g[..., 2] - g[..., 3]], axis=-1).mean(axis=1))
     W = profile_width(model.blur, model.sigma)
     h = np.maximum(np.abs(contrast), 1e-9)
     bound = W * W * np.linalg.norm(grads[0] - grads[1], axis=1) / h
     s_g = edges_mod.gradient_noise_std(model.pixel_noise, model.sigma)
-    std = W * W * np.sqrt(getattr(edges_mod, "BACKGROUND_NOISE", 1.28)) * s_g / h
+    std = W * W * np.sqrt(edges_mod.BACKGROUND_NOISE) * s_g / h
     return bound, std
 
 

@@ -48,6 +48,7 @@ __all__ = [
     "gradient",
     "gradient_noise_std",
     "edge_error_correlation",
+    "background_shift_std",
 ]
 
 # Variance of a point's position along the edge, px^2. The along-edge
@@ -337,10 +338,7 @@ def background_gradients(gx, gy, xy, normal, strength, width, grad_noise=0.0, di
     n = len(xy)
     if n == 0:
         return np.zeros(0), np.zeros(0)
-    # The width of the step edges: points on a plateau of the gradient
-    # magnitude (a shading ramp above the thresholds) have none.
-    steps = width < MAX_STEP_WIDTH
-    W = float(np.median(width[steps])) if steps.any() else 1.0
+    W = _step_width(width)
     h = strength * W * np.sqrt(2.0 * np.pi)  # step height, grey levels
     side = []
     for sign in (1.0, -1.0):
@@ -356,6 +354,36 @@ def background_gradients(gx, gy, xy, normal, strength, width, grad_noise=0.0, di
     mag2 = np.maximum((diff * diff).sum(axis=1) - 2.0 * BACKGROUND_NOISE * grad_noise ** 2, 0.0)
     bound = W * W * np.sqrt(mag2) / h
     return shift, bound
+
+
+def _step_width(width):
+    """Profile width of the step edges among points, px: the median of ``width`` below ``MAX_STEP_WIDTH``.
+
+    Points on a plateau of the gradient magnitude (a shading ramp above the
+    thresholds) have no step width; 1 when no point has one.
+    """
+    steps = width < MAX_STEP_WIDTH
+    return float(np.median(width[steps])) if steps.any() else 1.0
+
+
+def background_shift_std(edges, index):
+    """Standard deviation from image noise of ``EdgePoints.background_shift``, px.
+
+    ``W^2 sqrt(BACKGROUND_NOISE) grad_noise / h`` with the step width W and
+    the step height h that :func:`background_gradients` used.
+
+    Parameters
+    ----------
+    edges : EdgePoints
+    index : array_like
+        The points wanted (indices or mask).
+
+    Returns
+    -------
+    ndarray, shape (len(index),)
+    """
+    W = _step_width(edges.width)
+    return W * np.sqrt(BACKGROUND_NOISE) * edges.grad_noise / (edges.strength[index] * np.sqrt(2.0 * np.pi))
 
 
 def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0, k_high=8.0):

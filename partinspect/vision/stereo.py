@@ -96,7 +96,7 @@ import numpy as np
 from partinspect.vision.contours import chain_edges, segment_contours
 from partinspect.vision.correspondences import correspond, deblurred
 from partinspect.vision.pointerrors import point_error_model, short_scale_ratio
-from partinspect.vision.edges import BACKGROUND_NOISE, edge_points
+from partinspect.vision.edges import background_shift_std, edge_points
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
@@ -365,8 +365,7 @@ def _with_edge_data(feature, edges):
     if edges.background_shift is None or feature.kind != "arc":
         return EdgeFeature(**base)
     i = feature.index
-    W = float(np.median(edges.width))
-    std = W * np.sqrt(BACKGROUND_NOISE) * edges.grad_noise / (edges.strength[i] * np.sqrt(2.0 * np.pi))
+    std = background_shift_std(edges, i)
     values = np.c_[edges.background_shift[i, None] * edges.normal[i], edges.background_bound[i]]
     mean, mean_std = smoothed_background(edges.xy[i], values, std, edges.sigma)
     return EdgeFeature(**base, background_offset=mean[:, :2], background_bound=mean[:, 2], background_std=mean_std)
