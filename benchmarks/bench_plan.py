@@ -10,6 +10,9 @@ Per characteristic the table shows
 - ``pred u``: the predicted u from image noise alone (``DetectorModel(
   systematic=False)``: the points weighted as the chain weights them, the
   Type B part left out): the part that varies from one noise draw to the next;
+  for a form value the spread over images of one scene with the Type B
+  displacements held fixed (a fixed pattern changes which points set the
+  zone, which widens that spread beyond the noise alone's);
 - ``MC u``: the measured spread over the draws (standard deviation of the
   values; for position the RMS of 2 |d - mean d|, see check.py), and
   ``pred/MC`` (a ratio of spreads from n draws lies within the printed

@@ -110,7 +110,10 @@ class DetectorModel:
         noise draws of one rendered scene shows; the noise of the chain's
         correction for that shading included): the fits still weight the
         points as the chain does, Type B part included, and only that part
-        is left out of the covariances.
+        is left out of the covariances; a form value's u is its spread over
+        images of one scene with the Type B displacements held (a fixed
+        pattern changes which points set the zone, so it is not left out
+        there but fixed).
     """
 
     noise: float = 2.0

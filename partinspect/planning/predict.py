@@ -643,9 +643,10 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         # out only the Type B part (with the bound set to zero instead, the
         # fit weighted the points by their noise alone and predicted the
         # random u of rim radii 0.8 times the chain's).
+        # The points' error model keeps its Type B part: the form's noise-only
+        # figure holds it per scene (evaluate_characteristic's one_scene).
         fit = dataclasses.replace(fit, param_cov=fit.param_cov - fit.param_cov_systematic,
                                   param_cov_systematic=np.zeros_like(fit.param_cov_systematic))
-        fviews = [dataclasses.replace(v, bias=None) for v in fviews]
     f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0])
     return FeaturePrediction(status="measured", record=f3, **base)
 
@@ -790,6 +791,7 @@ def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, mo
     for c in characteristics:
         ev = None
         if reg is not None:
-            ev = evaluate_characteristic(c, parts, reg, inventory, seed=seed, n_mc=n_mc or N_MC)
+            ev = evaluate_characteristic(c, parts, reg, inventory, seed=seed, n_mc=n_mc or N_MC,
+                                         one_scene=not model.systematic)
         preds.append(_characteristic_prediction(c, ev, features, max_ratio, reg_error))
     return PosePrediction(P, features, preds, reg, reg_error, max_ratio, label, tuple(angles))

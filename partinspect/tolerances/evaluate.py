@@ -468,8 +468,21 @@ def _errors(record):
     return None if model is None else model.draw
 
 
-def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC):
-    """One characteristic; ``parts`` as ``registration.features_in_part_frame()`` returns."""
+def _held(record):
+    """Draws with the record's Type B parts held per scene, or None (it has none)."""
+    model = getattr(record, "point_errors", None)
+    return model.draw_held if model is not None and getattr(model, "systematic", ()) else None
+
+
+def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC,
+                            one_scene=False):
+    """One characteristic; ``parts`` as ``registration.features_in_part_frame()`` returns.
+
+    ``one_scene``: state the form's u as its spread over images of one
+    scene (the Type B parts of its points held, see
+    :func:`partinspect.tolerances.form.straightness`), for the planner's
+    noise-only prediction; by default the whole uncertainty.
+    """
     picked = [_pick(parts, fid) for fid in c.features]
     missing = [fid for fid, p in zip(c.features, picked) if p is None]
     if missing:
@@ -487,9 +500,10 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         pts, pcs = getattr(rec[0], "points", None), getattr(rec[0], "point_covs", None)
         if pts is None or pcs is None or len(pts) < 5:
             return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
-        fr = (straightness if t == "straightness" else circularity)(pts, pcs, rng, errors=_errors(rec[0]))
+        fr = (straightness if t == "straightness" else circularity)(
+            pts, pcs, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
-                       raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points)
+                       raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
     if t in ("distance", "angle"):
         x, cov, info, sizes = _stacked([(p.kind, r) for p, r in zip(picked, rec)])
         g = measured_distance if t == "distance" else measured_angle
@@ -518,6 +532,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         if form_fn is not None and pts is not None and pcs is not None and len(pts) >= 5:
             fr = form_fn(pts, pcs, rng, errors=_errors(rec[0]))
             value, u = value + fr.value, math.hypot(u, fr.u)
-            details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias)
+            details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
+                           n_excluded=fr.n_excluded)
         return _result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", **details)
     return _unmeasured(c, f"unknown characteristic type {t!r}")

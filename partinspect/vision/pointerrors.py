@@ -106,6 +106,9 @@ class PointErrorModel:
         d(3D point)/d(right fitted curve's parameters), mm.
     common_cov : ndarray, shape (k, k)
         Covariance of those parameters.
+    systematic : tuple of int
+        Indices into ``components`` of the Type B ones: fixed for one scene
+        and lighting, unknown (:meth:`draw_held`).
     """
 
     arc_length: np.ndarray
@@ -113,15 +116,34 @@ class PointErrorModel:
     components: tuple
     common_jacobian: np.ndarray | None = None
     common_cov: np.ndarray | None = None
+    systematic: tuple = ()
 
     def draw(self, rng, n_draws):
         """Simulated errors of the points, shape (n_draws, N, 3), mm."""
+        return self._draw(rng, n_draws, range(len(self.components)), True)
+
+    def draw_held(self, rng, n_patterns, n_draws):
+        """Errors of ``n_draws`` images of each of ``n_patterns`` scenes, shape (n_patterns, n_draws, N, 3), mm.
+
+        The ``systematic`` components are drawn once per scene and held
+        over its images; the random ones (and the common part, the right
+        curve's fit of each image) anew for every image. What varies over
+        the images of one scene is what noise draws of one render show.
+        """
+        n = len(self.arc_length)
+        random = [k for k in range(len(self.components)) if k not in self.systematic]
+        held = self._draw(rng, n_patterns, self.systematic, False)
+        noise = self._draw(rng, n_patterns * n_draws, random, True).reshape(n_patterns, n_draws, n, 3)
+        return noise + held[:, None]
+
+    def _draw(self, rng, n_draws, which, common):
         n = len(self.arc_length)
         out = np.zeros((n_draws, n, 3))
-        for std, length in self.components:
+        for k in which:
+            std, length = self.components[k]
             f = correlated_field(self.arc_length, length, rng, n_draws) * std
             out += f[:, :, None] * self.normal_jacobian
-        if self.common_jacobian is not None and self.common_cov is not None:
+        if common and self.common_jacobian is not None and self.common_cov is not None:
             w, V = np.linalg.eigh(self.common_cov)
             L = V * np.sqrt(np.clip(w, 0.0, None))
             dp = rng.standard_normal((n_draws, len(w))) @ L.T
@@ -129,7 +151,7 @@ class PointErrorModel:
         return out
 
 
-def point_error_model(corr, normals, components):
+def point_error_model(corr, normals, components, systematic=()):
     """The :class:`PointErrorModel` of a feature's correspondences.
 
     Parameters
@@ -142,6 +164,8 @@ def point_error_model(corr, normals, components):
     components : sequence of (ndarray (M,), float)
         Per point standard uncertainties across the edge, px, of all the
         left feature's points, with their correlation lengths, px.
+    systematic : tuple of int
+        Which of ``components`` are Type B (see :class:`PointErrorModel`).
     """
     idx = corr.left_index
     steps = np.linalg.norm(np.diff(corr.left, axis=0), axis=1)
@@ -150,7 +174,7 @@ def point_error_model(corr, normals, components):
     J = np.einsum("nij,nj->ni", corr.jac_left, n)
     comps = tuple((np.asarray(std, float)[idx] if np.ndim(std) else np.full(len(idx), float(std)), length)
                   for std, length in components)
-    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov)
+    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov, tuple(systematic))
 
 
 def short_scale_ratio(r, sigma, xy, length):

@@ -719,9 +719,11 @@ def _point_errors(fl, corr, view):
     comps = [(sigma, view.corr_length)]
     if view.sigma_correction is not None:
         comps.append((view.sigma_correction, view.correction_corr_length))
+    systematic = ()
     if view.bias is not None:
+        systematic = (len(comps),)
         comps.append((view.bias, view.bias_corr_length))
-    return point_error_model(corr, fl.ideal.normal, comps)
+    return point_error_model(corr, fl.ideal.normal, comps, systematic)
 
 
 def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):

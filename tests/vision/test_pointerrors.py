@@ -115,3 +115,17 @@ def test_short_scale_ratio_standard_error_is_its_spread_over_noise_draws():
     # The smaller of two estimates reads a little low (0.95 here): it scales the
     # noise up only when clearly above 1, never on a chance excess.
     assert 0.9 < ratios.mean() < 1.0
+
+
+def test_held_draws_keep_the_type_b_part_per_scene():
+    rng = np.random.default_rng(4)
+    n = 30
+    J = np.tile([0.0, 0.0, 1.0], (n, 1))
+    std, bias = np.full(n, 0.01), np.full(n, 0.03)
+    m = PointErrorModel(np.arange(n, dtype=float), J, ((std, 1.0), (bias, 10.0)), systematic=(1,))
+    e = m.draw_held(rng, 400, 20)[..., 2]
+    assert e.shape == (400, 20, n)
+    # Within a scene only the noise varies; over scenes the whole variance.
+    assert e.var(axis=1, ddof=1).mean() == pytest.approx(0.01**2, rel=0.05)
+    assert e.reshape(-1, n).var(axis=0).mean() == pytest.approx(0.01**2 + 0.03**2, rel=0.1)
+    assert m.draw(rng, 4000)[..., 2].var(axis=0).mean() == pytest.approx(0.01**2 + 0.03**2, rel=0.1)

@@ -1,0 +1,113 @@
+import numpy as np
+import pytest
+
+from partinspect.tolerances import form
+from partinspect.tolerances.form import circularity, straightness
+
+
+def _ring(n, radius=5.0):
+    th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.c_[radius * np.cos(th), radius * np.sin(th), np.full(n, 300.0)], th
+
+
+def _radial_covs(th, sd):
+    """Covariances with standard deviation ``sd`` along each point's radius (and a little elsewhere)."""
+    r = np.c_[np.cos(th), np.sin(th), np.zeros_like(th)]
+    return np.einsum("n,ni,nj->nij", sd**2, r, r) + np.eye(3) * 1e-8
+
+
+def _draws(ring, th, sd, rng, n, bump=None):
+    P = ring + (rng.standard_normal(len(th)) * sd)[:, None] * np.c_[np.cos(th), np.sin(th), np.zeros_like(th)]
+    if bump is not None:
+        P = P + bump[:, None] * np.c_[np.cos(th), np.sin(th), np.zeros_like(th)]
+    return P
+
+
+def test_a_few_much_less_certain_points_do_not_set_the_zone():
+    # A rim whose points are 0.01 mm uncertain but for a stretch of 8 at
+    # 0.1 mm (where the epipolar line runs along the edge): the zone of all
+    # points is theirs. They are left out, and the value of a perfect rim
+    # scatters as that of the certain points alone, its u honest.
+    n = 96
+    ring, th = _ring(n)
+    sd = np.full(n, 0.01)
+    sd[40:48] = 0.1
+    covs = _radial_covs(th, sd)
+    rng = np.random.default_rng(0)
+    kept, all_points = [], []
+    for k in range(120):
+        P = _draws(ring, th, sd, rng, n)
+        kept.append(circularity(P, covs, np.random.default_rng(k), n_draws=200))
+        old, form.MAX_SD_RATIO = form.MAX_SD_RATIO, np.inf
+        try:
+            all_points.append(circularity(P, covs, np.random.default_rng(k), n_draws=200))
+        finally:
+            form.MAX_SD_RATIO = old
+    assert {r.n_excluded for r in kept} == {8} and {r.n_points for r in kept} == {n - 8}
+    assert {r.n_excluded for r in all_points} == {0}
+    v = np.array([r.value for r in kept])
+    u = np.array([r.u for r in kept])
+    v_all = np.array([r.value for r in all_points])
+    assert v.std() < 0.35 * v_all.std()
+    z = v / u
+    assert abs(z.mean()) < 0.3 and 0.8 < np.sqrt((z * z).mean()) < 1.25
+
+
+def test_points_alike_are_all_kept_and_a_defect_among_them_is_measured():
+    n = 96
+    ring, th = _ring(n)
+    sd = np.full(n, 0.003) * np.linspace(0.8, 1.6, n)  # uncertainties that vary, but not by much
+    covs = _radial_covs(th, sd)
+    rng = np.random.default_rng(1)
+    bump = 0.05 * np.exp(-0.5 * ((th - 1.0) / 0.1) ** 2)  # a 0.05 mm bump
+    r = circularity(_draws(ring, th, sd, rng, n, bump), covs, rng)
+    assert r.n_excluded == 0 and r.n_points == n
+    truth = circularity(ring + bump[:, None] * np.c_[np.cos(th), np.sin(th), np.zeros(n)],
+                        np.zeros((n, 3, 3)), rng, n_draws=5).raw
+    assert truth - r.noise_bias - 3 * r.u < r.value < truth + 3 * r.u
+
+
+def test_straightness_leaves_out_an_uncertain_end():
+    n = 80
+    s = np.linspace(0, 40, n)
+    P0 = np.c_[s, np.zeros(n), np.full(n, 300.0)]
+    sd = np.full(n, 0.004)
+    sd[-5:] = 0.05
+    covs = np.einsum("n,i,j->nij", sd**2, [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]) + np.eye(3) * 1e-10
+    rng = np.random.default_rng(2)
+    P = P0 + np.c_[np.zeros(n), rng.standard_normal(n) * sd, np.zeros(n)]
+    r = straightness(P, covs, rng)
+    assert r.n_excluded == 5
+    assert r.raw == pytest.approx(straightness(P[:-5], covs[:-5], rng, n_draws=5).raw)
+
+
+def test_spread_over_images_of_one_scene_with_the_type_b_part_held():
+    # A rim whose points carry noise (independent from image to image) and
+    # a Type B displacement (fixed for a scene, unknown): the spread of the
+    # value over images of one scene is wider than the noise alone gives (the
+    # fixed pattern decides which points set the zone) and narrower than the
+    # whole uncertainty; held draws predict it.
+    from partinspect.vision.pointerrors import PointErrorModel
+
+    n = 90
+    ring, th = _ring(n)
+    radial = np.c_[np.cos(th), np.sin(th), np.zeros(n)]
+    s = th * 5.0 / 0.05  # arc length in "px" of 0.05 mm
+    noise, bias = np.full(n, 0.01), np.full(n, 0.02)
+    model = PointErrorModel(s, radial, ((noise, 1.0), (bias, 8.0)), systematic=(1,))
+    noise_only = PointErrorModel(s, radial, ((noise, 1.0),))
+    covs = _radial_covs(th, np.hypot(noise, bias))
+    rng = np.random.default_rng(5)
+    spreads = []
+    for scene in range(10):
+        pattern = ring + model._draw(rng, 1, (1,), False)[0]
+        values = [circularity(pattern + noise_only.draw(rng, 1)[0], covs, np.random.default_rng(k),
+                              n_draws=100, errors=model.draw).value for k in range(25)]
+        spreads.append(np.var(values, ddof=1))
+    seen = np.sqrt(np.mean(spreads))
+    P = ring + model.draw(rng, 1)[0]
+    held = circularity(P, covs, np.random.default_rng(0), errors=model.draw, held=model.draw_held).u
+    whole = circularity(P, covs, np.random.default_rng(0), errors=model.draw).u
+    alone = circularity(P, covs, np.random.default_rng(0), errors=noise_only.draw).u
+    assert alone < 0.85 * held < 0.85 * whole
+    assert held == pytest.approx(seen, rel=0.2)
