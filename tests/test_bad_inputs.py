@@ -579,6 +579,23 @@ def test_image_variants_are_accepted(variant, tmp_path):
     np.testing.assert_allclose(right, ref_right * scale, atol=scale * 0.5 + 1e-6)
 
 
+def test_a_noise_free_image_keeps_its_rounding_noise(tmp_path):
+    # The reader keeps the file's integers: the noise estimate then knows
+    # the pixels were rounded (as float32 a noise-free 8-bit render read as
+    # noise 0, every edge point had a zero uncertainty and the chain stopped
+    # with an internal error) and which value is saturation.
+    from partinspect.vision.images import read_image
+    from partinspect.vision.noise import QUANTISATION_STD, estimate_noise
+
+    yy, xx = np.mgrid[0:120, 0:160]
+    clean = np.where((xx - 80.3) ** 2 + (yy - 60.7) ** 2 < 35.0**2, 180, 60).astype(np.uint8)
+    clean[:, :20] = 255  # a saturated stripe
+    cv2.imwrite(str(tmp_path / "clean.png"), clean)
+    img, depth = read_image(tmp_path / "clean.png")
+    assert depth == 8 and img.dtype == np.uint8
+    assert estimate_noise(img) == pytest.approx(QUANTISATION_STD)
+
+
 def test_16bit_colour_pair_runs_end_to_end(tmp_path, capsys):
     w = make_work(tmp_path)
     to_16bit_colour(w)

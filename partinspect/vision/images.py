@@ -21,8 +21,12 @@ def read_image(path):
 
     Returns
     -------
-    image : ndarray, shape (H, W), float32
-        Grey levels in the file's own scale (0-255 or 0-65535).
+    image : ndarray, shape (H, W), uint8 or uint16
+        Grey levels in the file's own scale (0-255 or 0-65535), integers as
+        recorded: the noise estimate needs to know they were rounded (an
+        integer image's pixels carry at least the rounding error, and its
+        top value is saturation; as float32 a noise-free 8-bit image read as
+        noise 0 and the chain failed).
     bit_depth : int
         8 or 16.
 
@@ -53,7 +57,6 @@ def read_image(path):
         if img.shape[2] == 4:
             img = img[:, :, :3]
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.shape[2] == 3 else img[:, :, 0]
-    img = img.astype(np.float32)
     lo, hi = float(img.min()), float(img.max())
     if hi == lo:
         what = "all black" if hi == 0 else "saturated" if hi == 2**depth - 1 else "uniform"
@@ -72,7 +75,7 @@ def read_pair(images_dir, calib=None):
 
     Returns
     -------
-    left, right : ndarray, shape (H, W), float32
+    left, right : ndarray, shape (H, W), uint8 or uint16 (see :func:`read_image`)
     bit_depth : int
     """
     images_dir = Path(images_dir)
