@@ -530,7 +530,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         details = {"fitted": value}
         pts, pcs = getattr(rec[0], "points", None), getattr(rec[0], "point_covs", None)
         if form_fn is not None and pts is not None and pcs is not None and len(pts) >= 5:
-            fr = form_fn(pts, pcs, rng, errors=_errors(rec[0]))
+            fr = form_fn(pts, pcs, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
                            n_excluded=fr.n_excluded)

@@ -68,6 +68,10 @@ __all__ = ["FormResult", "straightness", "circularity", "fit_line_points", "fit_
 
 N_DRAWS = 200
 
+N_PATTERNS = 20
+"""Scenes drawn for a spread over the images of one scene (``held``), each
+seen in ``N_DRAWS // N_PATTERNS`` images."""
+
 MAX_SD_RATIO = 3.0
 """Points whose standard uncertainty across the reference exceeds this many
 times the median point's are left out of the zone. Over 50 noise draws of
@@ -200,11 +204,6 @@ def _across(e, ideal, axis):
         radial = (q / np.linalg.norm(q, axis=1)[:, None]) @ E.T
         return np.einsum("dni,ni->dn", e, radial)[..., None]
     return e - np.einsum("dni,i->dn", e, axis)[..., None] * axis
-
-
-N_PATTERNS = 20
-"""Scenes drawn for a spread over the images of one scene (``held``), each
-seen in ``N_DRAWS // N_PATTERNS`` images."""
 
 
 def _corrected(P, covs, zone, ideal, axis, rng, n_draws, errors, held=None):
