@@ -98,15 +98,16 @@ def spread(values):
     return float(np.std(v, ddof=1)) if len(v) >= 3 else float("nan")
 
 
-def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shading=None, samples=8):
+def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shading=None, samples=None):
     """The noiseless, blurred left and right images (float32 grey levels).
 
     Each draw of a Monte Carlo check is ``sensor(image, noise, rng)`` of
     these: the ray casting is done once.
     """
-    from partinspect.simulate.render import DEFAULT_SHADING, blur, camera_in_part, render_radiance
+    from partinspect.simulate.render import DEFAULT_SHADING, SAMPLES, blur, camera_in_part, render_radiance
 
     shading = shading or DEFAULT_SHADING
+    samples = SAMPLES if samples is None else samples
     light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
     out = []
     for index in (0, 1):

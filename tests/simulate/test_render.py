@@ -54,7 +54,7 @@ def test_shading_is_lambertian_with_the_exact_normal(plate):
 
 
 def test_adaptive_sampling_equals_full_supersampling(plate):
-    """Shading uniform pixels from one ray loses nothing against 64 rays everywhere."""
+    """Shading uniform pixels from one ray loses nothing against SAMPLES x SAMPLES rays everywhere."""
     size = (272, 228)
     rig = plate.rig(size=size)
     pose = plate.pose(rig)

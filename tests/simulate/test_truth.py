@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from partinspect.simulate.folder import render_to_folder
+from partinspect.simulate.folder import SAMPLES, render_to_folder
 from partinspect.simulate.truth import (
     SCHEMA,
     deviated_geometry,
@@ -71,7 +71,7 @@ def test_truth_contents(folder_run, plate):
     assert truth["image_size"] == list(SMALL)
     assert truth["noise"] == 2.0 and truth["seed"] == 1 and truth["blur_sigma"] == 0.6
     assert truth["distortion"] is False
-    assert truth["sampling"]["rays_per_supersampled_pixel"] == 64
+    assert truth["sampling"]["rays_per_supersampled_pixel"] == SAMPLES**2 == 256
     P = np.array(truth["part_to_camera"])
     from partinspect.simulate.pose import default_pose
     from partinspect.simulate.rig import default_rig
