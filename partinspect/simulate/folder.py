@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from partinspect.simulate.render import DEFAULT_SHADING, SAMPLES as _RENDER_SAMPLES
+from partinspect.simulate.render import DEFAULT_SHADING, SAMPLES
 
 __all__ = ["RENDER_TOLERANCE", "RENDER_ANGULAR_TOLERANCE", "BLUR_SIGMA", "SAMPLES", "render_to_folder"]
 
@@ -24,8 +24,6 @@ r * 2e-4 at 0.05 rad, which would bias rendered diameters by several
 micrometres, comparable to what the measurement claims to resolve."""
 BLUR_SIGMA = 0.6
 """Optics point-spread function, pixels."""
-SAMPLES = _RENDER_SAMPLES
-"""Edge pixels are integrated with SAMPLES x SAMPLES rays (see :data:`partinspect.simulate.render.SAMPLES`)."""
 
 
 def _parse_deviations(deviations):

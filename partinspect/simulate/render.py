@@ -69,8 +69,8 @@ axes but more coarsely at other angles: on noise-free renders of the sample
 plate the edge points of its straight edges lay 0.008-0.015 px (standard
 deviation) about the true line in a pattern repeating every 8-16 px along it,
 the same in every noise draw, which widened the straightness over noise
-draws and biased it upwards (bench_plan, 50 draws: four plate lines at
-0.68-0.83 of their predicted spread). With 16, 0.002-0.007 px, and every
+draws and biased it upwards (bench_plan, 50 draws: plate line-3, -19 and
+-20 at 0.68-0.83 of their predicted spread). With 16, 0.002-0.007 px, and every
 plate straightness within 20 % of its prediction; a half-size pair takes
 2.5 times as long to render (4.4 -> 11.2 s)."""
 """Label of a ray that hits nothing."""

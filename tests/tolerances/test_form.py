@@ -16,7 +16,7 @@ def _radial_covs(th, sd):
     return np.einsum("n,ni,nj->nij", sd**2, r, r) + np.eye(3) * 1e-8
 
 
-def _draws(ring, th, sd, rng, n, bump=None):
+def _draws(ring, th, sd, rng, bump=None):
     P = ring + (rng.standard_normal(len(th)) * sd)[:, None] * np.c_[np.cos(th), np.sin(th), np.zeros_like(th)]
     if bump is not None:
         P = P + bump[:, None] * np.c_[np.cos(th), np.sin(th), np.zeros_like(th)]
@@ -36,7 +36,7 @@ def test_a_few_much_less_certain_points_do_not_set_the_zone():
     rng = np.random.default_rng(0)
     kept, all_points = [], []
     for k in range(120):
-        P = _draws(ring, th, sd, rng, n)
+        P = _draws(ring, th, sd, rng)
         kept.append(circularity(P, covs, np.random.default_rng(k), n_draws=200))
         old, form.MAX_SD_RATIO = form.MAX_SD_RATIO, np.inf
         try:
@@ -60,7 +60,7 @@ def test_points_alike_are_all_kept_and_a_defect_among_them_is_measured():
     covs = _radial_covs(th, sd)
     rng = np.random.default_rng(1)
     bump = 0.05 * np.exp(-0.5 * ((th - 1.0) / 0.1) ** 2)  # a 0.05 mm bump
-    r = circularity(_draws(ring, th, sd, rng, n, bump), covs, rng)
+    r = circularity(_draws(ring, th, sd, rng, bump), covs, rng)
     assert r.n_excluded == 0 and r.n_points == n
     truth = circularity(ring + bump[:, None] * np.c_[np.cos(th), np.sin(th), np.zeros(n)],
                         np.zeros((n, 3, 3)), rng, n_draws=5).raw
@@ -100,7 +100,7 @@ def test_spread_over_images_of_one_scene_with_the_type_b_part_held():
     rng = np.random.default_rng(5)
     spreads = []
     for scene in range(10):
-        pattern = ring + model._draw(rng, 1, (1,), False)[0]
+        pattern = ring + PointErrorModel(s, radial, ((bias, 8.0),)).draw(rng, 1)[0]
         values = [circularity(pattern + noise_only.draw(rng, 1)[0], covs, np.random.default_rng(k),
                               n_draws=100, errors=model.draw).value for k in range(25)]
         spreads.append(np.var(values, ddof=1))
