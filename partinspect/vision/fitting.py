@@ -50,7 +50,6 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 from scipy import special
-from scipy.linalg.lapack import dposv as _dposv
 
 __all__ = [
     "LineFit",
@@ -364,16 +363,6 @@ def _pinv_sym(S, rcond):
     return (V * inv) @ V.T
 
 
-def _solve_sym(S, rhs, rcond):
-    """Minimum-norm least-squares solution of ``S x = rhs`` for a small
-    symmetric S (as ``np.linalg.lstsq(S, rhs, rcond)``: singular values below
-    rcond times the largest are cut), by one eigendecomposition."""
-    ev, V = np.linalg.eigh(S)
-    big = np.abs(ev) > rcond * np.abs(ev).max()
-    inv = np.where(big, 1.0 / np.where(big, ev, 1.0), 0.0)
-    return V @ (inv * (V.T @ rhs))
-
-
 def _consistency(r, s, n_params, trR2):
     n = len(r)
     q = float(((r / s) ** 2).sum())
@@ -649,30 +638,26 @@ def _canonical(p):
 
 
 def _foot_phases(xy, params, phi=None, iters=6):
-    """Phases of the orthogonal foot points (Newton on each, vectorised).
+    """Phases of the orthogonal foot points (Newton on each point, compiled:
+    :func:`partinspect.vision._lm_kernel.foot_phases`).
 
-    At most ``iters`` Newton steps; stops earlier once no phase moves by
-    more than 1e-13 rad (Newton converges quadratically, so the next step
-    would change nothing beyond rounding).
+    At most ``iters`` Newton steps; a point stops earlier once its phase
+    moves by less than 1e-13 rad (Newton converges quadratically, so the
+    next step would change nothing beyond rounding). ``phi``: start phases,
+    else the points' angles scaled to the ellipse.
     """
-    xc, yc, a, b, th = params
-    c, s = np.cos(th), np.sin(th)
-    dx, dy = xy[:, 0] - xc, xy[:, 1] - yc
-    u, v = c * dx + s * dy, -s * dx + c * dy
+    from partinspect.vision._lm_kernel import foot_phases
+
+    xy = np.ascontiguousarray(xy, float)
+    params = np.asarray(params, float)
     if phi is None:
-        phi = np.arctan2(v * a, u * b)
-    for _ in range(iters):
-        cp, sp = np.cos(phi), np.sin(phi)
-        ex, ey = a * cp, b * sp
-        tx, ty = -a * sp, b * cp
-        f = (u - ex) * tx + (v - ey) * ty
-        fp = -(tx * tx + ty * ty) - (u - ex) * ex - (v - ey) * ey
-        fp = np.where(np.abs(fp) < 1e-12, -1e-12, fp)
-        d = f / np.minimum(fp, -1e-12)
-        phi = phi - d
-        if np.abs(d).max() < 1e-13:
-            break
-    return phi
+        xc, yc, a, b, th = params
+        c, s = np.cos(th), np.sin(th)
+        dx, dy = xy[:, 0] - xc, xy[:, 1] - yc
+        phi = np.arctan2((-s * dx + c * dy) * a, (c * dx + s * dy) * b)
+    else:
+        phi = np.array(phi, float)
+    return foot_phases(xy, params, phi, int(iters))
 
 
 def _ellipse_geometry(xy, params, phi):
@@ -894,41 +879,22 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
     return fits
 
 
-# Largest padding of a group of stacked fits, point slots (see _fit_ellipses_once).
-_PAD_POINTS = 2000
-
-
 def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged, with_cov=True, sigma_tol=None):
-    """The fits of fixed points (the loop of _fit_ellipses), in groups: a
-    group's arrays are padded to its largest fit. ``with_cov``: for all the
-    fits, or a sequence of one per fit."""
+    """The fits of fixed points (the loop of _fit_ellipses). ``with_cov``:
+    for all the fits, or a sequence of one per fit."""
     if isinstance(with_cov, bool):
         with_cov = [with_cov] * len(xys)
     out = [None] * len(xys)
-    order = sorted(range(len(xys)), key=lambda k: len(xys[k]))
-    while order:
-        # Sorted by size, a fit joins the group while the padding it causes
-        # stays below _PAD_POINTS point slots: an iteration costs about as
-        # much in numpy-call overhead as it does in arithmetic on that many
-        # points, so beyond it separate groups are cheaper.
-        n_group, total = 1, len(xys[order[0]])
-        while n_group < len(order):
-            m = len(xys[order[n_group]])
-            if (n_group + 1) * m - (total + m) > _PAD_POINTS:
-                break
-            n_group, total = n_group + 1, total + m
-        group, order = order[:n_group], order[n_group:]
-        res = _lm_ellipses([xys[k] for k in group], [jobs[k].cov for k in group],
-                           [starts[k] for k in group], max_iter, tol, sigma_tol,
-                           [jobs[k].max_axis for k in group])
-        for k, (p, converged, it) in zip(group, res):
-            if need_converged and not converged:
-                continue
-            try:
-                out[k] = _ellipse_result(xys[k], jobs[k].cov, jobs[k].corr_length, p, converged, it, with_cov[k])
-            except (ValueError, np.linalg.LinAlgError):
-                if not need_converged:
-                    raise
+    res = _lm_ellipses(xys, [job.cov for job in jobs], starts, max_iter, tol, sigma_tol,
+                       [job.max_axis for job in jobs])
+    for k, (p, converged, it) in enumerate(res):
+        if need_converged and not converged:
+            continue
+        try:
+            out[k] = _ellipse_result(xys[k], jobs[k].cov, jobs[k].corr_length, p, converged, it, with_cov[k])
+        except (ValueError, np.linalg.LinAlgError):
+            if not need_converged:
+                raise
     return out
 
 
@@ -964,7 +930,7 @@ def _ellipse_with_covariance(fit, xy, corr_length):
 
 
 def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None):
-    """Damped Gauss-Newton of Gander et al. [2]_ on several point sets in lockstep.
+    """Damped Gauss-Newton of Gander et al. [2]_ on several point sets, one by one.
 
     Unknowns u = (xc, yc, a, b, theta) and one phase phi_i per point; the
     residual rho_i = p_i - x(phi_i; u) (2-vector, weight w_i on both
@@ -1000,7 +966,7 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None
       the same damped system with the residuals replaced by their second
       directional derivative along v (a finite difference of the residuals
       at x + h v); the step follows the valley's bend instead of leaving
-      it. A correction larger than ``_ACCEL_RATIO`` / 2 of the
+      it. A correction larger than ``_lm_kernel.ACCEL_RATIO`` / 2 of the
       step (in the damping's scaled norm) marks the step as too long: it
       is refused and the damping raised;
     - the damping is updated from the gain ratio rho of the actual to the
@@ -1030,332 +996,39 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None
     within the bound the iteration has found (or, for a fit that starts
     beyond it, the start or the smallest iterate).
 
-    Each fit keeps its own damping and stops on its own, exactly as alone;
-    the arrays are (fits, points, ...), the shorter point sets padded by
-    weight-0 copies of their first point, and a fit's row is dropped when it
-    stops.
+    The iteration runs compiled (:func:`partinspect.vision._lm_kernel.lm_ellipse`,
+    loops over the points): in numpy an iteration was a few hundred calls
+    whose overhead, not their arithmetic, took the time (the 2D chain spent
+    half its time there).
 
     Returns
     -------
     list of (params, converged, iterations)
     """
-    F = len(xys)
-    M = max(len(xy) for xy in xys)
-    xy1 = np.ones((F, M, 3))
-    cparts = np.empty((F, M, 3))
-    cparts[:] = (1.0, 0.0, 1.0)
-    mask = np.zeros((F, M))
-    phi = np.zeros((F, M))
-    p = np.empty((F, 5))
+    from partinspect.vision._lm_kernel import lm_ellipse
+
+    out = []
     for k, (xy, cov, (p0, phi0)) in enumerate(zip(xys, covs, starts)):
-        m = len(xy)
-        xy1[k, :m, :2] = xy
-        xy1[k, m:, :2] = xy[0]
-        mask[k, :m] = 1.0
-        phi[k, :m] = phi0
-        p[k] = p0
-        if cov is not None:
+        xy = np.ascontiguousarray(xy, float)
+        cparts = np.empty((len(xy), 3))
+        if cov is None:  # unit weights
+            cparts[:] = (1.0, 0.0, 1.0)
+        else:
             cov = np.asarray(cov, float)
             if cov.ndim == 1:  # a variance along the normal, whatever the normal
-                cparts[k, :m, 0] = cparts[k, :m, 2] = cov
-                cparts[k, :m, 1] = 0.0
+                cparts[:, 0] = cparts[:, 2] = cov
+                cparts[:, 1] = 0.0
             else:
                 # Parts of n^T cov n for n = (nx, ny): nx^2, nx ny, ny^2.
-                cparts[k, :m, 0] = cov[:, 0, 0]
-                cparts[k, :m, 1] = cov[:, 0, 1] + cov[:, 1, 0]
-                cparts[k, :m, 2] = cov[:, 1, 1]
-        # (without cov: unit weights)
-    bound = np.full(F, np.inf) if max_axis is None else np.array(
-        [np.inf if b is None else float(b) for b in max_axis])
-
-    out = [None] * F
-    ids = np.arange(F)  # the fit of each row
-    lam = np.full(F, 1e-3)
-    nu = np.full(F, 2.0)
-    cs = _lm_cos_sin(phi)
-    r = _lm_residual(p, cs, xy1)
-    for it in range(1, max_iter + 1):
-        n = len(ids)
-        sy = _lm_system(p, cs, r, mask, cparts)
-        if sigma_tol is not None:
-            settled = _newton_decrement(sy) <= sigma_tol * sigma_tol
-            if settled.any():
-                for row in np.flatnonzero(settled):
-                    out[ids[row]] = (p[row].copy(), True, it - 1)
-                keep = ~settled
-                if not keep.any():
-                    break
-                ids, p, phi, cs, r, lam, nu = ids[keep], p[keep], phi[keep], cs[keep], r[keep], lam[keep], nu[keep]
-                xy1, cparts, mask, bound = xy1[keep], cparts[keep], mask[keep], bound[keep]
-                sy = tuple(x[keep] for x in sy)
-                n = len(ids)
-        f0 = sy[0]
-        p_before = p.copy()
-        lam_t, nu_t = lam.copy(), nu.copy()
-        done = np.zeros(n, bool)  # a step was accepted
-        converged = np.zeros(n, bool)
-        j = np.arange(n)  # rows still trying a damping
-        while len(j):
-            if len(j) == n:  # every row (the first try): no copies
-                sy_j, p_j, phi_j, r_j, xy1_j = sy, p, phi, r, xy1
-            else:
-                sy_j = tuple(x[j] for x in sy)
-                p_j, phi_j, r_j, xy1_j = p[j], phi[j], r[j], xy1[j]
-            du, dphi, acc_ok, pred = _lm_accelerated_step(sy_j, lam_t[j], p_j, phi_j, r_j, xy1_j)
-            p_new = p_j + du
-            phi_new = phi_j + dphi
-            cs_new = _lm_cos_sin(phi_new)
-            r_new = _lm_residual(p_new, cs_new, xy1_j)
-            # The cost with the weights of the current iterate; a step to a
-            # semi-axis <= 0 is refused too.
-            f1 = np.einsum("fm,fmc,fmc->f", sy_j[1], r_new, r_new)
-            acc = acc_ok & (p_new[:, 2] > 0) & (p_new[:, 3] > 0) & (f1 <= sy_j[0] * (1 + 1e-12))
-            # Largest displacement of the curve the step causes, px; a
-            # rotation moves an ellipse by at most (a - b) |dtheta| (nothing
-            # for a circle, whose theta is free).
-            if tol is not None:
-                moved = np.abs(du[:, :4]).sum(axis=1) + np.abs(p_j[:, 2] - p_j[:, 3]) * np.abs(du[:, 4])
-                small = moved < tol * np.maximum(1.0, p_j[:, 2])
-            else:
-                small = np.zeros(len(j), bool)
-            ra = j[acc]
-            done[ra] = True
-            converged[ra] = small[acc]
-            p[ra], phi[ra], cs[ra], r[ra] = p_new[acc], phi_new[acc], cs_new[acc], r_new[acc]
-            # (A step within the cost's rounding counts as a gain of 0:
-            # lam doubles; beyond 1 the rule's factor is 1/3 anyway.)
-            gain = np.clip((f0[ra] - f1[acc]) / np.maximum(pred[acc], 1e-300), 0.0, 1.0)
-            lam_t[ra] = np.maximum(lam_t[ra] * np.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
-            nu_t[ra] = 2.0
-            rej = j[~acc]
-            lam_t[rej] *= nu_t[rej]
-            nu_t[rej] *= 2.0
-            j = rej[lam_t[rej] <= 1e12]
-        lam, nu = lam_t, nu_t
-        # Rows that stop: converged, no damping helped (lam beyond 1e12),
-        # or grown beyond their bound (returned as before that step: the
-        # best ellipse within the bound the iteration found).
-        # (a and b are not ordered during the iteration.)
-        size = p[:, 2:4].max(axis=1)
-        beyond = (size > bound) & (size > p_before[:, 2:4].max(axis=1))
-        stop = ~done | converged | beyond
-        if it == max_iter:
-            stop[:] = True
-        for row in np.flatnonzero(stop):
-            q = p_before[row] if beyond[row] else p[row]
-            out[ids[row]] = (q.copy(), bool(done[row] and converged[row] and not beyond[row]), it)
-        if stop.all():
-            break
-        if stop.any():
-            keep = ~stop
-            ids, p, phi, cs, r, lam, nu = ids[keep], p[keep], phi[keep], cs[keep], r[keep], lam[keep], nu[keep]
-            xy1, cparts, mask, bound = xy1[keep], cparts[keep], mask[keep], bound[keep]
+                cparts[:, 0] = cov[:, 0, 0]
+                cparts[:, 1] = cov[:, 0, 1] + cov[:, 1, 0]
+                cparts[:, 2] = cov[:, 1, 1]
+        bound = np.inf if max_axis is None or max_axis[k] is None else float(max_axis[k])
+        p, converged, it = lm_ellipse(xy, cparts, np.array(p0, float), np.array(phi0, float), int(max_iter),
+                                      -1.0 if tol is None else float(tol),
+                                      -1.0 if sigma_tol is None else float(sigma_tol), bound)
+        out.append((p, bool(converged), int(it)))
     return out
-
-
-# Step used for the second directional derivative of the residuals, and
-# largest ratio 2 |a| / |v| of the geodesic acceleration a to the step v:
-# the values of Transtrum & Sethna [7]_.
-_ACCEL_H = 0.1
-_ACCEL_RATIO = 0.75
-
-
-def _lm_accelerated_step(sy, lam, p, phi, r, xy1):
-    """The step v + a / 2 of :func:`_lm_ellipses` with geodesic acceleration.
-
-    Returns
-    -------
-    du : ndarray, shape (F, 5)
-    dphi : ndarray, shape (F, M)
-    ok : ndarray of bool, shape (F,)
-        The acceleration is small against the step (else the step is to be
-        refused).
-    pred : ndarray, shape (F,)
-        Decrease of the cost that the linearised model predicts for v.
-    """
-    du, dphi = _lm_step(sy, lam)
-    w, nil, rt, Ht, rn, Hn = sy[1], sy[9], sy[8], sy[7], sy[10], sy[11]
-    # The model's change of the residuals along v, J v, in normal and
-    # tangent components: hn . du and ht . du + |j| dphi.
-    jn = (Hn @ du[..., None])[..., 0]
-    jt = (Ht @ du[..., None])[..., 0] - dphi / nil
-    # Second directional derivative of the residuals along v by a forward
-    # difference [7]_, 2 / h ((rho(x + h v) - rho(x)) / h - J v), from the
-    # residuals at x + h v turned into the current iterate's frame (in which
-    # the rows of the system are written).
-    h = _ACCEL_H
-    k, wHt = sy[12], sy[13]
-    moved = _lm_residual_in(p, p + h * du, phi + h * dphi, xy1)
-    rnt = np.einsum("fmij,fmj->fmi", k.reshape(len(k), -1, 2, 2), moved) * -nil[..., None]
-    rnt[..., 0] = (2.0 / h) * ((rnt[..., 0] - rn) / h - jn)
-    rnt[..., 1] = (2.0 / h) * ((rnt[..., 1] - rt) / h - jt)
-    G = wHt @ rnt
-    au, aphi = _lm_step(sy, lam, (G[:, :5, 0], G[:, 5:, 1], rnt[..., 1]))
-    # Norms scaled by the damping's diagonal: diag(C) for the parameters,
-    # w |j|^2 for the phases.
-    Cd = sy[4]
-    wj = w / (nil * nil)
-    dd = np.einsum("fi,fii,fi->f", du, Cd, du) + np.einsum("fm,fm->f", wj, dphi * dphi)
-    aa = np.einsum("fi,fii,fi->f", au, Cd, au) + np.einsum("fm,fm->f", wj, aphi * aphi)
-    ok = 4.0 * aa <= (_ACCEL_RATIO * _ACCEL_RATIO) * dd
-    # Decrease predicted for v: the cost minus that of the model's residuals
-    # after v, rho + J v.
-    en, et = rn + jn, rt + jt
-    pred = sy[0] - np.einsum("fm,fm->f", w, en * en + et * et)
-    return du + 0.5 * au, dphi + 0.5 * aphi, ok, pred
-
-
-def _lm_residual_in(p0, p, phi, xy1):
-    """Residuals at (p, phi) in the frame of the ellipse p0 (turned by
-    -theta0): ``Q(theta - theta0)`` times those of :func:`_lm_residual`."""
-    r = _lm_residual(p, _lm_cos_sin(phi), xy1)
-    d = p[:, 4] - p0[:, 4]
-    c, s = np.cos(d)[:, None], np.sin(d)[:, None]
-    out = np.empty_like(r)
-    out[..., 0] = c * r[..., 0] - s * r[..., 1]
-    out[..., 1] = s * r[..., 0] + c * r[..., 1]
-    return out
-
-
-def _newton_decrement(sy):
-    """du^T Sn du for the undamped Gauss-Newton step du = -Sn^-1 Gn, per fit.
-
-    A circle leaves theta undetermined (Sn singular along it, and Gn
-    without a component there): a ridge of 1e-12 diag(Sn + St) makes the
-    system solvable without changing the decrement.
-    """
-    Sn, Cd, Gn = sy[2], sy[4], sy[5]
-    x = _solve_spd(Sn + 1e-12 * Cd, -Gn)
-    return np.maximum(-np.einsum("fi,fi->f", x, Gn), 0.0)
-
-
-def _lm_cos_sin(phi):
-    """(..., 2): cos phi, sin phi."""
-    cs = np.empty(phi.shape + (2,))
-    np.cos(phi, out=cs[..., 0])
-    np.sin(phi, out=cs[..., 1])
-    return cs
-
-
-def _lm_residual(p, cs, xy1):
-    """(fits, points, 2): rho in the ellipse frame, Q(theta)^T (p_i - c) - (a cos, b sin)."""
-    c, s = np.cos(p[:, 4]), np.sin(p[:, 4])
-    rot = np.empty((len(p), 3, 2))
-    rot[:, 0, 0], rot[:, 0, 1] = c, -s
-    rot[:, 1, 0], rot[:, 1, 1] = s, c
-    rot[:, 2, 0] = -c * p[:, 0] - s * p[:, 1]
-    rot[:, 2, 1] = s * p[:, 0] - c * p[:, 1]
-    return xy1 @ rot - cs * p[:, None, 2:4]
-
-
-def _lm_system(p, cs, r, mask, cparts):
-    """Weights, cost and the parts of the phase-eliminated system at an
-    iterate (see :func:`_lm_ellipses`).
-
-    Returns
-    -------
-    tuple
-        cost (F,), w (F, M), Sn, St, diag(Sn + St) (F, 5, 5), Gn, Gt (F, 5),
-        the rows ht (F, M, 5), rt (F, M), -1 / |j| (F, M), rn (F, M), the
-        rows hn (F, M, 5), and for other residuals (the geodesic
-        acceleration) the normal and tangent times |j| in the ellipse frame
-        (F, M, 4) and the weighted rows transposed (F, 10, M).
-    """
-    a, b = p[:, 2:3], p[:, 3:4]
-    c, s = np.cos(p[:, 4]), np.sin(p[:, 4])
-    n = len(p)
-    # k = (b cos, a sin, a sin, -b cos): the normal and tangent times |j|.
-    k = cs.take(_NT_INDEX, axis=2) * (p.take(_AB_INDEX, axis=1) * _AB_SIGN)[:, None, :]
-    j2 = k[..., 0] * k[..., 0] + k[..., 1] * k[..., 1]
-    nil = -1.0 / np.sqrt(j2)
-    # Normal and tangent in the image frame, times |j|.
-    rot = np.zeros((n, 4, 4))
-    rot[:, 0, 0] = rot[:, 1, 1] = rot[:, 2, 2] = rot[:, 3, 3] = c
-    rot[:, 0, 1] = rot[:, 2, 3] = s
-    rot[:, 1, 0] = rot[:, 3, 2] = -s
-    nt = k @ rot
-    q = nt.take(_Q_LEFT, axis=2) * nt.take(_Q_RIGHT, axis=2)
-    w = mask * j2 / (q * cparts).sum(axis=2)
-    # Rows hn (columns 0-4) and ht (5-9), the derivatives of n . rho and
-    # t . rho: for (xc, yc) minus the image-frame normal and tangent, for
-    # (a, b) -(b cos^2, a sin^2) and -(a sin cos, -b cos sin), for theta
-    # (b^2 - a^2) sin cos and a b; all over |j|.
-    H = np.empty(k.shape[:2] + (10,))
-    H[..., _H_XY] = nt
-    H[..., _H_AB] = k * cs.take(_CS_INDEX, axis=2)
-    H[..., 4] = ((a - b) * (a + b)) * (cs[..., 0] * cs[..., 1])
-    H[..., 9] = -a * b
-    H *= nil[..., None]
-    # n . rho and t . rho.
-    rnt = np.einsum("fmij,fmj->fmi", k.reshape(n, -1, 2, 2), r) * -nil[..., None]
-    wHt = (H * w[..., None]).transpose(0, 2, 1)
-    X = wHt @ H  # one (10, 10) product instead of two (5, 5) ones
-    G = wHt @ rnt
-    d = X.diagonal(axis1=1, axis2=2)
-    Cd = (d[:, :5] + d[:, 5:])[:, :, None] * _EYE5  # diag(Sn + St)
-    cost = np.einsum("fm,fmc,fmc->f", w, r, r)
-    return (cost, w, X[:, :5, :5], X[:, 5:, 5:], Cd, G[:, :5, 0], G[:, 5:, 1],
-            H[..., 5:], rnt[..., 1], nil, rnt[..., 0], H[..., :5], k, wHt)
-
-
-def _lm_step(sy, lam, rhs_parts=None):
-    """One Levenberg-Marquardt step (du, dphi) per fit from :func:`_lm_system`:
-    Marquardt damping lam diag(C) on the parameters, lam D on the phases.
-    ``rhs_parts``: (Gn, Gt, rt) of other residuals in place of the
-    system's own."""
-    Sn, St, Cd, Gn, Gt, Ht, rt, nil = sy[2:10]
-    if rhs_parts is not None:
-        Gn, Gt, rt = rhs_parts
-    k = lam / (1.0 + lam)
-    # (A fit gone astray, semi-axes of 1e16 px, overflows here: its step
-    # comes out non-finite and is refused.)
-    with np.errstate(over="ignore", invalid="ignore"):
-        S = Sn + k[:, None, None] * St + lam[:, None, None] * Cd
-        rhs = -(Gn + k[:, None] * Gt)
-        du = _solve_spd(S, rhs)
-        dphi = (rt + (Ht @ du[..., None])[..., 0]) * (nil / (1.0 + lam)[:, None])
-    return du, dphi
-
-
-def _solve_spd(S, rhs):
-    """Solve the stacked 5 x 5 systems S x = rhs of the iteration.
-
-    S is positive definite (lam diag(C) > 0 is added): a Cholesky solve is
-    enough, several times cheaper than the eigenvalue form of
-    :func:`_solve_sym`, which stays the fallback. LAPACK is called directly
-    for a few systems (numpy's stacked solve costs more in overhead than in
-    work there), numpy's stacked solve for many.
-    """
-    if len(S) <= 8:
-        out = np.empty_like(rhs)
-        for i in range(len(S)):
-            _, x, info = _dposv(S[i], rhs[i])
-            out[i] = x if info == 0 else _solve_sym_safe(S[i], rhs[i])
-        return out
-    try:
-        return np.linalg.solve(S, rhs[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        return np.array([_solve_sym_safe(Si, bi) for Si, bi in zip(S, rhs)])
-
-
-def _solve_sym_safe(S, rhs):
-    """_solve_sym, or NaN where it fails (a NaN system): the step is then
-    refused and the fit stops unconverged, as alone it would fail."""
-    try:
-        return _solve_sym(S, rhs, 1e-14)
-    except np.linalg.LinAlgError:
-        return np.full(len(rhs), np.nan)
-
-
-_NT_INDEX = np.array([0, 1, 1, 0])
-_CS_INDEX = np.array([0, 1, 0, 1])
-_Q_LEFT = np.array([0, 0, 1])
-_Q_RIGHT = np.array([0, 1, 1])
-_H_XY = np.array([0, 1, 5, 6])
-_H_AB = np.array([2, 3, 7, 8])
-_AB_INDEX = np.array([3, 2, 2, 3])
-_AB_SIGN = np.array([1.0, 1.0, 1.0, -1.0])
-_EYE5 = np.eye(5)
 
 
 def _theta_gauge(p, h, s, covp):
