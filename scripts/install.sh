@@ -69,4 +69,4 @@ command -v inspect >/dev/null 2>&1 || hash -r
 command -v pyenv >/dev/null 2>&1 && pyenv rehash >/dev/null 2>&1 || true
 # The ellipse fit's compiled kernel: compiled once (10-20 s) and cached beside
 # its module, so that the first inspection does not pay for it.
-"$PYTHON" -c "from partinspect.vision._lm_kernel import warm; warm()"
+"$PYTHON" -c "from partinspect.vision._kernels import warm; warm()"

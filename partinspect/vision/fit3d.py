@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtrc
 
-from partinspect.vision.fitting import _band, _trR2, fit_ellipse
+from partinspect.vision.fitting import _trR2, fit_ellipse
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
            "circle_consistency"]
@@ -223,9 +223,11 @@ def _jacobian(residuals, theta, step):
 
 def _gram(a, xy, corr_length):
     """``a^T R a`` for rows ``a`` ordered along a curve, R_ij = exp(-d_ij^2 / (4 l^2)) (banded)."""
+    from partinspect.vision._kernels import band_sums
+
     G = a.T @ a
-    for k, rho in _band(xy, corr_length):
-        C = (a * rho[:, None]).T @ np.roll(a, -k, axis=0)
+    if corr_length and len(a) >= 2:
+        C, _ = band_sums(np.ascontiguousarray(xy, float), float(corr_length), np.ascontiguousarray(a, float))
         G += C + C.T
     return G
 

@@ -242,57 +242,16 @@ def _normal_std(cov, normals):
     return np.sqrt(var)
 
 
-def _band(xy, corr_length):
-    """Correlation of the errors of points i and i + k (cyclically), k = 1..K.
-
-    Returns a list of (k, rho_k) with rho_k shape (N,); the distance is
-    Euclidean, so the ends of an open curve come out uncorrelated and those
-    of a closed one correlated.
-    """
-    ks, rho, _ = _band_stack(xy, corr_length)
-    return [(int(k), r) for k, r in zip(ks, rho)]
-
-
-def _band_stack(xy, corr_length, chunk=8):
-    """:func:`_band` as arrays: offsets ks (K,), rho (K, N) and the partner
-    indices (i + k) % N, (K, N).
-
-    The offsets are taken ``chunk`` at a time (a few suffice for points about
-    a pixel apart and ``corr_length`` about one), each chunk in one pass, and
-    the band ends at the first offset whose correlations all fall below
-    1e-4, as one offset at a time it would.
-    """
-    n = len(xy)
-    empty = np.zeros(0, int), np.zeros((0, n)), np.zeros((0, n), int)
-    if not corr_length or n < 2:
-        return empty
-    xy = np.asarray(xy, float)
-    scale = -1.0 / (4.0 * corr_length * corr_length)
-    ar = np.arange(n)
-    parts = []
-    for k0 in range(1, n // 2 + 1, chunk):
-        ks = np.arange(k0, min(k0 + chunk, n // 2 + 1))
-        j = ar[None, :] + ks[:, None]
-        j[j >= n] -= n
-        diff = xy[j] - xy[None, :, :]
-        rho = np.exp((diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) * scale)
-        rho[ks == n - ks] *= 0.5  # the same pair seen twice
-        low = np.flatnonzero(rho.max(axis=1) < 1e-4)
-        if len(low):
-            parts.append((ks[: low[0]], rho[: low[0]], j[: low[0]]))
-            break
-        parts.append((ks, rho, j))
-    if not parts:
-        return empty
-    return tuple(np.concatenate(x) for x in zip(*parts))
-
-
 def information_matrices(h, s, xy, corr_length):
     """The two matrices of the sandwich covariance of a weighted regression.
 
     For residuals ``r_i / s_i`` with Jacobian rows ``h_i / s_i`` and errors
     correlated along the curve as ``exp(-d^2 / (4 corr_length^2))``, the
-    covariance of the estimate is ``S^-1 M S^-1``.
+    covariance of the estimate is ``S^-1 M S^-1``. R is banded: it pairs
+    point i with i + k (cyclically, k = 1 .. N // 2; the distance is
+    Euclidean, so the ends of an open curve come out uncorrelated and those
+    of a closed one correlated) up to the first offset k whose correlations
+    all fall below 1e-4.
 
     Parameters
     ----------
@@ -315,27 +274,28 @@ def information_matrices(h, s, xy, corr_length):
     trR2 : float
         sum_ij rho_ij^2, for the effective degrees of freedom.
     """
+    from partinspect.vision._kernels import band_sums
+
     hw = h / s[:, None]
     S = hw.T @ hw
     M = S.copy()
     trR2 = float(len(h))
-    ks, rho, j = _band_stack(xy, corr_length)
-    if len(ks):
-        # sum_k sum_i rho_ki hw_i^T hw_(i+k): every offset in one product.
-        p = hw.shape[1]
-        C = (hw[None, :, :] * rho[:, :, None]).reshape(-1, p).T @ hw[j].reshape(-1, p)
+    if corr_length and len(h) >= 2:
+        # sum_k sum_i rho_ki hw_i^T hw_(i+k) over the band.
+        C, rho2 = band_sums(np.ascontiguousarray(xy, float), float(corr_length), np.ascontiguousarray(hw))
         M += C + C.T
-        trR2 += 2.0 * float((rho * rho).sum())
+        trR2 += 2.0 * rho2
     return S, M, trR2
 
 
 def _trR2(xy, corr_length):
     """The ``trR2`` of :func:`information_matrices` alone (the same sum)."""
-    trR2 = float(len(xy))
-    ks, rho, _ = _band_stack(xy, corr_length)
-    if len(ks):
-        trR2 += 2.0 * float((rho * rho).sum())
-    return trR2
+    from partinspect.vision._kernels import band_sums
+
+    if not corr_length or len(xy) < 2:
+        return float(len(xy))
+    _, rho2 = band_sums(np.ascontiguousarray(xy, float), float(corr_length), np.zeros((len(xy), 0)))
+    return float(len(xy)) + 2.0 * rho2
 
 
 def _uncertainty(h, s, xy, corr_length):
@@ -639,54 +599,38 @@ def _canonical(p):
 
 def _foot_phases(xy, params, phi=None, iters=6):
     """Phases of the orthogonal foot points (Newton on each point, compiled:
-    :func:`partinspect.vision._lm_kernel.foot_phases`).
+    :func:`partinspect.vision._kernels.foot_phases`).
 
     At most ``iters`` Newton steps; a point stops earlier once its phase
     moves by less than 1e-13 rad (Newton converges quadratically, so the
     next step would change nothing beyond rounding). ``phi``: start phases,
     else the points' angles scaled to the ellipse.
     """
-    from partinspect.vision._lm_kernel import foot_phases
+    from partinspect.vision._kernels import foot_phases
 
     xy = np.ascontiguousarray(xy, float)
-    params = np.asarray(params, float)
-    if phi is None:
-        xc, yc, a, b, th = params
-        c, s = np.cos(th), np.sin(th)
-        dx, dy = xy[:, 0] - xc, xy[:, 1] - yc
-        phi = np.arctan2((-s * dx + c * dy) * a, (c * dx + s * dy) * b)
-    else:
-        phi = np.array(phi, float)
-    return foot_phases(xy, params, phi, int(iters))
+    start = phi is None
+    phi = np.empty(len(xy)) if start else np.array(phi, float)
+    return foot_phases(xy, np.asarray(params, float), phi, int(iters), start)
 
 
 def _ellipse_geometry(xy, params, phi):
-    """Residuals, outward unit normals and rows h_i at the foot points."""
-    xc, yc, a, b, th = params
-    c, s = np.cos(th), np.sin(th)
-    cp, sp = np.cos(phi), np.sin(phi)
-    # Outward normal in the ellipse frame is (b cos phi, a sin phi); in the
-    # image it is Q(theta) times that.
-    lx, ly = b * cp, a * sp
-    ln = np.sqrt(lx * lx + ly * ly)
-    lx, ly = lx / ln, ly / ln
-    nx, ny = c * lx - s * ly, s * lx + c * ly
-    ex = xc + c * (a * cp) - s * (b * sp)
-    ey = yc + s * (a * cp) + c * (b * sp)
-    r = (xy[:, 0] - ex) * nx + (xy[:, 1] - ey) * ny
-    n = np.empty((len(phi), 2))
-    n[:, 0], n[:, 1] = nx, ny
-    # d(signed distance)/d(params) = -n . d(x(phi))/d(params); the phase
-    # derivative drops out because dx/dphi is tangent (Schur complement of
-    # the block-diagonal phase part, [2]_ section 4). With n = Q l and
-    # dx/d(a, b, theta) = Q (cos phi, 0), Q (0, sin phi), Q (-b sin phi,
-    # a cos phi), the products reduce to the ellipse frame.
-    h = np.empty((len(phi), 5))
-    h[:, 0], h[:, 1] = -nx, -ny
-    h[:, 2] = -lx * cp
-    h[:, 3] = -ly * sp
-    h[:, 4] = b * sp * lx - a * cp * ly
-    return r, n, h
+    """Residuals (m,), outward unit normals (m, 2) and rows h_i (m, 5) at the
+    foot points (compiled: :func:`partinspect.vision._kernels.ellipse_geometry`).
+
+    The outward normal in the ellipse frame is l = (b cos phi, a sin phi)
+    normalised, in the image n = Q(theta) l. Row h_i = d(signed distance_i)
+    / d(params) = -n . d(x(phi)) / d(params): the phase derivative drops out
+    because dx/dphi is tangent (Schur complement of the block-diagonal phase
+    part, [2]_ section 4). With dx/d(a, b, theta) = Q (cos phi, 0),
+    Q (0, sin phi), Q (-b sin phi, a cos phi), the products reduce to the
+    ellipse frame: h = (-n_x, -n_y, -l_x cos phi, -l_y sin phi,
+    b sin phi l_x - a cos phi l_y).
+    """
+    from partinspect.vision._kernels import ellipse_geometry
+
+    return ellipse_geometry(np.ascontiguousarray(xy, float), np.asarray(params, float),
+                            np.ascontiguousarray(phi, float))
 
 
 # An "ellipse" far larger than its points is no ellipse they show: the
@@ -966,7 +910,7 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None
       the same damped system with the residuals replaced by their second
       directional derivative along v (a finite difference of the residuals
       at x + h v); the step follows the valley's bend instead of leaving
-      it. A correction larger than ``_lm_kernel.ACCEL_RATIO`` / 2 of the
+      it. A correction larger than ``_kernels.ACCEL_RATIO`` / 2 of the
       step (in the damping's scaled norm) marks the step as too long: it
       is refused and the damping raised;
     - the damping is updated from the gain ratio rho of the actual to the
@@ -996,7 +940,7 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None
     within the bound the iteration has found (or, for a fit that starts
     beyond it, the start or the smallest iterate).
 
-    The iteration runs compiled (:func:`partinspect.vision._lm_kernel.lm_ellipse`,
+    The iteration runs compiled (:func:`partinspect.vision._kernels.lm_ellipse`,
     loops over the points): in numpy an iteration was a few hundred calls
     whose overhead, not their arithmetic, took the time (the 2D chain spent
     half its time there).
@@ -1005,7 +949,7 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None
     -------
     list of (params, converged, iterations)
     """
-    from partinspect.vision._lm_kernel import lm_ellipse
+    from partinspect.vision._kernels import lm_ellipse
 
     out = []
     for k, (xy, cov, (p0, phi0)) in enumerate(zip(xys, covs, starts)):

@@ -789,7 +789,7 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         # The two 2D chains are independent and mostly Python: a second
         # process, not a thread, runs one alongside the other. The compiled
         # fit kernel is loaded first, or each process would load it.
-        from partinspect.vision._lm_kernel import warm
+        from partinspect.vision._kernels import warm
 
         warm()
         with forked(measure_images, right, calib.K2, calib.D2, **options) as right_result:

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from partinspect.vision import _lm_kernel, noise
+from partinspect.vision import _kernels, noise
 from partinspect.vision.correspondences import intersect_ellipse, intersect_line
 from partinspect.vision.fit3d import _circle_image_conics, circle_image_conic
 from partinspect.vision.fitting import (
@@ -30,15 +30,15 @@ def test_small_symmetric_solvers_match_numpy():
         b = S @ rng.normal(size=5)
         assert np.allclose(_pinv_sym(S, 1e-13), np.linalg.pinv(S, rcond=1e-13, hermitian=True), atol=1e-10)
         if rank == 5:
-            assert np.allclose(_lm_kernel._solve(S, b), np.linalg.solve(S, b), rtol=1e-9, atol=0)
+            assert np.allclose(_kernels._solve(S, b), np.linalg.solve(S, b), rtol=1e-9, atol=0)
     # The fit's solver falls back to the minimum-norm solution where Cholesky
     # fails (a zero pivot: theta's column of a circle without damping).
     A = rng.normal(size=(5, 5))
     A[4] = 0.0
     S = A @ A.T
     b = S @ rng.normal(size=5)
-    assert np.allclose(_lm_kernel._solve(S, b), np.linalg.lstsq(S, b, rcond=1e-14)[0], atol=1e-8)
-    assert np.all(np.isnan(_lm_kernel._solve(np.full((5, 5), np.nan), b)))
+    assert np.allclose(_kernels._solve(S, b), np.linalg.lstsq(S, b, rcond=1e-14)[0], atol=1e-8)
+    assert np.all(np.isnan(_kernels._solve(np.full((5, 5), np.nan), b)))
 
 
 def test_line_tls_closed_form_matches_svd():

@@ -1,11 +1,16 @@
-"""Compiled inner loop of the geometric ellipse fit (Numba).
+"""Compiled inner loops of the 2D fits (Numba).
 
-The damped Gauss-Newton iteration of :func:`partinspect.vision.fitting._lm_ellipses`
-for one point set, written as loops over the points and compiled: the
-iteration is O(m) arithmetic on a few hundred points, which numpy spends
-mostly in call overhead (a few hundred calls an iteration). The algorithm
-and its notation are documented in ``_lm_ellipses``; this module only
-carries it out.
+- :func:`lm_ellipse`: the damped Gauss-Newton iteration of
+  :func:`partinspect.vision.fitting._lm_ellipses` for one point set, and
+  :func:`foot_phases` and :func:`ellipse_geometry`, the foot points it
+  starts from and ends with and the residuals, normals and rows there;
+- :func:`band_sums`: the sums over the band of correlated point pairs of
+  :func:`partinspect.vision.fitting.information_matrices`.
+
+Each is O(m) arithmetic on a few hundred points, which numpy spent mostly in
+call overhead (a few hundred calls an iteration of the ellipse fit). The
+algorithms and their notation are documented in those functions; this
+module only carries them out, as loops over the points.
 
 Imported where the fits run (Numba takes about 0.3 s to import, and the
 first call compiles, or loads the compiled code cached beside this file).
@@ -312,15 +317,17 @@ def lm_ellipse(xy, cparts, p0, phi0, max_iter, tol, sigma_tol, bound):
 
 
 @njit(**_JIT)
-def foot_phases(xy, params, phi, iters):
+def foot_phases(xy, params, phi, iters, start):
     """Phases of the orthogonal foot points, Newton on each point (in place),
-    at most ``iters`` steps, a point stopping once its step is below 1e-13 rad."""
+    at most ``iters`` steps, a point stopping once its step is below 1e-13
+    rad; with ``start`` the phases given are replaced first by the points'
+    angles scaled to the ellipse."""
     xc, yc, a, b, th = params[0], params[1], params[2], params[3], params[4]
     c, s = np.cos(th), np.sin(th)
     for i in range(len(phi)):
         dx, dy = xy[i, 0] - xc, xy[i, 1] - yc
         u, v = c * dx + s * dy, -s * dx + c * dy
-        f_phi = phi[i]
+        f_phi = np.arctan2(v * a, u * b) if start else phi[i]
         for _ in range(iters):
             cp, sp = np.cos(f_phi), np.sin(f_phi)
             ex, ey = a * cp, b * sp
@@ -337,6 +344,84 @@ def foot_phases(xy, params, phi, iters):
     return phi
 
 
+@njit(**_JIT)
+def ellipse_geometry(xy, params, phi):
+    """Residuals r (m), outward unit normals n (m, 2) and rows h (m, 5) at
+    the foot points (see :func:`partinspect.vision.fitting._ellipse_geometry`)."""
+    xc, yc, a, b, th = params[0], params[1], params[2], params[3], params[4]
+    c, s = np.cos(th), np.sin(th)
+    m = len(phi)
+    r, n, h = np.empty(m), np.empty((m, 2)), np.empty((m, 5))
+    for i in range(m):
+        cp, sp = np.cos(phi[i]), np.sin(phi[i])
+        lx, ly = b * cp, a * sp
+        ln = np.sqrt(lx * lx + ly * ly)
+        lx, ly = lx / ln, ly / ln
+        nx, ny = c * lx - s * ly, s * lx + c * ly
+        ex = xc + c * (a * cp) - s * (b * sp)
+        ey = yc + s * (a * cp) + c * (b * sp)
+        r[i] = (xy[i, 0] - ex) * nx + (xy[i, 1] - ey) * ny
+        n[i, 0], n[i, 1] = nx, ny
+        h[i, 0], h[i, 1] = -nx, -ny
+        h[i, 2] = -lx * cp
+        h[i, 3] = -ly * sp
+        h[i, 4] = b * sp * lx - a * cp * ly
+    return r, n, h
+
+
+@njit(**_JIT)
+def band_sums(xy, corr_length, hw):
+    """Sums over the band of correlated pairs (i, (i + k) mod n), k = 1 ..
+    n // 2, with rho = exp(-d^2 / (4 corr_length^2)) (halved for k = n - k,
+    the same pair seen twice); the band ends before the first k whose rho
+    are all below 1e-4.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (n, 2)
+    corr_length : float
+    hw : ndarray, shape (n, p)
+        Weighted rows (p = 0: only the second sum).
+
+    Returns
+    -------
+    C : ndarray, shape (p, p)
+        sum over the band of rho hw_i^T hw_(i+k).
+    rho2 : float
+        sum over the band of rho^2.
+    """
+    n, q = xy.shape[0], hw.shape[1]
+    C = np.zeros((q, q))
+    rho2 = 0.0
+    scale = -1.0 / (4.0 * corr_length * corr_length)
+    rho = np.empty(n)
+    for k in range(1, n // 2 + 1):
+        top = 0.0
+        for i in range(n):
+            j = i + k
+            if j >= n:
+                j -= n
+            dx, dy = xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1]
+            r = np.exp((dx * dx + dy * dy) * scale)
+            if k == n - k:
+                r *= 0.5
+            rho[i] = r
+            top = max(top, r)
+        if top < 1e-4:
+            break
+        for i in range(n):
+            j = i + k
+            if j >= n:
+                j -= n
+            r = rho[i]
+            rho2 += r * r
+            for a in range(q):
+                ra = r * hw[i, a]
+                for b in range(q):
+                    C[a, b] += ra * hw[j, b]
+    return C, rho2
+
+
 def warm():
     """Compile the kernels (or load them from the cache beside this file) now.
 
@@ -348,5 +433,8 @@ def warm():
     t = np.linspace(0.0, 6.0, 12)
     xy = np.ascontiguousarray(np.c_[10.0 * np.cos(t), 6.0 * np.sin(t)])
     p = np.array([0.0, 0.0, 10.0, 6.0, 0.0])
-    phi = foot_phases(xy, p, t.copy(), 6)
+    phi = foot_phases(xy, p, t.copy(), 6, True)
+    ellipse_geometry(xy, p, phi)
     lm_ellipse(xy, np.tile([1.0, 0.0, 1.0], (12, 1)), p, phi, 2, 1e-9, 0.1, np.inf)
+    band_sums(xy, 1.0, np.ones((12, 5)))
+    band_sums(xy, 1.0, np.ones((12, 0)))
