@@ -5,7 +5,10 @@
   :func:`foot_phases` and :func:`ellipse_geometry`, the foot points it
   starts from and ends with and the residuals, normals and rows there;
 - :func:`band_sums`: the sums over the band of correlated point pairs of
-  :func:`partinspect.vision.fitting.information_matrices`.
+  :func:`partinspect.vision.fitting.information_matrices`;
+- :func:`circle_sampson`: the residuals of the 3D circle fit
+  (:func:`partinspect.vision.fit3d.fit_circle_3d`), a dozen parameter
+  vectors at a time for its numeric Jacobian.
 
 Each is O(m) arithmetic on a few hundred points, which numpy spent mostly in
 call overhead (a few hundred calls an iteration of the ellipse fit). The
@@ -422,6 +425,60 @@ def band_sums(xy, corr_length, hw):
     return C, rho2
 
 
+@njit(**_JIT)
+def circle_sampson(thetas, n0, e1, e2, P, xy, sig):
+    """Sampson distances of image points to the images of 3D circles.
+
+    Parameters
+    ----------
+    thetas : ndarray, shape (k, 6)
+        Centre (mm), the normal's offsets along e1, e2 from n0, radius (mm).
+    n0, e1, e2 : ndarray, shape (3,)
+        The normal the offsets are taken from and the two axes completing it.
+    P : ndarray, shape (3, 4)
+        Camera matrix.
+    xy : ndarray, shape (N, 2)
+        Image points, px.
+    sig : ndarray, shape (N,)
+        Their standard uncertainties, px.
+
+    Returns
+    -------
+    ndarray, shape (k, N)
+        The algebraic residual x^T C x over its gradient's norm, over sig,
+        with C the circle's image conic as
+        :func:`partinspect.vision.fit3d.circle_image_conic` makes it.
+    """
+    k, N = thetas.shape[0], xy.shape[0]
+    out = np.empty((k, N))
+    M = np.zeros((4, 3))
+    for row in range(k):
+        t = thetas[row]
+        n = n0 + t[3] * e1 + t[4] * e2
+        n = n / np.sqrt(n @ n)
+        a = np.zeros(3)
+        if abs(n[0]) >= 0.9:
+            a[1] = 1.0
+        else:
+            a[0] = 1.0
+        u = np.array([n[1] * a[2] - n[2] * a[1], n[2] * a[0] - n[0] * a[2], n[0] * a[1] - n[1] * a[0]])
+        u = u / np.sqrt(u @ u)
+        v = np.array([n[1] * u[2] - n[2] * u[1], n[2] * u[0] - n[0] * u[2], n[0] * u[1] - n[1] * u[0]])
+        # Homography plane (x, y, 1) -> image: columns P (u, 0), P (v, 0), P (c, 1).
+        M[:3, 0], M[:3, 1], M[:3, 2], M[3, 2] = u, v, t[:3], 1.0
+        Hinv = np.linalg.inv(P @ M)
+        D = np.diag(np.array([1.0, 1.0, -t[5] * t[5]]))
+        C = Hinv.T @ D @ Hinv
+        C = C / np.sqrt((C * C).sum())
+        for i in range(N):
+            x, y = xy[i, 0], xy[i, 1]
+            c0 = C[0, 0] * x + C[0, 1] * y + C[0, 2]
+            c1 = C[1, 0] * x + C[1, 1] * y + C[1, 2]
+            c2 = C[2, 0] * x + C[2, 1] * y + C[2, 2]
+            out[row, i] = (c0 * x + c1 * y + c2) / (2.0 * np.sqrt(c0 * c0 + c1 * c1)) / sig[i]
+    return out
+
+
 def warm():
     """Compile the kernels (or load them from the cache beside this file) now.
 
@@ -438,3 +495,6 @@ def warm():
     lm_ellipse(xy, np.tile([1.0, 0.0, 1.0], (12, 1)), p, phi, 2, 1e-9, 0.1, np.inf)
     band_sums(xy, 1.0, np.ones((12, 5)))
     band_sums(xy, 1.0, np.ones((12, 0)))
+    P = np.c_[np.eye(3), [0.0, 0.0, 1.0]]
+    circle_sampson(np.array([[0.0, 0.0, 100.0, 0.0, 0.0, 5.0]]), np.array([0.0, 0.0, 1.0]),
+                   np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), P, xy, np.ones(12))

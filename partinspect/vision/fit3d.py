@@ -372,51 +372,19 @@ def circle_image_conic(center, normal, radius, P):
     return C / np.linalg.norm(C)
 
 
-def _circle_image_conics(centers, normals, radii, P):
-    """:func:`circle_image_conic` of many circles at once (rows of ``centers``,
-    ``normals`` (k, 3) and ``radii`` (k,)): the Jacobian evaluates a dozen
-    circles per call, and building and inverting their 3x3 homographies one
-    by one cost more in call overhead than in arithmetic."""
-    n = normals / np.linalg.norm(normals, axis=1)[:, None]
-    # _basis of each row: the helper axis x, unless n is near it, then y.
-    a = np.zeros_like(n)
-    near_x = np.abs(n[:, 0]) >= 0.9
-    a[~near_x, 0] = 1.0
-    a[near_x, 1] = 1.0
-    u = _cross_rows(n, a)
-    u /= np.linalg.norm(u, axis=1)[:, None]
-    v = _cross_rows(n, u)
-    # Homographies plane (x, y, 1) -> image: columns P (u, 0), P (v, 0), P (c, 1).
-    M = np.zeros((len(n), 4, 3))
-    M[:, :3, 0], M[:, :3, 1], M[:, :3, 2], M[:, 3, 2] = u, v, centers, 1.0
-    Hinv = np.linalg.inv(P @ M)
-    D = np.ones((len(n), 3))
-    D[:, 2] = -radii * radii
-    C = np.swapaxes(Hinv, 1, 2) @ (D[:, :, None] * Hinv)
-    return C / np.linalg.norm(C, axis=(1, 2))[:, None, None]
-
-
 def _circle_residuals(views, n0, e1, e2):
-    total = [v.total_sigma for v in views]
+    from partinspect.vision._kernels import circle_sampson
+
+    n0, e1, e2 = (np.ascontiguousarray(x, float) for x in (n0, e1, e2))
+    data = [(np.ascontiguousarray(v.P, float), np.ascontiguousarray(v.xy, float),
+             np.ascontiguousarray(np.broadcast_to(v.total_sigma, (len(v.xy),)), float)) for v in views]
 
     def batch(thetas):
         # Sampson distances (algebraic residual over its gradient norm) for
-        # each row of thetas (k, 6) -> (k, N): the conics of all rows, and
-        # the point-wise arithmetic, at once.
-        thetas = np.asarray(thetas, float)
-        normals = n0 + thetas[:, 3:4] * e1 + thetas[:, 4:5] * e2
-        out = []
-        for v, sig in zip(views, total):
-            Cs = _circle_image_conics(thetas[:, :3], normals, thetas[:, 5], v.P)
-            u, w = v.xy[:, 0], v.xy[:, 1]
-            # Cx = C (u, w, 1) for every conic (rows) and point (columns).
-            c = [[Cs[:, i, j, None] for j in range(3)] for i in range(3)]
-            cx0 = c[0][0] * u + c[0][1] * w + c[0][2]
-            cx1 = c[1][0] * u + c[1][1] * w + c[1][2]
-            cx2 = c[2][0] * u + c[2][1] * w + c[2][2]
-            alg = cx0 * u + cx1 * w + cx2
-            out.append(alg / (2 * np.hypot(cx0, cx1)) / sig)
-        return np.concatenate(out, axis=1)
+        # each row of thetas (k, 6) -> (k, N), compiled: the Jacobian
+        # evaluates a dozen rows per call.
+        thetas = np.ascontiguousarray(thetas, float)
+        return np.concatenate([circle_sampson(thetas, n0, e1, e2, P, xy, sig) for P, xy, sig in data], axis=1)
 
     def residuals(theta):
         return batch(np.asarray(theta, float)[None])[0]

@@ -6,7 +6,7 @@ import pytest
 
 from partinspect.vision import _kernels, noise
 from partinspect.vision.correspondences import intersect_ellipse, intersect_line
-from partinspect.vision.fit3d import _circle_image_conics, circle_image_conic
+from partinspect.vision.fit3d import _basis, circle_image_conic
 from partinspect.vision.fitting import (
     _ellipse_with_covariance,
     _EllipseJob,
@@ -109,15 +109,22 @@ def test_fits_without_covariance_completed_are_the_full_fits():
     assert blurred.cov is not None and np.all(np.isfinite(blurred.cov[:4, :4]))
 
 
-def test_stacked_circle_conics_match_one_by_one():
+def test_compiled_circle_residuals_match_the_conics_one_by_one():
     rng = np.random.default_rng(4)
     P = np.c_[np.diag([7000.0, 7000.0, 1.0]), [10.0, -5.0, 1.0]]
-    centers = rng.normal(0, 20, (12, 3)) + [0, 0, 400]
-    normals = rng.normal(size=(12, 3))
-    normals[0] = [1.0, 0.05, 0.02]  # near the first helper axis: the other one is used
-    radii = rng.uniform(2, 10, 12)
-    one = np.array([circle_image_conic(c, n, r, P) for c, n, r in zip(centers, normals, radii)])
-    assert np.allclose(_circle_image_conics(centers, normals, radii, P), one, rtol=0, atol=1e-14)
+    n0 = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    e1, e2 = _basis(n0)
+    thetas = np.c_[rng.normal(0, 20, (12, 3)) + [0, 0, 400], rng.normal(0, 0.3, (12, 2)), rng.uniform(2, 10, 12)]
+    thetas[0, 3:5] = [8.0, 0.5]  # a normal near the first helper axis: the other one is used
+    xy = rng.normal(0, 150, (40, 2))
+    sig = rng.uniform(0.01, 0.05, 40)
+    got = _kernels.circle_sampson(thetas, n0, e1, e2, P, xy, sig)
+    for t, row in zip(thetas, got):
+        C = circle_image_conic(t[:3], n0 + t[3] * e1 + t[4] * e2, t[5], P)
+        x = np.c_[xy, np.ones(40)]
+        Cx = x @ C.T
+        ref = np.einsum("ni,ni->n", x, Cx) / (2 * np.hypot(Cx[:, 0], Cx[:, 1])) / sig
+        assert np.allclose(row, ref, rtol=1e-9, atol=1e-12)
 
 
 def test_intersections_with_one_curve_per_line_match_one_curve_for_all():
