@@ -9,7 +9,12 @@ RMS localisation error of edge points on the circular edges (distance to
 the true circle; the drawn discs are known exactly) and the RMS errors of
 the fitted circles' centres and radii.
 
-    python3 benchmarks/bench_edges.py [--runs 5]
+Then the same stages on the rendered sample parts (plate and bracket, left
+image of the default pair at noise 2), with the merging of pieces into
+image features (``matching.image_features``) that ``inspect`` runs after
+them: the whole 2D chain of one image as it is used.
+
+    python3 benchmarks/bench_edges.py [--runs 5] [--no-parts]
 """
 
 from __future__ import annotations
@@ -90,7 +95,11 @@ def opencv_chain(img):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--no-parts", action="store_true", help="skip the rendered sample parts")
     args = ap.parse_args(argv)
+    from partinspect.vision._kernels import warm
+
+    warm()  # the compiled fits loaded (or compiled) before any timing
     img = plate_image()
     stages = {"noise": [], "edges": [], "chain": [], "segment": [], "total": []}
     for _ in range(args.runs):
@@ -131,6 +140,34 @@ def main(argv=None):
           f"({len(ours_pts)} / {len(cv_pts)} points)")
     print(f"  circle centres: RMS error               {rms(oc):10.4f}  {rms(cc):8.4f}   ({len(oc)} / {len(cc)} of {len(HOLES)})")
     print(f"  circle radii: RMS error                 {rms(orr):10.4f}  {rms(cr):8.4f}")
+    if not args.no_parts:
+        sample_parts(args.runs)
+
+
+def sample_parts(runs):
+    """The whole 2D chain, image features included, on the rendered sample parts."""
+    import tests.vision.stereo_scenes as S
+    from partinspect.vision.matching import image_features
+
+    for name in ("plate", "bracket"):
+        rig, _, img, _ = S.render(name, 2.0, 0, False, (2448, 2048))
+        stages = {"noise": [], "edges": [], "chain": [], "segment": [], "features": [], "total": []}
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            s = estimate_noise(img)
+            t1 = time.perf_counter()
+            ep = edge_points(img, 1.0, noise=s)
+            t2 = time.perf_counter()
+            cs = chain_edges(ep)
+            t3 = time.perf_counter()
+            segs = segment_contours(ep, cs)
+            t4 = time.perf_counter()
+            feats = image_features(ep, segs, rig.K1, rig.D1)
+            t5 = time.perf_counter()
+            for k, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t5 - t0)):
+                stages[k].append(v)
+        print(f"rendered {name}, left image 2448x2048: {len(segs)} segments, {len(feats)} image features; "
+              f"medians of {runs}: " + ", ".join(f"{k} {np.median(v) * 1e3:.0f} ms" for k, v in stages.items()))
 
 
 if __name__ == "__main__":
