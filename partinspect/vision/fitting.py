@@ -759,11 +759,10 @@ class _EllipseJob:
 def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=True, sigma_tol=None):
     """:func:`fit_ellipse` of several point sets at once.
 
-    The Gauss-Newton iterations of all the fits run in lockstep on stacked
-    arrays (:func:`_lm_ellipses`): a fit of a few dozen points costs a few
-    hundred numpy calls, whose overhead, not their arithmetic, is what
-    takes the time, and stacking shares it. Each fit follows exactly the
-    iteration it would follow alone.
+    Each fit follows exactly the iteration it would follow alone
+    (:func:`_lm_ellipses`, compiled); a batch lets the callers (the
+    segmentation's trial fits, the image features' rounds of outlier
+    rejection) collect their fits in one place.
 
     Parameters
     ----------
