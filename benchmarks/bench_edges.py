@@ -101,19 +101,7 @@ def main(argv=None):
 
     warm()  # the compiled fits loaded (or compiled) before any timing
     img = plate_image()
-    stages = {"noise": [], "edges": [], "chain": [], "segment": [], "total": []}
-    for _ in range(args.runs):
-        t0 = time.perf_counter()
-        s = estimate_noise(img)
-        t1 = time.perf_counter()
-        ep = edge_points(img, 1.0, noise=s)
-        t2 = time.perf_counter()
-        cs = chain_edges(ep)
-        t3 = time.perf_counter()
-        segs = segment_contours(ep, cs)
-        t4 = time.perf_counter()
-        for k, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
-            stages[k].append(v)
+    stages, (s, ep, cs, segs) = timed_chain(img, args.runs)
     cv_times = []
     for _ in range(args.runs):
         t0 = time.perf_counter()
@@ -144,28 +132,40 @@ def main(argv=None):
         sample_parts(args.runs)
 
 
+def timed_chain(img, runs, camera=None):
+    """Run the 2D chain ``runs`` times on ``img``; with ``camera`` (K, D) the
+    image features too. Returns the wall times per stage (lists, s) and the
+    last run's (noise, edge points, contours, segments[, features])."""
+    from partinspect.vision.matching import image_features
+
+    names = ["noise", "edges", "chain", "segment"] + (["features"] if camera else [])
+    stages = {k: [] for k in names + ["total"]}
+    for _ in range(runs):
+        t = [time.perf_counter()]
+        s = estimate_noise(img)
+        t.append(time.perf_counter())
+        ep = edge_points(img, 1.0, noise=s)
+        t.append(time.perf_counter())
+        cs = chain_edges(ep)
+        t.append(time.perf_counter())
+        out = (s, ep, cs, segment_contours(ep, cs))
+        t.append(time.perf_counter())
+        if camera:
+            out = out + (image_features(ep, out[3], *camera),)
+            t.append(time.perf_counter())
+        for k, a, b in zip(names, t, t[1:]):
+            stages[k].append(b - a)
+        stages["total"].append(t[-1] - t[0])
+    return stages, out
+
+
 def sample_parts(runs):
     """The whole 2D chain, image features included, on the rendered sample parts."""
     import tests.vision.stereo_scenes as S
-    from partinspect.vision.matching import image_features
 
     for name in ("plate", "bracket"):
         rig, _, img, _ = S.render(name, 2.0, 0, False, (2448, 2048))
-        stages = {"noise": [], "edges": [], "chain": [], "segment": [], "features": [], "total": []}
-        for _ in range(runs):
-            t0 = time.perf_counter()
-            s = estimate_noise(img)
-            t1 = time.perf_counter()
-            ep = edge_points(img, 1.0, noise=s)
-            t2 = time.perf_counter()
-            cs = chain_edges(ep)
-            t3 = time.perf_counter()
-            segs = segment_contours(ep, cs)
-            t4 = time.perf_counter()
-            feats = image_features(ep, segs, rig.K1, rig.D1)
-            t5 = time.perf_counter()
-            for k, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t5 - t0)):
-                stages[k].append(v)
+        stages, (_, _, _, segs, feats) = timed_chain(img, runs, (rig.K1, rig.D1))
         print(f"rendered {name}, left image 2448x2048: {len(segs)} segments, {len(feats)} image features; "
               f"medians of {runs}: " + ", ".join(f"{k} {np.median(v) * 1e3:.0f} ms" for k, v in stages.items()))
 

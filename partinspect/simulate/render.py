@@ -62,6 +62,7 @@ __all__ = [
 ]
 
 MISS = -1
+"""Label of a ray that hits nothing."""
 SAMPLES = 16
 """An edge pixel is integrated with ``SAMPLES x SAMPLES`` rays. With 8 (64
 rays) the coverage of a straight edge is resolved to 1/64 px along the pixel
@@ -73,7 +74,6 @@ draws and biased it upwards (bench_plan, 50 draws: plate line-3, -19 and
 -20 at 0.68-0.83 of their predicted spread). With 16, 0.002-0.007 px, and every
 plate straightness within 20 % of its prediction; a half-size pair takes
 2.5 times as long to render (4.4 -> 11.2 s)."""
-"""Label of a ray that hits nothing."""
 _CHUNK = 1 << 20  # rays per ray-caster call: ~100 MB of temporaries
 
 
