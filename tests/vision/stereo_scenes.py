@@ -78,8 +78,17 @@ def label_image_feature(xy_ideal, truths, P, max_mean_distance=1.0):
 
 
 def line_point_error(point, direction, truth):
-    """Distance (mm) from a true line's middle to a measured line, as a 3-vector
-    perpendicular to the measured direction."""
-    mid = 0.5 * (truth["start"] + truth["end"])
-    v = mid - point
+    """Error (mm) of a measured line's ``point``: from the true line to it, as
+    a 3-vector perpendicular to the measured direction.
+
+    At ``point`` (near the centroid of the measured edge points), where the
+    line's covariance (``Feature3D.covariance``) is stated: a line measured
+    on a piece of its edge is not to be judged at the edge's middle, which
+    its direction's error would move by the lever arm.
+    """
+    a = truth["start"]
+    d = truth["end"] - a
+    d = d / np.linalg.norm(d)
+    v = point - a
+    v = v - (v @ d) * d
     return v - (v @ direction) * direction
