@@ -3,11 +3,12 @@
 For each noise level the noiseless radiance of the part is ray-cast once
 per light direction (12 by default: the rims' Type B component stands for
 how the shading beside a hole falls, a fixed offset under one light), then
-every draw, cycling through the lights, adds fresh sensor noise (``partinspect.simulate.render.sensor``)
-and runs the whole 2D + 3D chain. Reported per noise level: RMS errors of
-circle centres per axis, radii and line positions (perpendicular to the
-line, at the measured line's point, where its covariance is stated), coverage of the 95 % ellipsoid (centres)
-and of +-2u (radii), RMS of normalised errors, the median standard
+every draw, cycling through the lights, adds fresh sensor noise
+(``partinspect.simulate.render.sensor``) and runs the whole 2D + 3D chain.
+Reported per noise level: RMS errors of circle centres per axis, radii and
+line positions (perpendicular to the line, at the measured line's point,
+where its covariance is stated) beside their noise-only bounds, coverage
+of the 95 % ellipsoid (centres) and of +-2u (radii), RMS of normalised errors, the median standard
 uncertainties of centre depth and radius with the share of the systematic
 rim component (``Feature3D.param_cov_systematic``) in the depth variance;
 beside an OpenCV baseline
@@ -179,7 +180,8 @@ def run(name, size, noises, draws, n_lights=1):
             centre_cov95_whole=np.mean(cz[whole] <= CHI2_3_95), radius_cov95_whole=np.mean(np.abs(rz[whole]) <= 2),
             centre_cov95_arc=np.mean(cz[~whole] <= CHI2_3_95), radius_cov95_arc=np.mean(np.abs(rz[~whole]) <= 2),
             centre_nrms=np.sqrt(np.mean(cz) / 3), radius_nrms=np.sqrt(np.mean(np.square(rz))),
-            line_rms=np.sqrt((le**2).mean(0)) * 1e3, line_bound=np.sqrt(np.mean(lb, axis=0)) * 1e3, line_cov95=np.mean(np.array(lz) <= 5.991464547107979),
+            line_rms=np.sqrt((le**2).mean(0)) * 1e3, line_bound=np.sqrt(np.mean(lb, axis=0)) * 1e3,
+            line_cov95=np.mean(np.array(lz) <= 5.991464547107979),
             line_nrms=np.sqrt(np.mean(lz) / 2),
             u_depth=np.median(u_depth) * 1e3, u_radius=np.median(u_rad) * 1e3, sys_share=np.median(sys_share),
             cv_n=len(base_c), cv_centre_rms=np.sqrt((base_c**2).mean(0)) * 1e3 if len(base_c) else np.full(3, np.nan),
@@ -217,7 +219,8 @@ def main():
                   f"{r['radius_cov95']:.3f}/{r['radius_cov95_whole']:.3f}/{r['radius_cov95_arc']:.3f} | "
                   f"{r['centre_nrms']:.2f}/{r['radius_nrms']:.2f} | "
                   f"{r['u_depth']:.1f}/{r['u_radius']:.1f} | {r['sys_share']:.2f} | "
-                  f"{r['n_lines']} | {fmt(r['line_rms'])} | {fmt(r['line_bound'])} | {r['line_cov95']:.3f} | {r['line_nrms']:.2f} | "
+                  f"{r['n_lines']} | {fmt(r['line_rms'])} | {fmt(r['line_bound'])} | {r['line_cov95']:.3f} | "
+                  f"{r['line_nrms']:.2f} | "
                   f"{r['cv_n']} | {fmt(r['cv_centre_rms'])} | {r['cv_radius_rms']:.1f}")
         for r in rows:
             if r["n_through"]:
