@@ -118,7 +118,7 @@ def nearest_circle(X, truths):
     return best
 
 
-def run(name, size, noises, draws, n_lights=1):
+def run(name, size, noises, draws, n_lights=12):
     lights = light_directions(n_lights)
     rads = [radiance(name, size, l) for l in lights]
     rig = rads[0][0]
