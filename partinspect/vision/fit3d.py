@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtrc
 
-from partinspect.vision.fitting import _trR2, fit_ellipse
+from partinspect.vision.fitting import _trR2, fit_ellipse, information_matrices
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
            "circle_consistency"]
@@ -222,14 +222,9 @@ def _jacobian(residuals, theta, step):
 
 
 def _gram(a, xy, corr_length):
-    """``a^T R a`` for rows ``a`` ordered along a curve, R_ij = exp(-d_ij^2 / (4 l^2)) (banded)."""
-    from partinspect.vision._kernels import band_sums
-
-    G = a.T @ a
-    if corr_length and len(a) >= 2:
-        C, _ = band_sums(np.ascontiguousarray(xy, float), float(corr_length), np.ascontiguousarray(a, float))
-        G += C + C.T
-    return G
+    """``a^T R a`` for rows ``a`` ordered along a curve, R_ij = exp(-d_ij^2 / (4 l^2)) (banded):
+    the middle matrix of :func:`partinspect.vision.fitting.information_matrices` with unit weights."""
+    return information_matrices(a, np.ones(len(a)), xy, corr_length)[1]
 
 
 def _gram_dense(a, xy, corr_length):
