@@ -239,6 +239,11 @@ def test_deviated_render_changes_only_near_that_hole(plate):
         lo, hi = uv.min(axis=0) - 3, uv.max(axis=0) + 3
         inside = (changed[:, 1] >= lo[0]) & (changed[:, 1] <= hi[0]) & (changed[:, 0] >= lo[1]) & (changed[:, 0] <= hi[1])
         # Elsewhere at most a stray grey level where a ray grazes a face whose
-        # triangulation the new hole changed (the bottom face, on the silhouette).
+        # triangulation the new hole changed (the bottom face, on the
+        # silhouette; the top face, which holds every hole, is triangulated
+        # anew) and a value rounds the other way: single pixels, 1 grey level
+        # (6 of them in the right image with cadquery-ocp 7.9.3, numpy 2.4;
+        # up to 5 with the versions before). A change of the render beyond
+        # the hole would move whole edges: hundreds of pixels.
         outside = diff[tuple(changed[~inside].T)]
-        assert len(outside) <= 5 and (outside <= 2).all(), outside
+        assert len(outside) <= 12 and (outside <= 2).all(), (outside, changed[~inside])
