@@ -99,7 +99,8 @@ class DetectorModel:
     end_trim : float or None
         Pixels lost at each end of a visible stretch of edge (the filter
         mixes the gradients of two edges meeting at a corner); None for
-        ``3 sigma``, see :attr:`run_trim`.
+        ``3 sigma`` on straight edges, ``3 sigma + 1`` on curved ones, see
+        :attr:`run_trim` and :attr:`arc_trim`.
     min_points : int
         Fewest edge points in an image for a feature to be matched (the
         matcher's ``min_points``).
@@ -143,6 +144,23 @@ class DetectorModel:
         49 of 50 draws.
         """
         return float(self.end_trim) if self.end_trim is not None else 3.0 * self.sigma
+
+    @property
+    def arc_trim(self):
+        """Pixels lost at each end of a visible stretch of a curved edge: ``end_trim``, or ``3 sigma + 1``.
+
+        The segmentation moves the break between two fitted pieces to where
+        their models meet (:func:`partinspect.vision.contours._adjust_breaks`),
+        so an arc ends at its junction and loses the segmentation's trim
+        there, ``3 sigma + 1``: on a synthetic slot (30 px half-circles
+        tangent to its sides, 4 seeds) the fitted arcs span 156-164 deg of
+        180, 164.7 with exactly that trim. A partial arc's radius depends
+        steeply on its ends (the bracket's arc-4 in the left image: the
+        semi-axis' u 0.076 px over the predicted points, 0.114 px over those
+        within the chain's ends, 10 deg shorter), which lines are not; there
+        ``run_trim`` is kept for the counts.
+        """
+        return float(self.end_trim) if self.end_trim is not None else 3.0 * self.sigma + 1.0
 
     @property
     def pixel_noise(self):

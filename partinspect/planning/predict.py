@@ -401,7 +401,8 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     ViewSamples
         Only the points that would be detected: in the image, unoccluded,
         with contrast (the truth's visibility rules), minus ``model.run_trim``
-        px at the ends of each visible stretch.
+        (lines) or ``model.arc_trim`` (circles, arcs) px at the ends of each
+        visible stretch.
     """
     from partinspect.simulate.render import DEFAULT_SHADING, camera_in_part, cast, pixel_rays, shade
     from partinspect.simulate.truth import edge_visibility
@@ -426,7 +427,7 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     every = vis["in_image"] & vis["unoccluded"] & vis["contrast"]
     fractions = {k: float(np.mean(vis[k])) for k in ("in_image", "unoccluded", "contrast")}
     fractions["visible"] = float(np.mean(every))
-    keep = _trim_runs(every, vis["uv"], model.run_trim, kind == "circle")
+    keep = _trim_runs(every, vis["uv"], model.run_trim if kind == "line" else model.arc_trim, kind == "circle")
     uv, normal = vis["uv"][keep], vis["normal_uv"][keep]
     if model.contrast is not None:
         contrast = np.full(len(uv), float(model.contrast))

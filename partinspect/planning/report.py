@@ -73,7 +73,7 @@ def plan_to_dict(result):
         "decidable_ratio": result.max_ratio,
         "coverage_factor": 2.0,
         "model": {"noise": m.noise, "blur": m.blur, "sigma": m.sigma, "contrast": m.contrast,
-                  "end_trim": m.run_trim, "min_points": m.min_points},
+                  "end_trim": m.run_trim, "arc_end_trim": m.arc_trim, "min_points": m.min_points},
         "datums": None if result.datums is None else list(result.datums),
         "characteristics": len(result.characteristics),
         "start": _pose_dict(result.start, result.center),

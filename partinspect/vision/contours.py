@@ -16,7 +16,10 @@ of its orthogonal residuals against the points' own standard uncertainties
 Pieces too short to split further that pass no test are kept pending;
 adjacent pieces are then merged while their union still passes the test,
 which is how a pending piece joins a neighbour, accepted or pending (or is
-dropped).
+dropped). Each break between two accepted neighbours (and a dropped piece
+between them) is then moved to where the two fitted models explain the
+points best, as Pavlidis and Horowitz adjust their breakpoints: a split
+falls where a chord is farthest, not at the junction of two primitives.
 Points within ``trim`` px (arc length) of a piece's open ends are left out
 of its fit, and so are a line's points at its ends that lie within
 ``CLEARANCE`` edge widths of another piece's or contour's edge points:
@@ -53,6 +56,7 @@ from partinspect.vision.fitting import (
     _fit_ellipses,
     _fit_line,
     _line_with_covariance,
+    _normal_std,
     fit_line,
 )
 
@@ -355,6 +359,7 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
     if n < min_points:
         return []
     xy_all, cov_all = edges.xy[idx], edges.cov[idx]
+    std_all = _normal_std(cov_all, edges.normal[idx])
     cl = edges.sigma
 
     # The merge pass re-tests the unions of every adjacent pair in each
@@ -452,7 +457,119 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
     # neighbours are tried together too: a stretch between a tangent line
     # and a junction came as two pieces too short to pass alone and was
     # lost (the bracket's arc-2 in the right image, 50 of its 168 degrees).
-    return [(np.arange(lo, hi) % n, res) for lo, hi, res in pieces if res is not None]
+    pieces = [p for p in pieces if p[2] is not None]
+    pieces = yield from _adjust_breaks(pieces, n, contour.closed, xy_all, std_all, trim, min_points, fit_ranges)
+    return [(np.arange(lo, hi) % n, res) for lo, hi, res in pieces]
+
+
+def _model_residuals(kind, fit, xy):
+    """Signed orthogonal distances of points from a piece's line or ellipse, px."""
+    if kind == "line":
+        A, B, C = fit.params
+        return A * xy[:, 0] + B * xy[:, 1] + C
+    from partinspect.vision.fitting import _ellipse_geometry, _foot_phases
+
+    r, _, _ = _ellipse_geometry(xy, fit.params, _foot_phases(xy, fit.params))
+    return r
+
+
+def _best_break(xy, std, a, b, k0):
+    """Where two fitted neighbours on one stretch of edge should meet.
+
+    The points ``xy`` run from inside the first piece to inside the
+    second; each candidate break ``k`` (0 < k < len) gives the points
+    before it to the first model and the rest to the second, at the cost
+    of the sum of their squared normalised residuals. Returns the ``k`` of
+    least cost, the one nearest ``k0`` among equals.
+    """
+    za = (_model_residuals(a[0], a[1], xy) / std) ** 2
+    zb = (_model_residuals(b[0], b[1], xy) / std) ** 2
+    if not (np.all(np.isfinite(za)) and np.all(np.isfinite(zb))):
+        return k0
+    k = np.arange(1, len(xy))
+    cost = np.cumsum(za)[:-1] + (zb.sum() - np.cumsum(zb)[:-1])
+    best = np.flatnonzero(cost <= cost.min() * (1 + 1e-12))
+    return int(k[best[np.argmin(np.abs(best + 1 - k0))]])
+
+
+def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ranges):
+    """Move each break between two accepted neighbours to where their models meet.
+
+    The split falls at the point farthest from a chord, not at the
+    junction of two primitives, and the test of a piece does not see the
+    ``trim`` px at its open ends: a line running into a tangent arc kept
+    up to ``trim`` px of the arc untested, and the arc lost those and its
+    own ``trim`` again (the bracket's slot ends, 4 mm arcs seen 30 px
+    wide, 10-25 deg short at each end, by an amount that changed from
+    draw to draw with where the splits fell). Each break is moved, within
+    ``3 trim`` points either way, to where the two pieces' fitted models
+    (fitted on the pieces' cores, away from the break) explain the points
+    between them best (:func:`_best_break`); the moved pieces are tested
+    again, and a piece that no longer passes keeps its old ends (as do its
+    neighbours, then, on that side). A generator, like
+    :func:`_segment_steps`.
+
+    Parameters
+    ----------
+    pieces : list of (lo, hi, result)
+        Accepted pieces in cyclic positions, sorted by ``lo``; a moved
+        ``lo`` may leave ``0 <= lo < n``, its points are ``arange(lo, hi) % n``.
+    n : int
+        Points of the contour.
+    closed : bool
+    xy_all, std_all : ndarray, shapes (n, 2), (n,)
+        The contour's points and their standard uncertainties along the
+        edge normal, px.
+
+    References
+    ----------
+    .. [1] Pavlidis, T., Horowitz, S. L. (1974). Segmentation of plane
+           curves. IEEE Trans. Computers C-23(8), 860-870 (the adjustment
+           of breakpoints after split and merge).
+    """
+    m = len(pieces)
+    if m < 2:
+        return pieces
+    reach = int(np.ceil(3 * trim))
+    ends = [[lo, hi] for lo, hi, _ in pieces]
+    old = [list(e) for e in ends]
+    for i in range(m if closed else m - 1):
+        j = (i + 1) % m
+        (alo, ahi, ares), (blo, bhi, bres) = pieces[i], pieces[j]
+        gap = (blo - ahi) % n  # a dropped piece between them
+        if gap > 2 * reach:
+            continue
+        blen = bhi - blo
+        bstart = ahi + gap  # b's start, in a's positions
+        lo = max(alo + 2 * min_points, ahi - reach)
+        hi = min(bstart + blen - 2 * min_points, bstart + reach)
+        if hi - lo < 2:
+            continue
+        pos = np.arange(lo, hi) % n
+        k = lo + _best_break(xy_all[pos], std_all[pos], ares, bres, (ahi + bstart) // 2 - lo)
+        if k != ahi or gap:
+            ends[i][1] = k
+            ends[j][0] = blo + (k - bstart)  # b's hi stays as it is
+    for _ in range(2):
+        moved = [k for k in range(m) if ends[k] != old[k]]
+        if not moved:
+            return pieces
+        results = yield from fit_ranges([(ends[k][0], ends[k][1], True, True, ("line", "arc")) for k in moved])
+        failed = [k for k, res in zip(moved, results) if res is None]
+        if not failed:
+            for k, res in zip(moved, results):
+                pieces[k] = (ends[k][0], ends[k][1], res)
+            return sorted(pieces, key=lambda t: t[0])
+        for k in failed:
+            # Back to its old ends, and its neighbours' ends that touch it.
+            prev, nxt = (k - 1) % m, (k + 1) % m
+            if ends[k][0] != old[k][0] and (closed or k > 0):
+                ends[prev][1] = old[prev][1]
+            if ends[k][1] != old[k][1] and (closed or k < m - 1):
+                ends[nxt][0] = old[nxt][0]
+            ends[k] = list(old[k])
+        # A neighbour with both ends old again is as it was.
+    return pieces
 
 
 def _run_steps(steps):

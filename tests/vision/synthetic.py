@@ -25,7 +25,7 @@ from partinspect.vision.contours import chain_edges
 from partinspect.vision.edges import edge_points
 from partinspect.vision.fitting import ellipse_kcr_bound, fit_ellipse, fit_line, line_kcr_bound
 
-__all__ = ["Disc", "Ellipse", "Polygon", "HalfPlane", "rectangle", "render", "render_clean",
+__all__ = ["Disc", "Ellipse", "Polygon", "HalfPlane", "Slot", "rectangle", "render", "render_clean",
            "line_draws", "ellipse_draws"]
 
 
@@ -151,6 +151,26 @@ class Ellipse:
         ex, ey = a * np.cos(phi), b * np.sin(phi)
         d = np.hypot(u - ex, v - ey)
         return np.where((u / a) ** 2 + (v / b) ** 2 < 1, -d, d)
+
+
+@dataclass(frozen=True)
+class Slot:
+    """Points within ``r`` of the segment from (x0, y0) to (x1, y1): two
+    straight sides, each tangent to the two half-circle ends."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    r: float
+
+    def sdist(self, x, y):
+        d = np.array([self.x1 - self.x0, self.y1 - self.y0])
+        t = np.clip(((x - self.x0) * d[0] + (y - self.y0) * d[1]) / (d @ d), 0.0, 1.0)
+        return np.hypot(x - self.x0 - t * d[0], y - self.y0 - t * d[1]) - self.r
+
+    def inside(self, x, y):
+        return self.sdist(x, y) < 0
 
 
 def Disc(xc, yc, r):

@@ -3,7 +3,7 @@ import pytest
 
 from partinspect.vision.contours import chain_edges, segment_contours
 from partinspect.vision.edges import edge_points
-from tests.vision.synthetic import Disc, rectangle, render
+from tests.vision.synthetic import Disc, Slot, rectangle, render
 
 
 def _segments(shapes, H, W, seed):
@@ -115,3 +115,25 @@ def test_line_ends_beside_a_junction_keep_clear_of_the_other_edge():
     # Before the change: -2.7 (points to -5.1); now -0.45. Correlated along the edge, the
     # two points count as about one: the noise alone puts the mean of 8 within +-0.7 (2 sd).
     assert abs(np.mean(z_end)) < 1.5, np.round(z_end, 1)
+
+
+def test_arcs_tangent_to_lines_reach_their_junctions():
+    # A slot: two half-circles of 30 px, each tangent to the two straight
+    # sides. Where the splits fell, a side ran on into the arc untested (its
+    # trimmed end) and the arc lost that and its own trim again: 138-157 deg
+    # of the 180 fitted on seeds 0-3 without the breaks' adjustment. With the
+    # breaks at the junctions the arcs lose their trim (4 px, 7.6 deg) at
+    # each end and about a point more: 156-164 deg.
+    slot = Slot(80.3, 90.2, 160.1, 118.7, 30.0)
+    centres = np.array([[slot.x0, slot.y0], [slot.x1, slot.y1]])
+    for seed in range(4):
+        ep, _, segs = _segments([(slot, 170.0)], 200, 240, seed)
+        assert sorted(s.kind for s in segs) == ["arc", "arc", "line", "line"]
+        for s in segs:
+            if s.kind != "arc":
+                continue
+            xy = ep.xy[s.fit_index]
+            c = centres[np.argmin([np.median(np.abs(np.linalg.norm(xy - c, axis=1) - 30.0)) for c in centres])]
+            extent = np.degrees(np.ptp(np.unwrap(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))))
+            assert 154.0 < extent < 170.0, (seed, extent)
+            assert abs(s.fit.params[2] - 30.0) < 0.15 and abs(s.fit.params[3] - 30.0) < 0.15
