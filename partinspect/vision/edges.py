@@ -76,6 +76,12 @@ BACKGROUND_DISTANCES = (3.0, 3.5, 4.0)
 # on white noise, 1.27-1.30 for every direction of the normal. Half of it
 # is the variance of the component along any one direction.
 BACKGROUND_NOISE = 1.28
+EDGE_BIAS_FACTOR = 0.75
+"""Standard uncertainty of what remains of a point's displacement by the
+shading beside it after the correction, in units of its (averaged)
+``EdgePoints.background_bound``: the Type B of rim points in the 3D fits
+(:mod:`partinspect.vision.stereo`) and of a closed contour's points in its
+segmentation test (:mod:`partinspect.vision.contours`)."""
 # px: wider profiles are not step edges (a plateau of the gradient magnitude
 # on a shading ramp steeper than the thresholds); optical blur of a usable
 # image keeps step edges well below it.

@@ -100,7 +100,7 @@ import numpy as np
 from partinspect.vision.contours import chain_edges, segment_contours
 from partinspect.vision.correspondences import correspond, deblurred
 from partinspect.vision.pointerrors import point_error_model, short_scale_ratio
-from partinspect.vision.edges import background_shift_std, edge_points
+from partinspect.vision.edges import EDGE_BIAS_FACTOR, background_shift_std, edge_points
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
@@ -128,9 +128,6 @@ BACKGROUND_SMOOTHING = 2.0
 averaged along the edge with a Gaussian of this standard deviation (the
 shading beside an edge changes over several pixels, the noise of each
 reading over about one)."""
-EDGE_BIAS_FACTOR = 0.75
-"""Standard uncertainty of what remains of a point's displacement after the
-correction, in units of its (averaged) ``EdgePoints.background_bound``."""
 MISMATCH_P = 1e-6
 """A matched pair of arcs whose 3D circle fits both images worse than their
 two ellipses by more than this chance allows
