@@ -331,8 +331,8 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
         uncertainty for the test only, px: a floor for the residual
         systematic error of the sub-pixel estimator (< 0.005 px measured),
         so that very clean images are not cut into pieces by it. The
-        whole of a closed contour, tested as one ellipse, is tested with
-        the Type B of its points beside a shaded surface too (in
+        whole of a closed contour, and the union of two arcs, are tested
+        with the Type B of their points beside a shaded surface too (in
         quadrature, ``EDGE_BIAS_FACTOR`` times ``background_bound``, as
         the 3D fits of rims take it): the shading of a hole's inner wall
         displaces some of its rim's points beyond their noise, the whole rim
@@ -370,10 +370,8 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
         return []
     xy_all, cov_all = edges.xy[idx], edges.cov[idx]
     std_all = _normal_std(cov_all, edges.normal[idx])
-    whole_floor = None
-    if contour.closed:
-        bound = edges.background_bound[idx] if edges.background_bound is not None else 0.0
-        whole_floor = np.hypot(floor, EDGE_BIAS_FACTOR * bound) * np.ones(n)
+    bound = edges.background_bound[idx] if edges.background_bound is not None else 0.0
+    rim_floor = np.hypot(floor, EDGE_BIAS_FACTOR * bound) * np.ones(n)
     cl = edges.sigma
 
     # The merge pass re-tests the unions of every adjacent pair in each
@@ -394,9 +392,10 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
             if keep.sum() < min_points:
                 cache[key] = None
                 continue
-            # The whole of a closed contour with the Type B of its points
-            # beside a shaded surface (see segment_contour).
-            fl = whole_floor[pos[keep]] if whole_floor is not None and not (o_s or o_e) else floor
+            # The whole of a closed contour, or two arcs together, with the
+            # Type B of their points beside a shaded surface (see segment_contour).
+            rim = kinds == ("arc",) or (contour.closed and not (o_s or o_e))
+            fl = rim_floor[pos[keep]] if rim else floor
             todo[key] = (pos[keep], (xy[keep], cov_all[pos[keep]], cl, alpha, fl, kinds))
         if todo:
             results = yield [req for _, req in todo.values()]
@@ -458,10 +457,11 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
             if hi - a[0] > n:
                 continue
             whole_loop = contour.closed and hi - a[0] == n
-            pairs.append((i, a[0], hi, not whole_loop))
-        results = yield from fit_ranges([(lo, hi, o, o, ("line", "arc")) for _, lo, hi, o in pairs])
+            arcs = a[2] is not None and b[2] is not None and a[2][0] == b[2][0] == "arc"
+            pairs.append((i, a[0], hi, not whole_loop, ("arc",) if arcs else ("line", "arc")))
+        results = yield from fit_ranges([(lo, hi, o, o, kinds) for _, lo, hi, o, kinds in pairs])
         best = None
-        for (i, lo, hi, _), res in zip(pairs, results):
+        for (i, lo, hi, _, _), res in zip(pairs, results):
             if res is not None and (best is None or res[2] > best[1][2][2]):
                 best = (i, (lo, hi, res))
         if best is None:
