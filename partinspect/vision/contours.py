@@ -51,10 +51,12 @@ from partinspect.vision.edges import EDGE_BIAS_FACTOR
 from partinspect.vision.fitting import (
     _as_points,
     _axis_bound,
+    _ellipse_geometry,
     _ellipse_plausible,
     _ellipse_with_covariance,
     _EllipseJob,
     _fit_ellipses,
+    _foot_phases,
     _fit_line,
     _line_with_covariance,
     _normal_std,
@@ -248,8 +250,8 @@ def _test_pieces(requests, min_arc=12, max_iter=_TEST_ITERATIONS):
     Parameters
     ----------
     requests : list of tuple
-        (xy, cov, corr_length, alpha, floor, kinds) per piece; kinds is
-        ("line", "arc") or ("arc",).
+        (xy, cov, corr_length, alpha, floor, kinds) per piece; floor (px)
+        one value or one per point; kinds is ("line", "arc") or ("arc",).
 
     Returns
     -------
@@ -484,8 +486,6 @@ def _model_residuals(kind, fit, xy):
     if kind == "line":
         A, B, C = fit.params
         return A * xy[:, 0] + B * xy[:, 1] + C
-    from partinspect.vision.fitting import _ellipse_geometry, _foot_phases
-
     r, _, _ = _ellipse_geometry(xy, fit.params, _foot_phases(xy, fit.params))
     return r
 
