@@ -80,8 +80,10 @@ EDGE_BIAS_FACTOR = 0.75
 """Standard uncertainty of what remains of a point's displacement by the
 shading beside it after the correction, in units of its (averaged)
 ``EdgePoints.background_bound``: the Type B of rim points in the 3D fits
-(:mod:`partinspect.vision.stereo`) and of a closed contour's points in its
-segmentation test (:mod:`partinspect.vision.contours`)."""
+(:mod:`partinspect.vision.stereo`, the bound averaged along the edge) and,
+with the bound as read at each point, in the segmentation's test of the
+whole of a closed contour and of two arcs together
+(:mod:`partinspect.vision.contours`)."""
 # px: wider profiles are not step edges (a plateau of the gradient magnitude
 # on a shading ramp steeper than the thresholds); optical blur of a usable
 # image keeps step edges well below it.

@@ -143,6 +143,24 @@ def test_arcs_tangent_to_lines_reach_their_junctions():
             assert abs(s.fit.params[2] - 30.0) < 0.15 and abs(s.fit.params[3] - 30.0) < 0.15
 
 
+def _rendered_arcs(part, seed, fids):
+    """Per image of a rendered pair (left, right): the 2D chain's result and, per id in ``fids``,
+    its arc features labelled with that id."""
+    from partinspect.vision.ideal import camera_matrices
+    from partinspect.vision.stereo import measure_images
+    from tests.vision import stereo_scenes as S
+
+    truths = {t["id"]: [t] for t in S.truth_in_rig(part) if t["id"] in fids}
+    rig, _, left, right = S.render(part, 2.0, seed)
+    out = []
+    for image, K, D, P in zip((left, right), (rig.K1, rig.K2), (rig.D1, rig.D2), camera_matrices(rig)):
+        res = measure_images(image, K, D)
+        out.append((res, {fid: [f for f in res.features
+                                if f.kind == "arc" and S.label_image_feature(f.ideal.xy, truth, P) == fid]
+                          for fid, truth in truths.items()}))
+    return out
+
+
 def test_a_rim_beside_its_shaded_wall_stays_whole():
     # The plate's 4 mm hole (18 px across at this size): the shading of its
     # inner wall displaces some rim points beyond their noise, so the whole
@@ -151,17 +169,10 @@ def test_a_rim_beside_its_shaded_wall_stays_whole():
     # of 35-70 deg in those of seeds 2 and 3). Tested with the points'
     # Type B (EDGE_BIAS_FACTOR x background_bound), the closed rim passes
     # whole in three of the four (seven of the eight), largest gaps 5-7 deg.
-    from partinspect.vision.stereo import measure_images
-    from tests.vision import stereo_scenes as S
-
-    truth = [t for t in S.truth_in_rig("plate") if t["id"] == "circle-6"]
     largest = []
     for seed in (0, 1):
-        rig, _, left, right = S.render("plate", 2.0, seed)
-        for image, K, D, P in ((left, rig.K1, rig.D1, rig.K1 @ np.c_[np.eye(3), np.zeros(3)]),
-                               (right, rig.K2, rig.D2, rig.K2 @ np.c_[rig.R, rig.T.reshape(3, 1)])):
-            feats = measure_images(image, K, D).features
-            rim = [f for f in feats if f.kind == "arc" and S.label_image_feature(f.ideal.xy, truth, P) == "circle-6"]
+        for _, arcs in _rendered_arcs("plate", seed, ["circle-6"]):
+            rim = arcs["circle-6"]
             assert len(rim) == 1
             c = rim[0].fit.params[:2]
             ang = np.sort(np.degrees(np.arctan2(*(rim[0].ideal.xy - c).T[::-1])))
@@ -175,17 +186,9 @@ def test_a_slot_end_comes_as_one_piece_of_its_contour():
     # failed the test with the noise alone stayed two pieces, each trimmed at
     # the split (seed 1, right image, arc-2). Their union is tested with the
     # points' Type B, as the whole of a closed contour is.
-    from partinspect.vision.stereo import measure_images
-    from tests.vision import stereo_scenes as S
-
-    truths = {t["id"]: [t] for t in S.truth_in_rig("bracket") if t["id"] in ("arc-2", "arc-4")}
     for seed in (0, 1):
-        rig, _, left, right = S.render("bracket", 2.0, seed)
-        for image, K, D, P in ((left, rig.K1, rig.D1, rig.K1 @ np.c_[np.eye(3), np.zeros(3)]),
-                               (right, rig.K2, rig.D2, rig.K2 @ np.c_[rig.R, rig.T.reshape(3, 1)])):
-            res = measure_images(image, K, D)
-            for fid, truth in truths.items():
-                arcs = [f for f in res.features if f.kind == "arc" and S.label_image_feature(f.ideal.xy, truth, P) == fid]
-                assert len(arcs) == 1
-                contours = [res.segments[s].contour for s in arcs[0].segments]
+        for res, arcs in _rendered_arcs("bracket", seed, ["arc-2", "arc-4"]):
+            for fid, found in arcs.items():
+                assert len(found) == 1
+                contours = [res.segments[s].contour for s in found[0].segments]
                 assert len(set(contours)) == len(contours), (seed, fid, contours)
