@@ -227,3 +227,30 @@ def test_edge_far_outside_the_image_is_not_visible_even_where_the_lens_model_fol
     tang = np.tile((np.array([0.8, -0.6, 0.0]) @ R), (len(r), 1))
     v = edge_visibility(p.scene, rig, 0, pose, pts, tang)
     assert not v["in_image"].any() and not v["contrast"].any()
+
+
+def test_a_face_boundary_shaded_alike_beside_an_edge_does_not_hide_it(bracket):
+    """The bracket's slot end (arc-2) seen in the left camera: 1.5 px inside
+    its rim the slot's wall gives way to the face seen past it, shaded alike
+    (1-2 grey levels against the rim's 50). That boundary is no second edge
+    (the 2D chain finds the rim there), so the rim keeps its contrast; where
+    the background shows 0.25 px inside the rim (a step of 140 grey
+    levels) it does not. The rule without the shading (any change of face)
+    lost single samples there, and with the trim at each end of a visible
+    stretch the planner lost 20 deg of the arc at each."""
+    from partinspect.simulate.pose import default_pose
+    from partinspect.simulate.rig import default_rig
+    from partinspect.simulate.truth import edge_visibility
+
+    rig = default_rig((1224, 1024))
+    pose = default_pose(bracket.shape, rig)
+    arc = bracket.inv["arc-2"]
+    g = feature_geometry(arc)
+    assert arc.kind == "arc" and abs(g["radius"] - 4.0) < 1e-9
+    n = 720
+    P, T = sample_edge("arc", g, n)
+    t = np.rad2deg(g["angle_start"] + (np.arange(n) + 0.5) / n * (g["angle_end"] - g["angle_start"]))
+    vis = edge_visibility(bracket.scene, rig, 0, pose, P, T)
+    alike = (t > 140) & (t < 170)
+    assert vis["contrast"][alike].all()
+    assert not vis["contrast"][(t > 192) & (t < 196)].all()
