@@ -92,6 +92,13 @@ _SIGMA_TOL_REFIT = 1e-3
 # the true edge; points 3.2 w from one, within 1.5.
 CLEARANCE = 3.0
 
+# px: a line meets an arc tangentially when the point of the arc's ellipse
+# whose tangent is parallel to the line lies this close to it (a corner of
+# angle a on an arc of radius r leaves r (1 - cos a) there: 1 px for
+# a = 14 deg at r = 35 px; a tangent junction leaves the points'
+# displacement by the shading beside them, under 0.2 px on the sample parts).
+TANGENT_TOLERANCE = 1.0
+
 _NEIGHBOURS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
 
 
@@ -509,6 +516,40 @@ def _best_break(xy, std, a, b, k0):
     return int(k[best[np.argmin(np.abs(best + 1 - k0))]])
 
 
+def _tangent_point(line, ellipse):
+    """Where a line touches an ellipse.
+
+    Parameters
+    ----------
+    line : LineFit
+        Parameters (A, B, C), ``A x + B y + C = 0`` with ``A^2 + B^2 = 1``.
+    ellipse : EllipseFit
+        Parameters (xc, yc, a, b, theta).
+
+    Returns
+    -------
+    point : ndarray, shape (2,)
+        The point of the ellipse whose tangent is parallel to the line, of
+        the two such points the one nearer the line, px.
+    distance : float
+        Its distance from the line, px: zero where the line touches the
+        ellipse.
+    """
+    A, B, C = line.params
+    xc, yc, a, b, theta = ellipse.params[:5]
+    c, s = np.cos(theta), np.sin(theta)
+    # The ellipse x(phi) = centre + Q(theta) (a cos phi, b sin phi) has its
+    # tangent normal to the line's normal m where m . dx/dphi = 0, i.e. with
+    # m' = Q^T m: tan phi = b m'_y / (a m'_x).
+    m1, m2 = c * A + s * B, -s * A + c * B
+    phi = np.arctan2(b * m2, a * m1) + np.array([0.0, np.pi])
+    u, v = a * np.cos(phi), b * np.sin(phi)
+    pts = np.c_[xc + c * u - s * v, yc + s * u + c * v]
+    d = np.abs(pts @ np.array([A, B]) + C)
+    k = int(np.argmin(d))
+    return pts[k], float(d[k])
+
+
 def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ranges):
     """Move each break between two accepted neighbours to where their models meet.
 
@@ -521,10 +562,27 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
     draw to draw with where the splits fell). Each break is moved, within
     ``3 trim`` points either way, to where the two pieces' fitted models
     (fitted on the pieces' cores, away from the break) explain the points
-    between them best (:func:`_best_break`); the moved pieces are tested
-    again, and a piece that no longer passes keeps its old ends (as do its
-    neighbours, then, on that side). A generator, like
-    :func:`_segment_steps`.
+    between them best (:func:`_best_break`); or, where a line meets an arc
+    tangentially (``TANGENT_TOLERANCE``), to the point nearest where the
+    line touches the arc's ellipse (:func:`_tangent_point`). The moved
+    pieces are tested again (an arc with its points' Type B beside a
+    shaded surface, as two arcs together are), and a piece that no longer
+    passes keeps its old ends (as do its neighbours, then, on that side).
+    A generator, like :func:`_segment_steps`.
+
+    At a tangent junction the two models part by s^2 / 2r at a distance s
+    from it, less than the points' noise over several px on either side,
+    so the least-cost break there follows the noise and the points'
+    displacement by the shading beside them: the bracket's slot ends
+    (r = 35 px) came 2-5 px into the arc, by an amount that changed from
+    draw to draw, and the arc's radius with it (its spread over 50 noise
+    draws 1.3-1.5 times the planner's, which ends the arc at the junction).
+    The point where the two models touch is as certain as the models.
+    Where an arc re-tested with only its points' noise failed after
+    taking in a stretch the split had dropped, that stretch was lost
+    (40-50 deg of the slot ends in some draws); a point's Type B covers
+    the shading's displacement in the 3D fits, and the re-test of an arc
+    uses it as the test of two arcs together does.
 
     Parameters
     ----------
@@ -564,6 +622,14 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
             continue
         pos = np.arange(lo, hi) % n
         k = lo + _best_break(xy_all[pos], std_all[pos], ares, bres, (ahi + bstart) // 2 - lo)
+        if {ares[0], bres[0]} == {"line", "arc"}:
+            line, arc = (ares[1], bres[1]) if ares[0] == "line" else (bres[1], ares[1])
+            touch, dist = _tangent_point(line, arc)
+            near = np.linalg.norm(xy_all[pos] - touch, axis=1)
+            # The touching point must lie on this stretch of the edge (within
+            # a point's spacing), not on the far side of the ellipse.
+            if dist < TANGENT_TOLERANCE and near.min() < 2.0:
+                k = lo + max(1, int(np.argmin(near)))
         if k != ahi or gap:
             ends[i][1] = k
             ends[j][0] = blo + (k - bstart)  # b's hi stays as it is
@@ -571,7 +637,8 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
         moved = [k for k in range(m) if ends[k] != old[k]]
         if not moved:
             return pieces
-        results = yield from fit_ranges([(ends[k][0], ends[k][1], True, True, ("line", "arc")) for k in moved])
+        results = yield from fit_ranges([(ends[k][0], ends[k][1], True, True,
+                                          ("arc",) if pieces[k][2][0] == "arc" else ("line", "arc")) for k in moved])
         failed = [k for k, res in zip(moved, results) if res is None]
         if not failed:
             for k, res in zip(moved, results):
