@@ -576,11 +576,11 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
     displacement by the shading beside them: the bracket's slot ends
     (r = 35 px) came 2-5 px into the arc, by an amount that changed from
     draw to draw, and the arc's radius with it (its spread over 50 noise
-    draws 1.3-1.5 times the planner's, which ends the arc at the junction).
+    draws 1.5-1.8 times the planner's, which ends the arc at the junction).
     The point where the two models touch is as certain as the models.
     Where an arc re-tested with only its points' noise failed after
     taking in a stretch the split had dropped, that stretch was lost
-    (40-50 deg of the slot ends in some draws); a point's Type B covers
+    (35-50 deg of the slot ends in some draws); a point's Type B covers
     the shading's displacement in the 3D fits, and the re-test of an arc
     uses it as the test of two arcs together does.
 
@@ -627,7 +627,7 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
             touch, dist = _tangent_point(line, arc)
             near = np.linalg.norm(xy_all[pos] - touch, axis=1)
             # The touching point must lie on this stretch of the edge (within
-            # a point's spacing), not on the far side of the ellipse.
+            # 2 px of one of its points), not on the far side of the ellipse.
             if dist < TANGENT_TOLERANCE and near.min() < 2.0:
                 k = lo + max(1, int(np.argmin(near)))
         if k != ahi or gap:
