@@ -60,6 +60,7 @@ from partinspect.vision.fitting import (
     _fit_line,
     _line_with_covariance,
     _normal_std,
+    ellipse_points,
     fit_line,
 )
 
@@ -535,17 +536,15 @@ def _tangent_point(line, ellipse):
         Its distance from the line, px: zero where the line touches the
         ellipse.
     """
-    A, B, C = line.params
-    xc, yc, a, b, theta = ellipse.params[:5]
+    A, B, _ = line.params
+    _, _, a, b, theta = ellipse.params[:5]
     c, s = np.cos(theta), np.sin(theta)
     # The ellipse x(phi) = centre + Q(theta) (a cos phi, b sin phi) has its
     # tangent normal to the line's normal m where m . dx/dphi = 0, i.e. with
     # m' = Q^T m: tan phi = b m'_y / (a m'_x).
     m1, m2 = c * A + s * B, -s * A + c * B
-    phi = np.arctan2(b * m2, a * m1) + np.array([0.0, np.pi])
-    u, v = a * np.cos(phi), b * np.sin(phi)
-    pts = np.c_[xc + c * u - s * v, yc + s * u + c * v]
-    d = np.abs(pts @ np.array([A, B]) + C)
+    pts = ellipse_points(ellipse.params[:5], np.arctan2(b * m2, a * m1) + np.array([0.0, np.pi]))
+    d = np.abs(_model_residuals("line", line, pts))
     k = int(np.argmin(d))
     return pts[k], float(d[k])
 
@@ -621,7 +620,7 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
         if hi - lo < 2:
             continue
         pos = np.arange(lo, hi) % n
-        k = lo + _best_break(xy_all[pos], std_all[pos], ares, bres, (ahi + bstart) // 2 - lo)
+        k = None
         if {ares[0], bres[0]} == {"line", "arc"}:
             line, arc = (ares[1], bres[1]) if ares[0] == "line" else (bres[1], ares[1])
             touch, dist = _tangent_point(line, arc)
@@ -630,6 +629,8 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
             # 2 px of one of its points), not on the far side of the ellipse.
             if dist < TANGENT_TOLERANCE and near.min() < 2.0:
                 k = lo + max(1, int(np.argmin(near)))
+        if k is None:
+            k = lo + _best_break(xy_all[pos], std_all[pos], ares, bres, (ahi + bstart) // 2 - lo)
         if k != ahi or gap:
             ends[i][1] = k
             ends[j][0] = blo + (k - bstart)  # b's hi stays as it is
