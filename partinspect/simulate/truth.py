@@ -165,8 +165,12 @@ def edge_visibility(rs, calib, index, part_to_camera, points, tangents, shading=
     -------
     dict of ndarray of bool, shape (N,)
         ``in_image``, ``unoccluded``, ``contrast`` (see the module notes),
-        and ``uv`` (N, 2): the samples' distorted pixel positions, and
-        ``normal_uv`` (N, 2): unit normals of the projected edge.
+        and ``uv`` (N, 2): the samples' distorted pixel positions,
+        ``normal_uv`` (N, 2): unit normals of the projected edge, and
+        ``side_label`` (N, 2) int, ``side_grey`` (N, 2): the face seen and
+        its noiseless grey level ``CONTRAST_OFFSET`` px either side
+        (against, along the normal), -1 for the background, -2 and NaN for
+        samples outside the image.
     """
     K, D, R, t = camera_in_part(calib, index, part_to_camera)
     w, h = calib.image_size
@@ -189,6 +193,8 @@ def edge_visibility(rs, calib, index, part_to_camera, points, tangents, shading=
     # with a change of face across the edge itself.
     light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
     contrast = np.zeros(len(points), bool)
+    side_label = np.full((len(points), 2), -2)
+    side_grey = np.full((len(points), 2), np.nan)
     # Only samples in the image: far outside it a strong distortion model can
     # fold over, and its pixels cannot be mapped back to rays.
     ok = in_image
@@ -208,7 +214,10 @@ def edge_visibility(rs, calib, index, part_to_camera, points, tangents, shading=
         one_face = [(lab[:, i] == lab[:, j]) | (np.abs(g[:, i] - g[:, j]) < quiet) for i, j in ((0, 1), (2, 3))]
         clean = one_face[0] & one_face[1] & (lab[:, 1] != lab[:, 2])
         contrast[ok] = clean & (step >= MIN_CONTRAST)
-    return {"in_image": in_image, "unoccluded": unoccluded, "contrast": contrast, "uv": uv, "normal_uv": normal}
+        side_label[ok] = lab[:, [0, 3]]
+        side_grey[ok] = g[:, [0, 3]]
+    return {"in_image": in_image, "unoccluded": unoccluded, "contrast": contrast, "uv": uv, "normal_uv": normal,
+            "side_label": side_label, "side_grey": side_grey}
 
 
 def feature_visibility(rs, calib, part_to_camera, kind, geometry, shading=DEFAULT_SHADING):
