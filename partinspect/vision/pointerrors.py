@@ -136,6 +136,15 @@ class PointErrorModel:
         noise = self._draw(rng, n_patterns * n_draws, random, True).reshape(n_patterns, n_draws, n, 3)
         return noise + held[:, None]
 
+    def covariances(self):
+        """Each point's error covariance, shape (N, 3, 3), mm^2: what :meth:`draw` draws, point by point."""
+        J = self.normal_jacobian
+        var = sum(np.asarray(std, float) ** 2 for std, _ in self.components) if self.components else 0.0
+        C = np.asarray(var)[..., None, None] * np.einsum("ni,nj->nij", J, J)
+        if self.common_jacobian is not None and self.common_cov is not None:
+            C = C + np.einsum("nik,kl,njl->nij", self.common_jacobian, self.common_cov, self.common_jacobian)
+        return C
+
     def _draw(self, rng, n_draws, which, common):
         n = len(self.arc_length)
         out = np.zeros((n_draws, n, 3))

@@ -29,6 +29,7 @@ def test_draws_reproduce_the_points_covariances():
     for i in (0, 17, 39):
         want = (std[i] ** 2 + bias[i] ** 2) * np.outer(J[i], J[i]) + Jp[i] @ Cp @ Jp[i].T
         assert np.cov(e[:, i].T) == pytest.approx(want, rel=0.08, abs=1e-9)
+        assert m.covariances()[i] == pytest.approx(want, rel=1e-12, abs=1e-18)
     # The long-correlated part moves neighbours together: their difference
     # keeps (nearly) only the short-correlated part.
     u = np.tile([0.0, 0.0, 1.0], (n, 1))
