@@ -100,7 +100,8 @@ import numpy as np
 from partinspect.vision.contours import chain_edges, segment_contours
 from partinspect.vision.correspondences import correspond, deblurred
 from partinspect.vision.pointerrors import point_error_model, short_scale_ratio
-from partinspect.vision.edges import EDGE_BIAS_FACTOR, background_shift_std, edge_points
+from partinspect.vision.edges import (BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FACTOR, background_shift_std,
+                                      edge_points)
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
@@ -110,7 +111,8 @@ from partinspect.vision.matching import ImageFeature, arc_circle, epipolar_geome
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "correction_corr_length", "smoothed_background", "as_fitted",
+           "feature_views", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
+           "as_fitted",
            "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
 
 # Points of arcs: the corrections and the Type B component of the module
@@ -350,7 +352,22 @@ def smoothed_background(xy, values, std, corr_length, length=BACKGROUND_SMOOTHIN
         Standard deviation of the means' shift from image noise, px
         (correlated along the edge over :func:`correction_corr_length`).
     """
-    # Imported here: this function's body is all this module needs of them.
+    w, rho = smoothing_operators(xy, corr_length, length)
+    a = w @ _diag(std)
+    # var_i = sum_jk a_ij rho_jk a_ik, the row sums of (a rho) * a.
+    var = np.asarray((a @ rho).multiply(a).sum(axis=1)).ravel()
+    return w @ values, np.sqrt(np.maximum(var, 0.0))
+
+
+def _diag(x):
+    from scipy import sparse
+
+    return sparse.diags(np.asarray(x, float))
+
+
+def smoothing_operators(xy, corr_length, length):
+    """Sparse (N, N): the row-normalised Gaussian weights along the edge and the noise's correlation."""
+    # Imported here: these are all this module needs of them.
     from scipy import sparse
     from scipy.spatial import cKDTree
 
@@ -370,10 +387,55 @@ def smoothed_background(xy, values, std, corr_length, length=BACKGROUND_SMOOTHIN
     w = sparse.csr_matrix((np.exp(-d2 / (2.0 * length * length)), (i, j)), shape=(n, n))
     w = sparse.diags(1.0 / np.asarray(w.sum(axis=1)).ravel()) @ w
     rho = sparse.csr_matrix((np.exp(-d2 / (4.0 * corr_length * corr_length)), (i, j)), shape=(n, n))
-    a = w @ sparse.diags(std)
-    # var_i = sum_jk a_ij rho_jk a_ik, the row sums of (a rho) * a.
-    var = np.asarray((a @ rho).multiply(a).sum(axis=1)).ravel()
-    return w @ values, np.sqrt(np.maximum(var, 0.0))
+    return w, rho
+
+
+def coupled_noise(xy, sigma, corr_length, length=BACKGROUND_SMOOTHING):
+    """Noise an arc's corrected points take from their correction, read from the same noise as their positions.
+
+    A point's position error ``d`` (across the edge, correlated along it as
+    ``exp(-dist^2 / (4 corr_length^2))``) moves its background reading by
+    ``BACKGROUND_POSITION_COUPLING * d``
+    (:data:`partinspect.vision.edges.BACKGROUND_POSITION_COUPLING`); the
+    chain averages the readings along the edge (weights ``W``, as
+    :func:`smoothed_background`) and removes ``BACKGROUND_CORRECTION``
+    times the mean, so a corrected point's error is ``d - k (W d)`` (``k``
+    the product of the two factors, -0.196) plus the correction's
+    independent rest. ``d - k (W d)`` is modelled as ``d`` plus an
+    independent smooth part, correlated as the averaged correction
+    (:func:`correction_corr_length`), whose variance makes the power at
+    long wavelengths exact: there ``W d = d`` and the sum has ``(1 - k)^2``
+    times the power of ``d``. A fit over the whole edge (centre, radius)
+    sees that power; a point alone sees 1.19 times the variance of ``d``
+    where the sum has 1.25 (sigma 1 px, ``length`` 2 px).
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        The points of one edge, px.
+    sigma : ndarray, shape (N,)
+        Standard deviation of each point's position across the edge, px.
+    corr_length, length : float
+        As :func:`smoothed_background`.
+
+    Returns
+    -------
+    smooth_std : ndarray, shape (N,)
+        Standard deviation of the smooth part, px.
+    mean_std : ndarray, shape (N,)
+        Standard deviation of ``W d``, px: the averaged reading's noise
+        from the positions is ``|BACKGROUND_POSITION_COUPLING|`` times it.
+    """
+    from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
+
+    sigma = np.asarray(sigma, float) * np.ones(len(xy))
+    w, rho = smoothing_operators(xy, corr_length, length)
+    a = w @ _diag(sigma)
+    mean_var = np.asarray((a @ rho).multiply(a).sum(axis=1)).ravel()
+    k = BACKGROUND_CORRECTION * BACKGROUND_POSITION_COUPLING
+    # Power at zero wavelength of a field correlated as exp(-d^2 / (4 l^2)): variance times l.
+    share = ((1.0 - k) ** 2 - 1.0) * corr_length / float(np.hypot(corr_length, length))
+    return sigma * np.sqrt(max(share, 0.0)), np.sqrt(np.maximum(mean_var, 0.0))
 
 
 def _with_edge_data(feature, edges):
@@ -422,7 +484,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
     curvature bias of the edge detector
     (:func:`partinspect.vision.correspondences.deblurred`, ideal pixels);
     the correction's noise is the view's ``sigma_correction``, correlated
-    along the edge over :func:`correction_corr_length`, and each point
+    along the edge over :func:`correction_corr_length`, the share it takes
+    from the points' own noise included as :func:`coupled_noise` models it,
+    and each point
     carries the Type B standard uncertainty
     ``EDGE_BIAS_FACTOR * background_bound`` of what remains, correlated
     along the edge over ``EDGE_BIAS_CORR_ANGLE`` times the ellipse's
@@ -448,7 +512,12 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
             xy = deblurred(xy, f.fit, f.blur)
         sigma_c = None
         if offset is not None:
-            sigma_c = BACKGROUND_CORRECTION * f.background_std
+            # The correction and the point share noise (coupled_noise): that
+            # share goes with the correction's smooth noise, the rest of
+            # which is its own.
+            smooth, mean_std = coupled_noise(f.uv, sigma, corr_length)
+            rest = np.maximum(f.background_std ** 2 - (BACKGROUND_POSITION_COUPLING * mean_std) ** 2, 0.0)
+            sigma_c = np.sqrt(BACKGROUND_CORRECTION ** 2 * rest + smooth ** 2)
             bias = np.hypot(EDGE_BIAS_FACTOR * f.background_bound, EDGE_BIAS_FLOOR)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))

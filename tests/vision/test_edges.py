@@ -160,3 +160,55 @@ def test_curvature_bias_removed_by_deblurred(radius):
     for lo in range(0, 45, 15):  # every direction of the normal to the pixel axes
         sel = (phi >= lo) & (phi < lo + 15)
         assert abs(err[sel].mean()) < 0.004, (lo, err[sel].mean())
+
+
+def _vertical_step_draws(draws, seed, x0=32.3, contrast=100.0):
+    """Edge points of a vertical step at x0 under noise 2, rows 12-51 (the edge's middle), per draw."""
+    from scipy.special import erf
+
+    from partinspect.vision.edges import edge_points
+
+    xx = np.arange(64.0)[None, :] * np.ones((64, 1))
+    img0 = 60 + contrast * 0.5 * (1 + erf((xx - x0) / (np.sqrt(2) * np.hypot(0.6, np.sqrt(1 / 12)))))
+    rng = np.random.default_rng(seed)
+    for _ in range(draws):
+        e = edge_points(np.clip(np.rint(img0 + 2 * rng.standard_normal(img0.shape)), 0, 255), 1.0, noise=2.0)
+        m = np.flatnonzero((np.abs(e.xy[:, 0] - x0) < 2) & (e.xy[:, 1] > 6) & (e.xy[:, 1] < 58))
+        m = m[np.argsort(e.xy[m, 1])]
+        yield e, m, (e.xy[m, 1] > 11.5) & (e.xy[m, 1] < 51.5)
+
+
+def test_background_shift_noise_is_coupled_to_the_points_own():
+    """A point found too far towards the bright side reads its background
+    shift towards the dark side: BACKGROUND_POSITION_COUPLING px per px."""
+    from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
+
+    d, s = [], []
+    for e, m, mid in _vertical_step_draws(150, 4):
+        d.append(e.xy[m[mid], 0] - 32.3)
+        s.append(e.background_shift[m[mid]])
+    d, s = np.concatenate(d), np.concatenate(s)
+    beta = np.cov(d, s)[0, 1] / d.var()
+    assert beta == pytest.approx(BACKGROUND_POSITION_COUPLING, abs=0.025)
+    assert beta < -0.1
+
+
+def test_corrected_points_noise_as_the_3d_views_state_it():
+    """Points less BACKGROUND_CORRECTION times their averaged background
+    shift scatter 1.17 times as much as found; the views' model (the
+    points' own noise, the share the correction takes from it, the
+    correction's rest) says 0.95 of that. Taken as independent of the
+    points, the correction's noise left the model at 0.89."""
+    from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING, background_shift_std
+    from partinspect.vision.stereo import BACKGROUND_CORRECTION, coupled_noise, smoothed_background
+
+    got, model = [], []
+    for e, m, mid in _vertical_step_draws(150, 5):
+        std = background_shift_std(e, m)
+        mean, mean_std = smoothed_background(e.xy[m], e.background_shift[m, None], std, 1.0)
+        smooth, w_std = coupled_noise(e.xy[m], e.normal_std[m], 1.0)
+        rest = np.maximum(mean_std ** 2 - (BACKGROUND_POSITION_COUPLING * w_std) ** 2, 0.0)
+        got.append((e.xy[m, 0] - BACKGROUND_CORRECTION * mean[:, 0])[mid])
+        model.append((e.normal_std[m] ** 2 + smooth ** 2 + BACKGROUND_CORRECTION ** 2 * rest)[mid])
+    ratio = np.concatenate(got).std() / np.sqrt(np.concatenate(model).mean())
+    assert 0.92 < ratio < 1.08, ratio
