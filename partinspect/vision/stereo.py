@@ -426,8 +426,6 @@ def coupled_noise(xy, sigma, corr_length, length=BACKGROUND_SMOOTHING):
         Standard deviation of ``W d``, px: the averaged reading's noise
         from the positions is ``|BACKGROUND_POSITION_COUPLING|`` times it.
     """
-    from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
-
     sigma = np.asarray(sigma, float) * np.ones(len(xy))
     w, rho = smoothing_operators(xy, corr_length, length)
     a = w @ _diag(sigma)
