@@ -363,9 +363,7 @@ def _trim_runs(mask, uv, trim, closed, breaks=None):
     n = len(mask)
     if trim <= 0 or n == 0 or not mask.any():
         return mask
-    b = np.zeros(n, bool) if breaks is None else np.asarray(breaks, bool).copy()
-    if not closed:
-        b[-1] = True
+    b = np.zeros(n, bool) if breaks is None else np.asarray(breaks, bool)
     if closed and mask.all() and not b.any():
         return mask
     order = np.arange(n)

@@ -196,22 +196,12 @@ def _noise_factors(covs):
     return V * np.sqrt(np.clip(w, 0, None))[:, None, :]
 
 
-def _across(e, ideal, axis):
-    """Simulated errors (D, M, 3) projected across the reference: (D, M, k).
-
-    ``axis``: the line's unit direction (its normal plane, k = 3), or the
-    circle's (centre, in-plane basis E (3, 2)) (its radial direction, k = 1).
-    """
-    if isinstance(axis, tuple):
-        c, E = axis
-        q = (ideal - c) @ E
-        radial = (q / np.linalg.norm(q, axis=1)[:, None]) @ E.T
-        return np.einsum("dni,ni->dn", e, radial)[..., None]
-    return e - np.einsum("dni,i->dn", e, axis)[..., None] * axis
-
-
 def _across_sd(covs, ideal, axis):
-    """Standard uncertainty of each point across the reference, from its covariance (M,)."""
+    """Standard uncertainty of each point across the reference, from its covariance (M,).
+
+    ``axis``: the line's unit direction (across it: its normal plane), or
+    the circle's (centre, in-plane basis E (3, 2)) (across it: radially).
+    """
     if isinstance(axis, tuple):
         c, E = axis
         q = (ideal - c) @ E

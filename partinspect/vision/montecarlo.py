@@ -28,8 +28,8 @@ import numpy as np
 
 from partinspect.vision.fit3d import fit_circle_3d, fit_line_3d
 from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
-from partinspect.vision.stereo import (BACKGROUND_SMOOTHING, calibration_parameters, correction_corr_length,
-                                       coupled_noise, feature_views, perturbed_calibration, smoothing_operators)
+from partinspect.vision.stereo import (calibration_parameters, correction_corr_length, coupled_noise, feature_views,
+                                       perturbed_calibration)
 
 __all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors"]
 
@@ -154,10 +154,8 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
             # its own, longer length.
             offset, std = getattr(f, "background_offset", None), getattr(f, "background_std", None)
             if image_noise and kind == "arc" and offset is not None:
-                w, _ = smoothing_operators(f.uv, corr_length, BACKGROUND_SMOOTHING)
+                _, rest, w = coupled_noise(f.uv, s, std, corr_length)
                 own = BACKGROUND_POSITION_COUPLING * (w @ (z * s).T).T
-                _, mean_std = coupled_noise(f.uv, s, corr_length)
-                rest = np.sqrt(np.maximum(std ** 2 - (BACKGROUND_POSITION_COUPLING * mean_std) ** 2, 0.0))
                 zc = correlated_normal_errors(f.uv, correction_corr_length(corr_length), draws, rng)
                 corrections.append(offset[None] + (own + zc * rest)[:, :, None] * normal[None])
             else:

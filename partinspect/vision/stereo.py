@@ -353,16 +353,17 @@ def smoothed_background(xy, values, std, corr_length, length=BACKGROUND_SMOOTHIN
         (correlated along the edge over :func:`correction_corr_length`).
     """
     w, rho = smoothing_operators(xy, corr_length, length)
-    a = w @ _diag(std)
-    # var_i = sum_jk a_ij rho_jk a_ik, the row sums of (a rho) * a.
-    var = np.asarray((a @ rho).multiply(a).sum(axis=1)).ravel()
-    return w @ values, np.sqrt(np.maximum(var, 0.0))
+    return w @ values, _smoothed_std(w, rho, std)
 
 
-def _diag(x):
+def _smoothed_std(w, rho, std):
+    """Standard deviation of ``w @ x`` for ``x`` of standard deviations ``std`` correlated as ``rho`` (N,)."""
     from scipy import sparse
 
-    return sparse.diags(np.asarray(x, float))
+    a = w @ sparse.diags(np.asarray(std, float))
+    # var_i = sum_jk a_ij rho_jk a_ik, the row sums of (a rho) * a.
+    var = np.asarray((a @ rho).multiply(a).sum(axis=1)).ravel()
+    return np.sqrt(np.maximum(var, 0.0))
 
 
 def smoothing_operators(xy, corr_length, length):
@@ -390,7 +391,7 @@ def smoothing_operators(xy, corr_length, length):
     return w, rho
 
 
-def coupled_noise(xy, sigma, corr_length, length=BACKGROUND_SMOOTHING):
+def coupled_noise(xy, sigma, background_std, corr_length, length=BACKGROUND_SMOOTHING):
     """Noise an arc's corrected points take from their correction, read from the same noise as their positions.
 
     A point's position error ``d`` (across the edge, correlated along it as
@@ -415,6 +416,10 @@ def coupled_noise(xy, sigma, corr_length, length=BACKGROUND_SMOOTHING):
         The points of one edge, px.
     sigma : ndarray, shape (N,)
         Standard deviation of each point's position across the edge, px.
+    background_std : ndarray, shape (N,)
+        Standard deviation of the averaged background shift from image
+        noise, px (:func:`smoothed_background`'s ``mean_std``): the share
+        from the positions and the rest together.
     corr_length, length : float
         As :func:`smoothed_background`.
 
@@ -422,18 +427,20 @@ def coupled_noise(xy, sigma, corr_length, length=BACKGROUND_SMOOTHING):
     -------
     smooth_std : ndarray, shape (N,)
         Standard deviation of the smooth part, px.
-    mean_std : ndarray, shape (N,)
-        Standard deviation of ``W d``, px: the averaged reading's noise
-        from the positions is ``|BACKGROUND_POSITION_COUPLING|`` times it.
+    rest_std : ndarray, shape (N,)
+        Standard deviation of the averaged shift's noise independent of the
+        positions, px (before ``BACKGROUND_CORRECTION``).
+    weights : scipy.sparse matrix, shape (N, N)
+        ``W``, for drawing ``W d``.
     """
     sigma = np.asarray(sigma, float) * np.ones(len(xy))
     w, rho = smoothing_operators(xy, corr_length, length)
-    a = w @ _diag(sigma)
-    mean_var = np.asarray((a @ rho).multiply(a).sum(axis=1)).ravel()
+    from_positions = BACKGROUND_POSITION_COUPLING * _smoothed_std(w, rho, sigma)
+    rest = np.sqrt(np.maximum(np.asarray(background_std, float) ** 2 - from_positions ** 2, 0.0))
     k = BACKGROUND_CORRECTION * BACKGROUND_POSITION_COUPLING
     # Power at zero wavelength of a field correlated as exp(-d^2 / (4 l^2)): variance times l.
     share = ((1.0 - k) ** 2 - 1.0) * corr_length / float(np.hypot(corr_length, length))
-    return sigma * np.sqrt(max(share, 0.0)), np.sqrt(np.maximum(mean_var, 0.0))
+    return sigma * np.sqrt(max(share, 0.0)), rest, w
 
 
 def _with_edge_data(feature, edges):
@@ -513,9 +520,8 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
             # The correction and the point share noise (coupled_noise): that
             # share goes with the correction's smooth noise, the rest of
             # which is its own.
-            smooth, mean_std = coupled_noise(f.uv, sigma, corr_length)
-            rest = np.maximum(f.background_std ** 2 - (BACKGROUND_POSITION_COUPLING * mean_std) ** 2, 0.0)
-            sigma_c = np.sqrt(BACKGROUND_CORRECTION ** 2 * rest + smooth ** 2)
+            smooth, rest, _ = coupled_noise(f.uv, sigma, f.background_std, corr_length)
+            sigma_c = np.hypot(BACKGROUND_CORRECTION * rest, smooth)
             bias = np.hypot(EDGE_BIAS_FACTOR * f.background_bound, EDGE_BIAS_FLOOR)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))

@@ -199,16 +199,15 @@ def test_corrected_points_noise_as_the_3d_views_state_it():
     points' own noise, the share the correction takes from it, the
     correction's rest) says 0.95 of that. Taken as independent of the
     points, the correction's noise left the model at 0.89."""
-    from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING, background_shift_std
+    from partinspect.vision.edges import background_shift_std
     from partinspect.vision.stereo import BACKGROUND_CORRECTION, coupled_noise, smoothed_background
 
     got, model = [], []
     for e, m, mid in _vertical_step_draws(150, 5):
         std = background_shift_std(e, m)
         mean, mean_std = smoothed_background(e.xy[m], e.background_shift[m, None], std, 1.0)
-        smooth, w_std = coupled_noise(e.xy[m], e.normal_std[m], 1.0)
-        rest = np.maximum(mean_std ** 2 - (BACKGROUND_POSITION_COUPLING * w_std) ** 2, 0.0)
+        smooth, rest, _ = coupled_noise(e.xy[m], e.normal_std[m], mean_std, 1.0)
         got.append((e.xy[m, 0] - BACKGROUND_CORRECTION * mean[:, 0])[mid])
-        model.append((e.normal_std[m] ** 2 + smooth ** 2 + BACKGROUND_CORRECTION ** 2 * rest)[mid])
+        model.append((e.normal_std[m] ** 2 + smooth ** 2 + (BACKGROUND_CORRECTION * rest) ** 2)[mid])
     ratio = np.concatenate(got).std() / np.sqrt(np.concatenate(model).mean())
     assert 0.92 < ratio < 1.08, ratio
