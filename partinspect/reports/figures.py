@@ -591,7 +591,8 @@ def sigma_figure(figures, part_to_camera=None):
                    f"the points' covariances have medians {pm[0]:.3g}, {pm[1]:.3g} and {pm[2]:.3g} µm.")
     caption = (
         f"Standard deviations of every triangulated point along the axes of the {frame}, from the diagonal of "
-        f"its propagated 3×3 covariance; medians X {med[0]:.3g}, Y {med[1]:.3g}, Z {med[2]:.3g} µm. {verdict}"
+        f"its propagated 3×3 covariance (image noise; on rims also the shading correction's noise and its Type B "
+        f"rest); medians X {med[0]:.3g}, Y {med[1]:.3g}, Z {med[2]:.3g} µm. {verdict}"
     )
     body = _img_tag(uri, "standard deviations of 3D points along X, Y, Z")
     return Figure("sigmas", title, "Figs. 5-6", body=body, caption=caption)

@@ -462,12 +462,6 @@ def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, see
     return [evaluate_characteristic(c, parts, registration, inventory, k=k, seed=seed, n_mc=n_mc) for c in characteristics]
 
 
-def _error_covs(record):
-    """The covariances the record's error model draws its points' errors with (its point_covs without one)."""
-    model = getattr(record, "point_errors", None)
-    return record.point_covs if model is None else model.covariances()
-
-
 def _errors(record):
     """The measured record's draws of its points' correlated errors, or None (independent draws)."""
     model = getattr(record, "point_errors", None)
@@ -507,7 +501,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         if pts is None or pcs is None or len(pts) < 5:
             return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
         fr = (straightness if t == "straightness" else circularity)(
-            pts, _error_covs(rec[0]), rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
+            pts, pcs, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
     if t in ("distance", "angle"):
@@ -536,7 +530,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         details = {"fitted": value}
         pts, pcs = getattr(rec[0], "points", None), getattr(rec[0], "point_covs", None)
         if form_fn is not None and pts is not None and pcs is not None and len(pts) >= 5:
-            fr = form_fn(pts, _error_covs(rec[0]), rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
+            fr = form_fn(pts, pcs, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
                            n_excluded=fr.n_excluded)
