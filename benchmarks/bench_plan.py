@@ -55,11 +55,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from partinspect.planning.check import monte_carlo_check, render_radiance_pair  # noqa: E402
+from partinspect.planning.check import chance_interval, monte_carlo_check, render_radiance_pair  # noqa: E402
 from partinspect.planning.edge_model import DetectorModel  # noqa: E402
 from partinspect.planning.predict import predict_pose  # noqa: E402
 from partinspect.simulate.rig import default_rig  # noqa: E402
@@ -77,12 +76,6 @@ def characteristics(part):
     chars = characteristics_for(spec, part.inv, path)
     datums = None if spec.datums is None else list(resolve_spec(spec, part.inv, path).datums)
     return chars, datums
-
-
-def chance_interval(n, level=0.95):
-    """Interval of s / sigma for a sample standard deviation of n normal values."""
-    q = stats.chi2.ppf([(1 - level) / 2, (1 + level) / 2], n - 1)
-    return np.sqrt(q / (n - 1))
 
 
 def robust_spread(chk, cid):

@@ -178,6 +178,10 @@ def _plan_parser():
     p.add_argument("--max-tilt", metavar="DEG", type=float, default=30.0,
                    help="search tilts about the fixture's X and Y axes up to DEG (default 30; 0: no tilt)")
     p.add_argument("--step", metavar="DEG", type=float, default=30.0, help="coarse rotation step (default 30)")
+    p.add_argument("--check", metavar="N", type=int, default=0,
+                   help="render the proposed pose and measure it on N noise draws (at least 3; some seconds each): "
+                   "the predicted u set beside the measured spread, a spread beyond chance added to U (default 0: no check)")
+    p.add_argument("--seed", metavar="S", type=int, default=0, help="noise seed of the check's draws (default 0)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no table")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -196,7 +200,7 @@ def _run_plan(args):
     model = DetectorModel(noise=args.noise, blur=args.blur, contrast=args.contrast)
     result = run_plan(args.part, args.rig, tolerances=args.tolerances, pose=args.pose, max_ratio=args.ratio,
                       model=model, search=not args.no_search, rotation=args.rotation, max_tilt=args.max_tilt,
-                      step=args.step, progress=_progress(args.quiet))
+                      step=args.step, check=args.check, seed=args.seed, progress=_progress(args.quiet))
     out = write_plan(args.output, result)
     if not args.quiet:
         try:

@@ -18,11 +18,26 @@ the plane of the nominal circle): its spread is taken as
 centre at its true position (the rendered images carry a small systematic
 offset that is no part of the spread).
 
+:func:`check_pose` is ``inspect plan --check``: the proposed pose's
+prediction set against such draws. The draws show the image-noise part of
+u only (one scene, its systematic displacements fixed), so they are set
+beside the prediction without its Type B part. Where their spread exceeds
+that by more than chance allows for the number of draws (a sample standard
+deviation of n normal values lies within :func:`chance_interval` of the
+true one 95 % of the time), the excess is a random component the
+first-order model does not carry (a segmentation that keeps different
+pieces of a rim from one image to the next), and it is added to the
+prediction's u in quadrature; a spread below the prediction leaves the
+prediction as it is (conservative). A characteristic the chain did not
+measure in every draw is not called decidable.
+
 References
 ----------
 .. [1] JCGM 101:2008, GUM Supplement 1: propagation of distributions using
        a Monte Carlo method, 7.6 (the standard deviation of the output
        values as the standard uncertainty).
+.. [2] JCGM 100:2008 (GUM), 4.2 (Type A evaluation) and 5.1.2 (combining
+       uncorrelated components in quadrature).
 """
 
 from __future__ import annotations
@@ -31,7 +46,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RenderedCheck", "render_radiance_pair", "measure_pair", "monte_carlo_check", "spread"]
+__all__ = ["RenderedCheck", "CheckedCharacteristic", "PoseCheck", "render_radiance_pair", "measure_pair",
+           "monte_carlo_check", "spread", "chance_interval", "checked_uncertainty", "check_pose"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -226,3 +242,214 @@ def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, 
         n,
         failed,
     )
+
+
+def chance_interval(n, level=0.95):
+    """Interval of ``s / sigma`` for the sample standard deviation ``s`` of n normal values.
+
+    Returns
+    -------
+    ndarray, shape (2,)
+        ``sqrt(chi2_q / (n - 1))`` at the quantiles ``(1 -+ level) / 2`` of
+        chi-square with ``n - 1`` degrees of freedom.
+    """
+    from scipy import stats
+
+    if n < 2:
+        raise ValueError("a spread needs at least 2 values")
+    q = stats.chi2.ppf([(1 - level) / 2, (1 + level) / 2], n - 1)
+    return np.sqrt(q / (n - 1))
+
+
+def checked_uncertainty(u, u_noise, measured_spread, n):
+    """A predicted standard uncertainty after a check on n noise draws (module notes).
+
+    Parameters
+    ----------
+    u : float
+        The prediction's standard uncertainty (Type B part included).
+    u_noise : float
+        Its image-noise part: what the draws can show.
+    measured_spread : float
+        Their sample standard deviation (:meth:`RenderedCheck.spread`).
+    n : int
+        Values the spread was taken from.
+
+    Returns
+    -------
+    u_checked : float
+        ``sqrt(u^2 + s^2 - u_noise^2)`` when ``s / u_noise`` lies above the
+        chance interval, else ``u``.
+    verdict : str
+        "agrees", "prediction low" or "prediction high" (s below the
+        interval: the prediction is kept).
+    """
+    lo, hi = chance_interval(n)
+    r = measured_spread / u_noise
+    if r > hi:
+        return float(np.sqrt(u * u + measured_spread ** 2 - u_noise ** 2)), "prediction low"
+    return float(u), ("prediction high" if r < lo else "agrees")
+
+
+@dataclass(frozen=True)
+class CheckedCharacteristic:
+    """One characteristic of the proposed pose after the rendered check.
+
+    Attributes
+    ----------
+    prediction : CharacteristicPrediction
+        The plan's (Type B part included).
+    u_noise : float
+        The prediction's image-noise part, the characteristic's unit.
+    spread : float
+        Standard deviation of the chain's values over the draws (NaN with
+        fewer than 3).
+    measured : int
+        Draws in which the chain measured it.
+    u, U : float
+        Standard and expanded (k = 2) uncertainty after the check
+        (:func:`checked_uncertainty`).
+    verdict : str
+        "agrees", "prediction low", "prediction high", or why there is no
+        comparison.
+    decidable : bool
+        ``U <= max_ratio * tolerance`` and measured in every draw.
+    """
+
+    prediction: object
+    u_noise: float
+    spread: float
+    measured: int
+    u: float
+    U: float
+    verdict: str
+    decidable: bool
+
+    @property
+    def id(self):
+        return self.prediction.id
+
+    @property
+    def ratio(self):
+        """``U / tolerance`` after the check (NaN without a tolerance)."""
+        T = self.prediction.tolerance
+        return self.U / T if T else float("nan")
+
+    def to_dict(self):
+        c = self.prediction.characteristic
+        conv = np.degrees if c.unit == "rad" else float
+
+        def num(x):
+            return None if x is None or not np.isfinite(x) else round(float(conv(x)), 9)
+
+        return {"id": self.id, "predicted_noise_u": num(self.u_noise), "measured_spread": num(self.spread),
+                "measured_draws": self.measured, "standard_uncertainty": num(self.u),
+                "expanded_uncertainty": num(self.U),
+                "ratio": None if not np.isfinite(self.ratio) else round(float(self.ratio), 6),
+                "verdict": self.verdict, "decidable": bool(self.decidable)}
+
+
+@dataclass(frozen=True, eq=False)
+class PoseCheck:
+    """The rendered check of one pose's prediction.
+
+    Attributes
+    ----------
+    draws : int
+        Draws whose chain run completed.
+    failed : list of str
+        Why the others failed.
+    interval : tuple of float
+        The chance interval of ``spread / u`` for that many draws (95 %).
+    characteristics : list of CheckedCharacteristic
+        In the prediction's order.
+    noise, seed : float, int
+        Sensor noise (grey levels) and the seed of the draws.
+    """
+
+    draws: int
+    failed: list
+    interval: tuple
+    characteristics: list
+    noise: float
+    seed: int
+
+    @property
+    def all_decidable(self):
+        """Every inspected characteristic decidable after the check."""
+        return all(c.decidable or not c.prediction.inspected for c in self.characteristics)
+
+    def to_dict(self):
+        return {"draws": self.draws, "failed": list(self.failed), "noise": self.noise, "seed": self.seed,
+                "chance_interval": [round(float(v), 4) for v in self.interval],
+                "all_decidable": self.all_decidable,
+                "characteristics": [c.to_dict() for c in self.characteristics]}
+
+
+def check_pose(inventory, scene, calib, prediction, characteristics, model, *, datums=None, draws=20, seed=0,
+               progress=None):
+    """Check one pose's prediction on rendered noise draws (``inspect plan --check``).
+
+    Parameters
+    ----------
+    inventory : Inventory
+    scene : RaycastScene
+    calib : StereoCalibration
+    prediction : PosePrediction
+        The pose's prediction (its characteristics in the order of
+        ``characteristics``).
+    characteristics : sequence of Characteristic
+    model : DetectorModel
+        The prediction's; its noise and blur make the renders. A fixed
+        ``contrast`` cannot be rendered.
+    datums : sequence of str, optional
+    draws : int
+        At least 3.
+    seed : int
+    progress : callable, optional
+
+    Returns
+    -------
+    PoseCheck
+    """
+    import dataclasses
+
+    from partinspect.planning.predict import predict_pose
+    from partinspect.tolerances.evaluate import COVERAGE_FACTOR
+
+    if draws < 3:
+        raise ValueError("a check needs at least 3 draws")
+    if model.contrast is not None:
+        raise ValueError("renders show the faces' shading, not a fixed contrast")
+    say = progress or (lambda message: None)
+    P = prediction.part_to_camera
+    say("check: the image-noise part of the prediction")
+    noise_only = predict_pose(inventory, scene, calib, P, characteristics,
+                              model=dataclasses.replace(model, systematic=False), datums=datums,
+                              max_ratio=prediction.max_ratio)
+    say("check: rendering the proposed pose")
+    radiance = render_radiance_pair(scene, calib, P, blur_sigma=model.blur)
+    chk = monte_carlo_check(scene, inventory, calib, P, characteristics, draws=draws, noise=model.noise, seed=seed,
+                            datums=datums, radiance=radiance,
+                            progress=lambda message: say(f"check: {message}"))
+    out = []
+    for cp, cn in zip(prediction.characteristics, noise_only.characteristics):
+        n = int(np.isfinite(chk.values[cp.id]).sum()) if chk.draws else 0
+        s = chk.spread(cp.id) if chk.draws else float("nan")
+        if not np.isfinite(cp.u):
+            verdict, u = "not predicted measurable", cp.u
+        elif n < 3 or not np.isfinite(s):
+            verdict, u = f"measured in {n} of {chk.draws} draws: no spread", cp.u
+        elif not (np.isfinite(cn.u) and cn.u > 0):
+            verdict, u = "no image-noise part predicted", cp.u
+        else:
+            u, verdict = checked_uncertainty(cp.u, cn.u, s, n)
+        U = COVERAGE_FACTOR * u
+        T = cp.tolerance
+        ok = bool(cp.decidable and chk.draws > 0 and n == chk.draws and T is not None
+                  and U <= prediction.max_ratio * T)
+        if cp.decidable and chk.draws and n < chk.draws:
+            verdict += f"; measured in {n} of {chk.draws} draws"
+        out.append(CheckedCharacteristic(cp, cn.u, s, n, u, U, verdict, ok))
+    interval = tuple(float(v) for v in chance_interval(max(chk.draws, 2)))
+    return PoseCheck(chk.draws, list(chk.failed), interval, out, float(model.noise), int(seed))

@@ -46,6 +46,10 @@ class PlanResult:
     start : PosePrediction
     search : SearchResult or None
         None when the search was not asked for.
+    check : PoseCheck or None
+        The proposed pose's prediction checked on rendered noise draws
+        (:func:`partinspect.planning.check.check_pose`); None when not asked
+        for. With it, the check's decisions are the plan's.
     """
 
     part: Path
@@ -60,14 +64,20 @@ class PlanResult:
     center: np.ndarray
     start: object
     search: object = None
+    check: object = None
 
     @property
     def best(self):
         return self.search.best if self.search is not None else self.start
 
     @property
+    def all_decidable(self):
+        """Every inspected characteristic decidable in the proposed pose (after the check, if one was run)."""
+        return self.check.all_decidable if self.check is not None else self.best.all_decidable
+
+    @property
     def exit_code(self):
-        return EXIT_ALL_DECIDABLE if self.best.all_decidable else EXIT_SOME_UNDECIDABLE
+        return EXIT_ALL_DECIDABLE if self.all_decidable else EXIT_SOME_UNDECIDABLE
 
     def summary_line(self):
         n = len(self.characteristics)
@@ -77,10 +87,13 @@ class PlanResult:
                   f"; {len(self.search.never)} undecidable in every pose")
         else:
             s += f"; {len(self.start.undecidable())} undecidable"
+        if self.check is not None:
+            s += (f"; after the check on {self.check.draws} rendered draws: "
+                  f"{sum(c.decidable for c in self.check.characteristics)} of {n} decidable")
         return s
 
 
-def _check_inputs(part, rig, tolerances, max_ratio, model):
+def _check_inputs(part, rig, tolerances, max_ratio, model, check=0):
     part = Path(part)
     if not part.is_file():
         raise InputError(part, "STEP file not found" if not part.exists() else "not a regular file")
@@ -92,6 +105,10 @@ def _check_inputs(part, rig, tolerances, max_ratio, model):
         raise InputError(None, f"--contrast must be a positive number of grey levels, got {model.contrast!r}")
     if not (model.blur >= 0 and model.sigma > 0):
         raise InputError(None, "--blur must be >= 0 and --sigma > 0 (pixels)")
+    if not (isinstance(check, int) and (check == 0 or check >= 3)):
+        raise InputError(None, f"--check must be 0 (no check) or at least 3 draws, got {check!r}")
+    if check and model.contrast is not None:
+        raise InputError(None, "--check renders the faces' shading and cannot honour a fixed --contrast")
     rig = Path(rig)
     if not rig.exists():
         raise InputError(rig, "calibration file not found")
@@ -101,7 +118,7 @@ def _check_inputs(part, rig, tolerances, max_ratio, model):
 
 
 def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, model=None, search=True,
-             rotation=180.0, max_tilt=30.0, step=30.0, progress=None):
+             rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, progress=None):
     """Predict the uncertainty of every characteristic and search the fixture poses.
 
     Parameters
@@ -125,6 +142,11 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         Search fixture poses (else only the starting pose is predicted).
     rotation, max_tilt, step : float
         Search limits, degrees (see :func:`.search.search_poses`).
+    check : int
+        Check the proposed pose's prediction on this many rendered noise
+        draws (0: no check; else at least 3).
+    seed : int
+        Seed of the check's noise draws.
     progress : callable, optional
 
     Returns
@@ -138,7 +160,7 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     """
     say = progress or (lambda message: None)
     model = model or DetectorModel()
-    part, rig, tol_path = _check_inputs(part, rig, tolerances, max_ratio, model)
+    part, rig, tol_path = _check_inputs(part, rig, tolerances, max_ratio, model, check)
     for name, v in (("--rotation", rotation), ("--max-tilt", max_tilt)):
         if not (0 <= v <= 180 and math.isfinite(v)):
             raise InputError(None, f"{name} must be between 0 and 180 degrees, got {v!r}")
@@ -196,4 +218,11 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     else:
         say("predicting the starting pose")
         start_pred, result = predict(start, FixturePose()), None
-    return PlanResult(part, rig, tol_path, calib, inv, chars, datums, model, max_ratio, center, start_pred, result)
+    checked = None
+    if check:
+        from partinspect.planning.check import check_pose
+
+        best = result.best if result is not None else start_pred
+        checked = check_pose(inv, scene, calib, best, chars, model, datums=datums, draws=check, seed=seed, progress=say)
+    return PlanResult(part, rig, tol_path, calib, inv, chars, datums, model, max_ratio, center, start_pred, result,
+                      checked)

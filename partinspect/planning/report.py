@@ -78,7 +78,8 @@ def plan_to_dict(result):
         "characteristics": len(result.characteristics),
         "start": _pose_dict(result.start, result.center),
         "best": _pose_dict(result.best, result.center),
-        "all_decidable": result.best.all_decidable,
+        "all_decidable": result.all_decidable,
+        "check": None if result.check is None else result.check.to_dict(),
     }
     if result.search is not None:
         d["poses"] = [{"label": p.label, "fixture": list(p.angles), "decidable": p.n_decidable,
@@ -137,6 +138,8 @@ def plan_table(result):
     lines.insert(1, "  ".join("-" * w for w in widths))
     unit = "U: expanded uncertainty (k = 2), mm (deg for angles); T: tolerance zone width"
     lines += ["", unit, f"decidable: U <= {result.max_ratio:g} T", ""]
+    if result.check is not None:
+        lines += _check_lines(result.check) + [""]
     n = len(result.characteristics)
     lines.append(f"start pose ({start.label or 'as given'}): {start.n_decidable} of {n} decidable"
                  + (f", {len(start.not_inspected())} general tolerances of edges out of view (not inspected)"
@@ -169,6 +172,31 @@ def plan_table(result):
             for c, summary in result.search.never:
                 lines.append(f"  {c.id}: {summary}; closest: {c.reason}")
     return "\n".join(lines)
+
+
+def _check_lines(check):
+    """The check's rows: predicted image-noise u beside the rendered spread, and U after the check."""
+    head = ["characteristic", "u noise", "spread", "spread/u", "U checked", "U/T", "", "verdict"]
+    rows = [head]
+    for c in check.characteristics:
+        conv = math.degrees if c.prediction.characteristic.unit == "rad" else float
+        r = c.spread / c.u_noise if math.isfinite(c.spread) and math.isfinite(c.u_noise) and c.u_noise > 0 else math.nan
+        status = "ok" if c.decidable else ("out of view" if not c.prediction.inspected else "NO")
+        rows.append([c.id, _num(conv(c.u_noise) if math.isfinite(c.u_noise) else c.u_noise, 5),
+                     _num(conv(c.spread) if math.isfinite(c.spread) else c.spread, 5), _num(r, 2),
+                     _num(conv(c.U) if math.isfinite(c.U) else c.U), _num(c.ratio, 2), status, c.verdict])
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
+    right = {1, 2, 3, 4, 5}
+    out = [f"check of the proposed pose on {check.draws} rendered noise draws (noise {check.noise:g}, seed {check.seed}; "
+           f"a spread / u outside {check.interval[0]:.2f}-{check.interval[1]:.2f} is beyond chance):"]
+    out += ["  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
+            for r in rows]
+    out.insert(2, "  ".join("-" * w for w in widths))
+    if check.failed:
+        out.append(f"draws the chain could not register: {len(check.failed)} ({check.failed[0]})")
+    n = sum(c.decidable for c in check.characteristics)
+    out.append(f"after the check: {n} of {len(check.characteristics)} decidable")
+    return out
 
 
 def _environment():

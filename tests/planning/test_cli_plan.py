@@ -38,6 +38,8 @@ def test_help_imports_nothing_heavy():
     (["PLATE", "--rig", "RIG", "--pose", "nowhere.json"], "nowhere.json: pose file not found"),
     (["PLATE", "--rig", "RIG", "--noise", "-1"], "--noise must be a positive number"),
     (["PLATE", "--rig", "RIG", "--tolerances", "none.yaml"], "none.yaml: tolerance file not found"),
+    (["PLATE", "--rig", "RIG", "--check", "2"], "--check must be 0 (no check) or at least 3 draws"),
+    (["PLATE", "--rig", "RIG", "--check", "3", "--contrast", "50"], "cannot honour a fixed --contrast"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, needle, rig_file, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -70,3 +72,39 @@ def test_plan_names_the_spoiled_characteristic(rig_file, tmp_path, capsys, plate
     assert "front-top-edge.straightness" in html and "epipolar" in html and "<script" not in html
     best = json.loads((out / "best_pose.json").read_text())
     assert np.allclose(best["part_to_camera"], json.loads(pose.read_text())["part_to_camera"])
+
+
+def test_check_sets_the_prediction_beside_rendered_draws(rig_file, tmp_path, capsys):
+    """--check: the proposed pose rendered and measured; U grows only where the spread is beyond chance."""
+    import numpy as np
+
+    out = tmp_path / "plan"
+    code = main(["plan", str(PLATE), "--rig", str(rig_file), "--no-search", "--check", "3", "--seed", "4",
+                 "-o", str(out)])
+    text = capsys.readouterr().out
+    assert "check of the proposed pose on 3 rendered noise draws (noise 2, seed 4" in text
+    data = json.loads((out / "plan.json").read_text())
+    chk = data["check"]
+    assert chk["draws"] == 3 and chk["seed"] == 4 and not chk["failed"]
+    start = {c["id"]: c for c in data["start"]["characteristics"]}
+    assert [c["id"] for c in chk["characteristics"]] == list(start)
+    ratios = []
+    for c in chk["characteristics"]:
+        s = start[c["id"]]
+        if s["expanded_uncertainty"] is None:
+            assert c["verdict"] == "not predicted measurable" and not c["decidable"]
+            continue
+        if c["verdict"] == "prediction low":
+            assert c["expanded_uncertainty"] > s["expanded_uncertainty"]
+            assert c["measured_spread"] / c["predicted_noise_u"] > chk["chance_interval"][1]
+        else:
+            assert c["expanded_uncertainty"] == pytest.approx(s["expanded_uncertainty"])
+        if c["decidable"]:
+            assert s["decidable"] and c["measured_draws"] == 3 and c["ratio"] <= 0.25
+        if c["measured_spread"] is not None and c["id"].endswith((".diameter", ".straightness")):
+            ratios.append(c["measured_spread"] / c["predicted_noise_u"])
+    # Three draws know a spread to +-50 %; the median over the characteristics much better.
+    assert len(ratios) >= 10 and 0.5 < np.median(ratios) < 2.0, np.round(ratios, 2)
+    assert data["all_decidable"] == chk["all_decidable"] and code == (0 if chk["all_decidable"] else 3)
+    html = (out / "plan.html").read_text()
+    assert 'id="check"' in html and "<script" not in html

@@ -1,0 +1,34 @@
+"""The rendered check's arithmetic: the chance interval of a spread and the u a check leaves."""
+
+import numpy as np
+import pytest
+
+from partinspect.planning.check import chance_interval, checked_uncertainty
+
+
+def test_chance_interval_is_the_chi_square_interval_of_a_sample_sd():
+    # chi2(49) quantiles 31.555 and 70.222 (tables).
+    assert chance_interval(50) == pytest.approx([np.sqrt(31.555 / 49), np.sqrt(70.222 / 49)], rel=1e-4)
+    lo, hi = chance_interval(3)
+    assert lo < 0.2 and hi > 1.9  # three draws tell little
+    # The sample sd of n normal values falls inside it 95 % of the time.
+    rng = np.random.default_rng(0)
+    s = rng.standard_normal((20000, 10)).std(axis=1, ddof=1)
+    lo, hi = chance_interval(10)
+    assert np.mean((s >= lo) & (s <= hi)) == pytest.approx(0.95, abs=0.006)
+    with pytest.raises(ValueError):
+        chance_interval(1)
+
+
+def test_a_spread_beyond_chance_adds_its_excess_in_quadrature():
+    u, noise = 0.010, 0.004
+    # 2 x the predicted image-noise part on 50 draws: beyond chance; the excess
+    # variance (0.008^2 - 0.004^2) joins the prediction's.
+    got, verdict = checked_uncertainty(u, noise, 0.008, 50)
+    assert verdict == "prediction low" and got == pytest.approx(np.sqrt(u**2 + 0.008**2 - noise**2))
+    # Within chance: the prediction stands.
+    assert checked_uncertainty(u, noise, 0.0044, 50) == (u, "agrees")
+    # Below the interval: kept as it is (conservative), but named.
+    assert checked_uncertainty(u, noise, 0.002, 50) == (u, "prediction high")
+    # The same ratio on 3 draws is within chance.
+    assert checked_uncertainty(u, noise, 0.0072, 3) == (u, "agrees")
