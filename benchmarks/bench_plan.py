@@ -20,6 +20,13 @@ Per characteristic the table shows
 - ``pred/MAD``: against the spread of the bulk of the draws (1.4826 x the
   median absolute deviation), which outlier draws (a segmentation that
   lost part of an edge, a corner point kept) do not inflate;
+- ``95 % CI``: a bootstrap interval of ``pred/MC`` from the draws' own
+  values (2000 resamples). The chi-square interval printed above the table
+  holds for normal values; a form value is a zone (a maximum minus a
+  minimum), skewed and heavy-tailed, and its spread from n draws is less
+  certain than that: at 200 draws the plate's line-8 straightness read
+  1.24 (seed 0) and 0.84 on 30 others (seed 5) with its 3D points'
+  scatter within 1 % of their model everywhere along the line;
 - ``u total``: the predicted u with the chain's Type B term for rim points
   beside shaded surfaces, which ``inspect plan`` reports; ``chain u``: the
   mean u the chain reported; ``RMS err``: the RMS error of the measured
@@ -78,6 +85,27 @@ def characteristics(part):
     return chars, datums
 
 
+def bootstrap_interval(chk, cid, pred, n_boot=2000, level=0.95, seed=0):
+    """Percentile bootstrap interval of ``pred / spread`` over the draws' values (None with < 3)."""
+    rng = np.random.default_rng(seed)
+    if chk.types[cid] == "position":
+        d = chk.offsets[cid]
+        d = d[np.isfinite(d).all(axis=1)]
+        if len(d) < 3:
+            return None
+        idx = rng.integers(0, len(d), (n_boot, len(d)))
+        x = d[idx] - d[idx].mean(axis=1, keepdims=True)
+        s = 2.0 * np.sqrt((x * x).sum(axis=2).sum(axis=1) / (len(d) - 1))
+    else:
+        v = chk.values[cid]
+        v = v[np.isfinite(v)]
+        if len(v) < 3:
+            return None
+        s = v[rng.integers(0, len(v), (n_boot, len(v)))].std(axis=1, ddof=1)
+    r = pred / s[s > 0]
+    return [float(q) for q in np.quantile(r, [(1 - level) / 2, (1 + level) / 2])]
+
+
 def robust_spread(chk, cid):
     """1.4826 x the median absolute deviation: the spread of the bulk of the draws, outlier draws aside."""
     def mad(x):
@@ -115,6 +143,7 @@ def compare(name, size, draws, seed):
         rep = float(np.nanmean(rep)) if np.isfinite(rep).any() else float("nan")
         n = int(np.isfinite(chk.values[cid]).sum())
         robust = robust_spread(chk, cid)
+        ci = bootstrap_interval(chk, cid, cr.u) if math.isfinite(cr.u) else None
         true = 0.0 if cp.characteristic.type == "position" else cp.characteristic.nominal
         z = (chk.values[cid] - true) / chk.reported_u[cid]
         z = z[np.isfinite(z)]
@@ -123,6 +152,7 @@ def compare(name, size, draws, seed):
             "pred": cr.u if math.isfinite(cr.u) else None, "pred_total": cp.u if math.isfinite(cp.u) else None,
             "chain": rep if math.isfinite(rep) else None, "rms_error": rms if math.isfinite(rms) else None,
             "mc": mc if math.isfinite(mc) else None, "mc_robust": robust if math.isfinite(robust) else None,
+            "ratio_ci": ci,
             "measured_draws": n, "measured_fraction": frac,
             "z_rms": float(np.sqrt(np.mean(z * z))) if len(z) >= 3 else None,
             "covered": float(np.mean(np.abs(z) <= 2.0)) if len(z) >= 3 else None,
@@ -141,11 +171,11 @@ def print_table(res):
         print("failed draws:", "; ".join(res["failed"]))
     lo, hi = chance_interval(res["draws"])
     print(f"a ratio of spreads from {res['draws']} draws lies in [{lo:.2f}, {hi:.2f}] by chance alone (95 %)")
-    head = (f"{'characteristic':34s} {'type':12s} {'pred u':>9s} {'MC u':>9s} {'pred/MC':>8s} {'pred/MAD':>8s} "
+    head = (f"{'characteristic':34s} {'type':12s} {'pred u':>9s} {'MC u':>9s} {'pred/MC':>8s} {'95 % CI':>11s} {'pred/MAD':>8s} "
             f"{'u total':>9s} {'chain u':>9s} {'RMS err':>9s} {'tot/RMS':>8s} {'z RMS':>6s} {'in +-U':>6s}  note")
     print(head)
     print("-" * len(head))
-    ok = bad = 0
+    ok = bad = reach = 0
     for r in res["rows"]:
         def f(x):
             return f"{x:9.5f}" if x is not None else f"{'-':>9s}"
@@ -168,6 +198,10 @@ def print_table(res):
             bad += not within
             if not within:
                 note = "OUTSIDE 20 %"
+                ci_ = r.get("ratio_ci")
+                if ci_ and ci_[0] <= 1.2 and ci_[1] >= 0.8:
+                    reach += 1
+                    note += " (its 95 % CI reaches within)"
             if r["measured_fraction"] < 1:
                 note += f" measured in {r['measured_draws']} of {res['draws']} draws"
         if r.get("warning"):
@@ -175,9 +209,11 @@ def print_table(res):
         rt = f"{r['pred_total'] / r['rms_error']:8.2f}" if r["pred_total"] and r["rms_error"] else "-"
         zr = f"{r['z_rms']:6.2f}" if r.get("z_rms") is not None else "-"
         cv = f"{100 * r['covered']:5.0f}%" if r.get("covered") is not None else "-"
-        print(f"{r['id']:34s} {r['type']:12s} {f(r['pred'])} {f(r['mc'])} {rp:>8s} {rm:>8s} "
+        ci = f"{r['ratio_ci'][0]:.2f}-{r['ratio_ci'][1]:.2f}" if r.get("ratio_ci") and r["mc"] else "-"
+        print(f"{r['id']:34s} {r['type']:12s} {f(r['pred'])} {f(r['mc'])} {rp:>8s} {ci:>11s} {rm:>8s} "
               f"{f(r['pred_total'])} {f(r['chain'])} {f(r['rms_error'])} {rt:>8s} {zr:>6s} {cv:>6s}  {note}")
-    print(f"within 20 %: {ok} of {ok + bad} characteristics measured by both")
+    print(f"within 20 %: {ok} of {ok + bad} characteristics measured by both"
+          + (f"; of the {bad} outside, {reach} with a 95 % bootstrap interval reaching within 20 %" if bad else ""))
     return ok, bad
 
 
