@@ -21,12 +21,12 @@ Per characteristic the table shows
   median absolute deviation), which outlier draws (a segmentation that
   lost part of an edge, a corner point kept) do not inflate;
 - ``95 % CI``: a bootstrap interval of ``pred/MC`` from the draws' own
-  values (2000 resamples). The chi-square interval printed above the table
-  holds for normal values; a form value is a zone (a maximum minus a
-  minimum), skewed and heavy-tailed, and its spread from n draws is less
-  certain than that: at 200 draws the plate's line-8 straightness read
-  1.24 (seed 0) and 0.84 on 30 others (seed 5) with its 3D points'
-  scatter within 1 % of their model everywhere along the line;
+  values (2000 resamples): the chi-square interval printed above the table
+  holds for normal values, and a value whose draws have heavier tails (a
+  form zone's noise-bias-corrected value, excess kurtosis up to 1.6 over
+  200 draws of the sample parts; a distance 2.7) has a less certain
+  spread. Neither interval counts the prediction's own Monte Carlo noise
+  (a form value's u from 200 simulated draws, some 5 %);
 - ``u total``: the predicted u with the chain's Type B term for rim points
   beside shaded surfaces, which ``inspect plan`` reports; ``chain u``: the
   mean u the chain reported; ``RMS err``: the RMS error of the measured

@@ -188,7 +188,8 @@ def _check_lines(check):
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
     right = {1, 2, 3, 4, 5}
     out = [f"check of the proposed pose on {check.draws} rendered noise draws (noise {check.noise:g}, seed {check.seed}; "
-           f"a spread / u outside {check.interval[0]:.2f}-{check.interval[1]:.2f} is beyond chance):"]
+           f"for normal values a spread / u outside {check.interval[0]:.2f}-{check.interval[1]:.2f} is beyond chance, "
+           f"wider for heavier tails):"]
     out += ["  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
             for r in rows]
     out.insert(2, "  ".join("-" * w for w in widths))
