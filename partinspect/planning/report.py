@@ -179,12 +179,15 @@ def _check_lines(check):
     head = ["characteristic", "u noise", "spread", "spread/u", "U checked", "U/T", "", "verdict"]
     rows = [head]
     for c in check.characteristics:
-        conv = math.degrees if c.prediction.characteristic.unit == "rad" else float
+        deg = c.prediction.characteristic.unit == "rad"
+
+        def num(x, digits=4):
+            return _num(math.degrees(x) if deg and math.isfinite(x) else x, digits)
+
         r = c.spread / c.u_noise if math.isfinite(c.spread) and math.isfinite(c.u_noise) and c.u_noise > 0 else math.nan
         status = "ok" if c.decidable else ("out of view" if not c.prediction.inspected else "NO")
-        rows.append([c.id, _num(conv(c.u_noise) if math.isfinite(c.u_noise) else c.u_noise, 5),
-                     _num(conv(c.spread) if math.isfinite(c.spread) else c.spread, 5), _num(r, 2),
-                     _num(conv(c.U) if math.isfinite(c.U) else c.U), _num(c.ratio, 2), status, c.verdict])
+        rows.append([c.id, num(c.u_noise, 5), num(c.spread, 5), _num(r, 2), num(c.U), _num(c.ratio, 2), status,
+                     c.verdict])
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
     right = {1, 2, 3, 4, 5}
     out = [f"check of the proposed pose on {check.draws} rendered noise draws (noise {check.noise:g}, seed {check.seed}; "
