@@ -23,7 +23,10 @@ prediction set against such draws. The draws show the image-noise part of
 u only (one scene, its systematic displacements fixed), so they are set
 beside the prediction without its Type B part. Where their spread exceeds
 that by more than chance allows for the number of draws and the values'
-tails (:func:`chance_interval`, with the draws' sample kurtosis), the excess is a random component the
+tails (:func:`chance_interval`, with the draws' sample kurtosis; for a
+straightness or circularity, whose spread in one scene also depends on
+the scene's fixed displacements, the range of spreads its error model
+gives over scenes, :func:`form_interval`), the excess is a random component the
 first-order model does not carry (a segmentation that keeps different
 pieces of a rim from one image to the next), and it is added to the
 prediction's u in quadrature; a spread below the prediction leaves the
@@ -46,7 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["RenderedCheck", "CheckedCharacteristic", "PoseCheck", "render_radiance_pair", "measure_pair",
-           "monte_carlo_check", "spread", "chance_interval", "checked_uncertainty", "check_pose"]
+           "monte_carlo_check", "spread", "chance_interval", "form_interval", "checked_uncertainty",
+           "check_pose"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -287,7 +291,7 @@ def chance_interval(n, level=0.95, excess_kurtosis=0.0):
     return np.sqrt(q / nu)
 
 
-def checked_uncertainty(u, u_noise, measured_spread, n, excess_kurtosis=0.0):
+def checked_uncertainty(u, u_noise, measured_spread, n, excess_kurtosis=0.0, interval=None):
     """A predicted standard uncertainty after a check on n noise draws (module notes).
 
     Parameters
@@ -302,21 +306,59 @@ def checked_uncertainty(u, u_noise, measured_spread, n, excess_kurtosis=0.0):
         Values the spread was taken from.
     excess_kurtosis : float
         Of those values (see :func:`chance_interval`).
+    interval : array_like, shape (2,), optional
+        The interval of ``s / u_noise`` to judge by, instead of
+        :func:`chance_interval` (a form value's, from its error model:
+        :func:`form_interval`).
 
     Returns
     -------
     u_checked : float
         ``sqrt(u^2 + s^2 - u_noise^2)`` when ``s / u_noise`` lies above the
-        chance interval, else ``u``.
+        interval, else ``u``.
     verdict : str
         "agrees", "prediction low" or "prediction high" (s below the
         interval: the prediction is kept).
     """
-    lo, hi = chance_interval(n, excess_kurtosis=excess_kurtosis)
+    lo, hi = chance_interval(n, excess_kurtosis=excess_kurtosis) if interval is None else interval
     r = measured_spread / u_noise
     if r > hi:
         return float(np.sqrt(u * u + measured_spread ** 2 - u_noise ** 2)), "prediction low"
     return float(u), ("prediction high" if r < lo else "agrees")
+
+
+def form_interval(spreads, u_noise, level=0.95):
+    """Interval of ``s / u_noise`` for a form value's spread ``s`` over the images of one scene.
+
+    A straightness or circularity is a zone (maximum minus minimum) of
+    points whose Type B displacements are fixed in a scene: which points
+    set the zone depends on that pattern, so the spread over noise draws
+    of one render differs from scene to scene by more than the chance of
+    the draws (for the sample parts' rims some -30 % to +35 % of its RMS,
+    5-95 %, with 50 draws). The prediction's ``u_noise`` is that RMS; the
+    interval is the central ``level`` of the spreads the error model gives
+    for as many draws of each scene
+    (:func:`partinspect.tolerances.evaluate.form_scene_spreads`), which
+    takes in the chance of the draws and the values' tails too.
+
+    Parameters
+    ----------
+    spreads : array_like, shape (S,)
+        Simulated spreads of S scenes, the characteristic's unit.
+    u_noise : float
+    level : float
+
+    Returns
+    -------
+    ndarray, shape (2,)
+
+    References
+    ----------
+    .. [1] JCGM 101:2008, 7.7 (coverage intervals from the quantiles of
+           Monte Carlo output values).
+    """
+    q = np.quantile(np.asarray(spreads, float), [(1 - level) / 2, (1 + level) / 2])
+    return q / u_noise
 
 
 @dataclass(frozen=True)
@@ -468,7 +510,7 @@ def check_pose(inventory, scene, calib, prediction, characteristics, model, *, d
     import dataclasses
 
     from partinspect.planning.predict import predict_pose
-    from partinspect.tolerances.evaluate import COVERAGE_FACTOR
+    from partinspect.tolerances.evaluate import COVERAGE_FACTOR, form_scene_spreads
 
     if draws < 3:
         raise ValueError("a check needs at least 3 draws")
@@ -485,6 +527,7 @@ def check_pose(inventory, scene, calib, prediction, characteristics, model, *, d
     chk = monte_carlo_check(scene, inventory, calib, P, characteristics, draws=draws, noise=model.noise, seed=seed,
                             datums=datums, radiance=radiance,
                             progress=lambda message: say(f"check: {message}"))
+    scene_parts = noise_only.registration.features_in_part_frame() if noise_only.registration is not None else None
     out = []
     for cp, cn in zip(prediction.characteristics, noise_only.characteristics):
         n = int(np.isfinite(chk.values[cp.id]).sum()) if chk.draws else 0
@@ -497,9 +540,14 @@ def check_pose(inventory, scene, calib, prediction, characteristics, model, *, d
         elif not (np.isfinite(cn.u) and cn.u > 0):
             verdict, u = "no image-noise part predicted", cp.u
         else:
-            k = _excess_kurtosis(chk, cp.id)
-            u, verdict = checked_uncertainty(cp.u, cn.u, s, n, k)
-            interval = tuple(float(v) for v in chance_interval(n, excess_kurtosis=k))
+            sp = None if noise_only.registration is None else form_scene_spreads(
+                cn.characteristic, scene_parts, noise_only.registration, n, seed=seed)
+            if sp is not None:
+                interval = form_interval(sp, cn.u)
+            else:
+                interval = chance_interval(n, excess_kurtosis=_excess_kurtosis(chk, cp.id))
+            interval = tuple(float(v) for v in interval)
+            u, verdict = checked_uncertainty(cp.u, cn.u, s, n, interval=interval)
         U = COVERAGE_FACTOR * u
         T = cp.tolerance
         ok = bool(cp.decidable and chk.draws > 0 and n == chk.draws and T is not None

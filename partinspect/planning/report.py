@@ -176,7 +176,7 @@ def plan_table(result):
 
 def _check_lines(check):
     """The check's rows: predicted image-noise u beside the rendered spread, and U after the check."""
-    head = ["characteristic", "u noise", "spread", "spread/u", "U checked", "U/T", "", "verdict"]
+    head = ["characteristic", "u noise", "spread", "spread/u", "chance", "U checked", "U/T", "", "verdict"]
     rows = [head]
     for c in check.characteristics:
         deg = c.prediction.characteristic.unit == "rad"
@@ -186,13 +186,15 @@ def _check_lines(check):
 
         r = c.spread / c.u_noise if math.isfinite(c.spread) and math.isfinite(c.u_noise) and c.u_noise > 0 else math.nan
         status = "ok" if c.decidable else ("out of view" if not c.prediction.inspected else "NO")
-        rows.append([c.id, num(c.u_noise, 5), num(c.spread, 5), _num(r, 2), num(c.U), _num(c.ratio, 2), status,
-                     c.verdict])
+        chance = "-" if c.interval is None else f"{c.interval[0]:.2f}-{c.interval[1]:.2f}"
+        rows.append([c.id, num(c.u_noise, 5), num(c.spread, 5), _num(r, 2), chance, num(c.U), _num(c.ratio, 2),
+                     status, c.verdict])
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
-    right = {1, 2, 3, 4, 5}
+    right = {1, 2, 3, 4, 5, 6}
     out = [f"check of the proposed pose on {check.draws} rendered noise draws (noise {check.noise:g}, seed {check.seed}; "
-           f"for normal values a spread / u outside {check.interval[0]:.2f}-{check.interval[1]:.2f} is beyond chance, "
-           f"wider for heavier tails):"]
+           f"a spread / u outside its 'chance' interval is beyond chance: for normal values "
+           f"{check.interval[0]:.2f}-{check.interval[1]:.2f}, wider for heavier tails and, for a form value, "
+           f"for the scene's fixed displacements):"]
     out += ["  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
             for r in rows]
     out.insert(2, "  ".join("-" * w for w in widths))

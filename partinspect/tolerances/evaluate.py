@@ -68,13 +68,14 @@ from types import SimpleNamespace
 import numpy as np
 
 from partinspect.tolerances import geometry
-from partinspect.tolerances.form import circularity, straightness
+from partinspect.tolerances.form import N_SCENES, circularity, scene_spreads, straightness
 
 __all__ = [
     "COVERAGE_FACTOR",
     "Evaluation",
     "evaluate",
     "evaluate_characteristic",
+    "form_scene_spreads",
     "propagate",
     "monte_carlo",
     "true_position",
@@ -472,6 +473,33 @@ def _held(record):
     """Draws with the record's Type B parts held per scene, or None (it has none)."""
     model = getattr(record, "point_errors", None)
     return model.draw_held if model is not None and getattr(model, "systematic", ()) else None
+
+
+def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_SCENES):
+    """A form characteristic's spreads over ``n_images`` images of each of ``n_scenes`` scenes, or None.
+
+    See :func:`partinspect.tolerances.form.scene_spreads`: what a check on
+    ``n_images`` noise draws of one render may measure, the Type B parts
+    of the points held within a scene. None for other characteristics,
+    for a feature not measured, or for points without Type B parts (the
+    chance interval of a sample deviation then describes the spread).
+
+    Returns
+    -------
+    ndarray, shape (n_scenes,) or None
+        Standard deviations, mm.
+    """
+    if c.type not in ("straightness", "circularity"):
+        return None
+    p = _pick(parts, c.features[0])
+    if p is None:
+        return None
+    rec = registration.measured_feature(p.kind, p.index)
+    held = _held(rec)
+    pts, pcs = getattr(rec, "points", None), getattr(rec, "point_covs", None)
+    if held is None or pts is None or pcs is None or len(pts) < 5:
+        return None
+    return scene_spreads(c.type, pts, pcs, held, n_images, n_scenes, _rng(seed, c.id))
 
 
 def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC,

@@ -68,13 +68,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FormResult", "straightness", "circularity", "fit_line_points", "fit_circle_points"]
+__all__ = ["FormResult", "straightness", "circularity", "scene_spreads", "fit_line_points", "fit_circle_points"]
 
 N_DRAWS = 200
 
 N_PATTERNS = 20
 """Scenes drawn for a spread over the images of one scene (``held``), each
 seen in ``N_DRAWS // N_PATTERNS`` images."""
+
+N_SCENES = 400
+"""Scenes :func:`scene_spreads` draws by default: their 2.5 % and 97.5 %
+quantiles then move by some 2-3 % from one seed to the next."""
+
+SCENE_BATCH = 20
+"""Scenes simulated at once (bounds the memory of long checks)."""
 
 MAX_SD_RATIO = 3.0
 """Points whose standard uncertainty across the reference exceeds this many
@@ -210,6 +217,13 @@ def _across_sd(covs, ideal, axis):
     return np.sqrt(np.clip(np.einsum("nii->n", covs) - np.einsum("i,nij,j->n", axis, covs, axis), 0.0, None))
 
 
+def _kept(covs, ideal, axis):
+    """The points the zone is evaluated on (``MAX_SD_RATIO``), a boolean mask (M,)."""
+    sd = _across_sd(covs, ideal, axis)
+    med = float(np.median(sd))
+    return sd <= MAX_SD_RATIO * med if med > 0 else np.ones(len(ideal), bool)
+
+
 def _corrected(P, covs, zone, ideal, axis, rng, n_draws, errors, held=None):
     if errors is None:
         L = _noise_factors(covs)  # once: the draws differ only in their normal deviates
@@ -219,9 +233,7 @@ def _corrected(P, covs, zone, ideal, axis, rng, n_draws, errors, held=None):
         e = np.asarray(errors(rng, n_draws), float)
         if e.shape != (n_draws,) + P.shape:
             raise ValueError(f"errors drew shape {e.shape}, expected {(n_draws,) + P.shape}")
-    sd = _across_sd(covs, ideal, axis)
-    med = float(np.median(sd))
-    keep = sd <= MAX_SD_RATIO * med if med > 0 else np.ones(len(P), bool)
+    keep = _kept(covs, ideal, axis)
     P, ideal, e = P[keep], ideal[keep], e[:, keep]
     raw = zone(P)
     zones = _line_zones if zone is _line_zone else _circle_zones
@@ -229,10 +241,26 @@ def _corrected(P, covs, zone, ideal, axis, rng, n_draws, errors, held=None):
     b, s = float(sims.mean()), float(sims.std(ddof=1))
     if held is not None:
         per = max(n_draws // N_PATTERNS, 2)
-        h = np.asarray(held(rng, N_PATTERNS, per), float)[:, :, keep]
-        within = zones((ideal + h).reshape((-1,) + ideal.shape)).reshape(N_PATTERNS, per)
-        s = float(np.sqrt(within.var(axis=1, ddof=1).mean()))
+        s = float(np.sqrt((_held_spreads(zones, ideal, keep, held, rng, N_PATTERNS, per) ** 2).mean()))
     return FormResult(raw - b, s, raw, b, len(P), int((~keep).sum()))
+
+
+def _held_spreads(zones, ideal, keep, held, rng, n_scenes, n_images):
+    """Sample standard deviation of the noise-only zone over the images of each scene, (n_scenes,)."""
+    h = np.asarray(held(rng, n_scenes, n_images), float)[:, :, keep]
+    within = zones((ideal + h).reshape((-1,) + ideal.shape)).reshape(n_scenes, n_images)
+    return within.std(axis=1, ddof=1)
+
+
+def _line_reference(P):
+    c, d = fit_line_points(P)
+    return c + np.outer((P - c) @ d, d), d
+
+
+def _circle_reference(P):
+    c, n, r, E = fit_circle_points(P)
+    q = (P - c) @ E
+    return c + (r * q / np.linalg.norm(q, axis=1)[:, None]) @ E.T, (c, E)
 
 
 def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held=None):
@@ -275,8 +303,7 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, hel
     if len(P) < 3:
         raise ValueError("straightness needs at least 3 points")
     rng = np.random.default_rng(0) if rng is None else rng
-    c, d = fit_line_points(P)
-    ideal = c + np.outer((P - c) @ d, d)
+    ideal, d = _line_reference(P)
     return _corrected(P, covs, _line_zone, ideal, d, rng, n_draws, errors, held)
 
 
@@ -291,7 +318,58 @@ def circularity(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held
     if len(P) < 5:
         raise ValueError("circularity needs at least 5 points")
     rng = np.random.default_rng(0) if rng is None else rng
-    c, n, r, E = fit_circle_points(P)
-    q = (P - c) @ E
-    ideal = c + (r * q / np.linalg.norm(q, axis=1)[:, None]) @ E.T
-    return _corrected(P, covs, _circle_zone, ideal, (c, E), rng, n_draws, errors, held)
+    ideal, axis = _circle_reference(P)
+    return _corrected(P, covs, _circle_zone, ideal, axis, rng, n_draws, errors, held)
+
+
+def scene_spreads(kind, points, point_covs, held, n_images, n_scenes=N_SCENES, rng=None):
+    """Spreads of a form value over ``n_images`` images of each of ``n_scenes`` scenes.
+
+    What a check on ``n_images`` noise draws of one render can show of the
+    form value's image-noise part: its sample standard deviation. The Type
+    B displacements of the points (the shading's, held within a scene)
+    change which points set the zone, so that spread differs from scene
+    to scene beyond the chance of ``n_images`` draws: for the sample parts'
+    rims its 5-95 % range over scenes, with 50 images each, spans some
+    -30 % to +35 % of its RMS. The spreads' quantiles are the interval a
+    measured spread of that many draws is judged by.
+
+    Parameters
+    ----------
+    kind : {"straightness", "circularity"}
+    points : array_like, shape (M, 3)
+        Measured (or predicted) edge points, mm.
+    point_covs : array_like, shape (M, 3, 3)
+        Their covariances, mm^2 (they choose the points left out, as in
+        :func:`straightness`).
+    held : callable
+        ``held(rng, n_scenes, n_images)`` as in :func:`straightness`.
+    n_images : int
+        At least 2.
+    n_scenes : int
+    rng : numpy.random.Generator, optional
+        Default seed 0.
+
+    Returns
+    -------
+    ndarray, shape (n_scenes,)
+        The sample standard deviations (ddof 1), mm; their RMS is the
+        ``u`` of :func:`straightness` / :func:`circularity` with ``held``.
+
+    References
+    ----------
+    .. [1] JCGM 101:2008, 7.6 (the standard deviation of output values).
+    """
+    if kind not in ("straightness", "circularity"):
+        raise ValueError(f"no form value {kind!r}")
+    if n_images < 2:
+        raise ValueError("a spread needs at least 2 images")
+    P = np.asarray(points, float).reshape(-1, 3)
+    covs = np.asarray(point_covs, float).reshape(-1, 3, 3)
+    rng = np.random.default_rng(0) if rng is None else rng
+    ideal, axis = (_line_reference if kind == "straightness" else _circle_reference)(P)
+    keep = _kept(covs, ideal, axis)
+    zones = _line_zones if kind == "straightness" else _circle_zones
+    out = [_held_spreads(zones, ideal[keep], keep, held, rng, n, n_images)
+           for n in np.diff(np.r_[0:n_scenes:SCENE_BATCH, n_scenes])]
+    return np.concatenate(out)

@@ -48,3 +48,17 @@ def test_a_spread_beyond_chance_adds_its_excess_in_quadrature():
     assert checked_uncertainty(u, noise, 0.002, 50) == (u, "prediction high")
     # The same ratio on 3 draws is within chance.
     assert checked_uncertainty(u, noise, 0.0072, 3) == (u, "agrees")
+
+
+def test_a_form_value_is_judged_by_the_spreads_of_its_scenes():
+    from partinspect.planning.check import form_interval
+
+    rng = np.random.default_rng(2)
+    spreads = 0.004 * rng.lognormal(0.0, 0.2, 4000)
+    lo, hi = form_interval(spreads, 0.004)
+    assert lo == pytest.approx(np.exp(-1.96 * 0.2), rel=0.03) and hi == pytest.approx(np.exp(1.96 * 0.2), rel=0.03)
+    # 1.4 x the prediction on 20 draws: beyond the chance of normal values,
+    # within what the scene's fixed displacements allow.
+    assert checked_uncertainty(0.01, 0.004, 1.4 * 0.004, 20)[1] == "prediction low"
+    assert checked_uncertainty(0.01, 0.004, 1.4 * 0.004, 20, interval=(lo, hi)) == (0.01, "agrees")
+    assert checked_uncertainty(0.01, 0.004, 1.6 * 0.004, 20, interval=(lo, hi))[1] == "prediction low"

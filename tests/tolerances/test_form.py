@@ -130,3 +130,48 @@ def test_spread_over_images_of_one_scene_with_the_type_b_part_held():
     alone = circularity(P, covs, np.random.default_rng(0), errors=noise_only.draw).u
     assert alone < 0.85 * held < 0.85 * whole
     assert held == pytest.approx(seen, rel=0.2)
+
+
+def test_scene_spreads_hold_the_spread_of_scenes_with_strong_ends():
+    # A 270 deg rim whose Type B displacements grow towards its ends (a hole
+    # seen obliquely): which points set the zone depends on the scene's
+    # pattern, so the spread over 50 images of one scene varies from scene
+    # to scene by more than the chance of 50 draws. The chi-square interval
+    # of a sample deviation misses a quarter of the scenes; the quantiles of
+    # scene_spreads hold 95 %.
+    from partinspect.planning.check import chance_interval, form_interval
+    from partinspect.vision.pointerrors import PointErrorModel
+
+    n, images = 60, 50
+    th = np.linspace(0, 1.5 * np.pi, n)
+    ring = np.c_[5 * np.cos(th), 5 * np.sin(th), np.full(n, 300.0)]
+    radial = np.c_[np.cos(th), np.sin(th), np.zeros(n)]
+    noise = np.full(n, 0.005)
+    bias = 0.005 + 0.03 * (np.abs(th - th.mean()) / th.mean()) ** 4
+    model = PointErrorModel(th * 100.0, radial, ((noise, 1.0), (bias, 8.0)), systematic=(1,))
+    covs = _radial_covs(th, np.hypot(noise, bias))
+    rng = np.random.default_rng(5)
+    P = ring + model.draw(rng, 1)[0]
+    sp = form.scene_spreads("circularity", P, covs, model.draw_held, images, n_scenes=200,
+                            rng=np.random.default_rng(1))
+    held = circularity(P, covs, np.random.default_rng(0), errors=model.draw, held=model.draw_held)
+    # Their RMS is the held u (20 scenes there: some 7 % apart).
+    assert np.sqrt(np.mean(sp**2)) == pytest.approx(held.u, rel=0.12)
+    lo, hi = form_interval(sp, held.u)
+    c_lo, c_hi = chance_interval(images)
+    assert lo < c_lo - 0.03 and hi > c_hi + 0.08
+    keep = form._kept(covs, ring, (np.array([0, 0, 300.0]), np.eye(3)[:, :2]))
+    assert keep.sum() == held.n_points < n
+    seen = np.array([form._circle_zones((ring + model.draw_held(rng, 1, images)[0])[:, keep]).std(ddof=1)
+                     for _ in range(200)]) / held.u
+    assert np.mean((seen >= lo) & (seen <= hi)) >= 0.9
+    assert np.mean((seen >= c_lo) & (seen <= c_hi)) <= 0.85
+
+
+def test_scene_spreads_rejects_what_it_cannot_spread():
+    ring, th = _ring(20)
+    covs = _radial_covs(th, np.full(20, 0.01))
+    with pytest.raises(ValueError, match="form value"):
+        form.scene_spreads("diameter", ring, covs, None, 10)
+    with pytest.raises(ValueError, match="2 images"):
+        form.scene_spreads("circularity", ring, covs, None, 1)
