@@ -470,9 +470,13 @@ def _errors(record):
 
 
 def _held(record):
-    """Draws with the record's Type B parts held per scene, or None (it has none)."""
+    """Draws with the record's Type B parts held per scene, or None (no error model).
+
+    A model without Type B parts draws its images alike: held or not, the
+    spread is the noise's, from the many scenes' images of a held draw.
+    """
     model = getattr(record, "point_errors", None)
-    return model.draw_held if model is not None and getattr(model, "systematic", ()) else None
+    return model.draw_held if model is not None else None
 
 
 def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_SCENES):
@@ -480,9 +484,10 @@ def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_S
 
     See :func:`partinspect.tolerances.form.scene_spreads`: what a check on
     ``n_images`` noise draws of one render may measure, the Type B parts
-    of the points held within a scene. None for other characteristics,
-    for a feature not measured, or for points without Type B parts (the
-    chance interval of a sample deviation then describes the spread).
+    of the points held within a scene (for points without any, the
+    sampling distribution of the spread of n values, their tails
+    included). None for other characteristics, for a feature not measured,
+    or for points without an error model.
 
     Returns
     -------

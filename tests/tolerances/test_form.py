@@ -155,8 +155,8 @@ def test_scene_spreads_hold_the_spread_of_scenes_with_strong_ends():
     sp = form.scene_spreads("circularity", P, covs, model.draw_held, images, n_scenes=200,
                             rng=np.random.default_rng(1))
     held = circularity(P, covs, np.random.default_rng(0), errors=model.draw, held=model.draw_held)
-    # Their RMS is the held u (20 scenes there: some 7 % apart).
-    assert np.sqrt(np.mean(sp**2)) == pytest.approx(held.u, rel=0.12)
+    # Their RMS is the held u (both Monte Carlo: some 3 % apart).
+    assert np.sqrt(np.mean(sp**2)) == pytest.approx(held.u, rel=0.08)
     lo, hi = form_interval(sp, held.u)
     c_lo, c_hi = chance_interval(images)
     assert lo < c_lo - 0.03 and hi > c_hi + 0.08
