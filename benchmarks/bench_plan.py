@@ -75,8 +75,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from partinspect.planning.check import (  # noqa: E402
-    _excess_kurtosis, chance_interval, form_interval, monte_carlo_check, render_radiance_pair)
-from partinspect.tolerances.evaluate import form_scene_spreads  # noqa: E402
+    chance_interval, monte_carlo_check, render_radiance_pair, spread_interval)
 from partinspect.planning.edge_model import DetectorModel  # noqa: E402
 from partinspect.planning.predict import predict_pose  # noqa: E402
 from partinspect.simulate.rig import default_rig  # noqa: E402
@@ -159,9 +158,8 @@ def compare(name, size, draws, seed):
         # The range of spread / pred the prediction itself allows for n draws of one scene.
         own = None
         if math.isfinite(cr.u) and cr.u > 0 and n >= 3:
-            sp = form_scene_spreads(cr.characteristic, parts, rand.registration, n, seed=seed) if parts else None
-            own = form_interval(sp, cr.u) if sp is not None else chance_interval(n, excess_kurtosis=_excess_kurtosis(chk, cid))
-            own = [float(1.0 / own[1]), float(1.0 / own[0])]
+            lo, hi = spread_interval(chk, cr, rand.registration, n, seed=seed, parts=parts)
+            own = [1.0 / hi, 1.0 / lo]
         true = 0.0 if cp.characteristic.type == "position" else cp.characteristic.nominal
         z = (chk.values[cid] - true) / chk.reported_u[cid]
         z = z[np.isfinite(z)]

@@ -49,8 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["RenderedCheck", "CheckedCharacteristic", "PoseCheck", "render_radiance_pair", "measure_pair",
-           "monte_carlo_check", "spread", "chance_interval", "form_interval", "checked_uncertainty",
-           "check_pose"]
+           "monte_carlo_check", "spread", "chance_interval", "form_interval", "spread_interval",
+           "checked_uncertainty", "check_pose"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -361,6 +361,44 @@ def form_interval(spreads, u_noise, level=0.95):
     return q / u_noise
 
 
+def spread_interval(chk, prediction, registration, n, *, seed=0, parts=None):
+    """The interval of ``spread / u_noise`` a characteristic's spread over n draws is judged by.
+
+    A straightness or circularity: :func:`form_interval` of the spreads
+    its error model gives over scenes (from the noise-only prediction's
+    ``registration``); any other characteristic: :func:`chance_interval`
+    with the draws' sample kurtosis.
+
+    Parameters
+    ----------
+    chk : RenderedCheck
+    prediction : CharacteristicPrediction
+        The noise-only prediction (its ``u`` is ``u_noise``).
+    registration : Registration or None
+        Of that prediction.
+    n : int
+        Values the spread was taken from.
+    seed : int
+    parts : list, optional
+        ``registration.features_in_part_frame()``, if already at hand.
+
+    Returns
+    -------
+    tuple of float
+    """
+    from partinspect.tolerances.evaluate import form_scene_spreads
+
+    sp = None
+    if registration is not None:
+        parts = registration.features_in_part_frame() if parts is None else parts
+        sp = form_scene_spreads(prediction.characteristic, parts, registration, n, seed=seed)
+    if sp is not None:
+        interval = form_interval(sp, prediction.u)
+    else:
+        interval = chance_interval(n, excess_kurtosis=_excess_kurtosis(chk, prediction.id))
+    return tuple(float(v) for v in interval)
+
+
 @dataclass(frozen=True)
 class CheckedCharacteristic:
     """One characteristic of the proposed pose after the rendered check.
@@ -510,7 +548,7 @@ def check_pose(inventory, scene, calib, prediction, characteristics, model, *, d
     import dataclasses
 
     from partinspect.planning.predict import predict_pose
-    from partinspect.tolerances.evaluate import COVERAGE_FACTOR, form_scene_spreads
+    from partinspect.tolerances.evaluate import COVERAGE_FACTOR
 
     if draws < 3:
         raise ValueError("a check needs at least 3 draws")
@@ -540,13 +578,7 @@ def check_pose(inventory, scene, calib, prediction, characteristics, model, *, d
         elif not (np.isfinite(cn.u) and cn.u > 0):
             verdict, u = "no image-noise part predicted", cp.u
         else:
-            sp = None if noise_only.registration is None else form_scene_spreads(
-                cn.characteristic, scene_parts, noise_only.registration, n, seed=seed)
-            if sp is not None:
-                interval = form_interval(sp, cn.u)
-            else:
-                interval = chance_interval(n, excess_kurtosis=_excess_kurtosis(chk, cp.id))
-            interval = tuple(float(v) for v in interval)
+            interval = spread_interval(chk, cn, noise_only.registration, n, seed=seed, parts=scene_parts)
             u, verdict = checked_uncertainty(cp.u, cn.u, s, n, interval=interval)
         U = COVERAGE_FACTOR * u
         T = cp.tolerance

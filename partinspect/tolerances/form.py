@@ -225,6 +225,22 @@ def _across_sd(covs, ideal, axis):
     return np.sqrt(np.clip(np.einsum("nii->n", covs) - np.einsum("i,nij,j->n", axis, covs, axis), 0.0, None))
 
 
+def _line_reference(P):
+    c, d = fit_line_points(P)
+    return c + np.outer((P - c) @ d, d), d
+
+
+def _circle_reference(P):
+    c, _, r, E = fit_circle_points(P)
+    q = (P - c) @ E
+    return c + (r * q / np.linalg.norm(q, axis=1)[:, None]) @ E.T, (c, E)
+
+
+_FORMS = {"straightness": (_line_reference, _line_zone, _line_zones),
+          "circularity": (_circle_reference, _circle_zone, _circle_zones)}
+"""Per form value: its LS reference (ideal points, axis), its zone, its zones of a stack."""
+
+
 def _kept(covs, ideal, axis):
     """The points the zone is evaluated on (``MAX_SD_RATIO``), a boolean mask (M,)."""
     sd = _across_sd(covs, ideal, axis)
@@ -232,7 +248,9 @@ def _kept(covs, ideal, axis):
     return sd <= MAX_SD_RATIO * med if med > 0 else np.ones(len(ideal), bool)
 
 
-def _corrected(P, covs, zone, ideal, axis, rng, n_draws, errors, held=None):
+def _corrected(kind, P, covs, rng, n_draws, errors, held=None):
+    reference, zone, zones = _FORMS[kind]
+    ideal, axis = reference(P)
     if errors is None:
         L = _noise_factors(covs)  # once: the draws differ only in their normal deviates
         z = np.stack([rng.standard_normal((len(covs), 3)) for _ in range(n_draws)])
@@ -244,30 +262,11 @@ def _corrected(P, covs, zone, ideal, axis, rng, n_draws, errors, held=None):
     keep = _kept(covs, ideal, axis)
     P, ideal, e = P[keep], ideal[keep], e[:, keep]
     raw = zone(P)
-    zones = _line_zones if zone is _line_zone else _circle_zones
     sims = zones(ideal + e)
     b, s = float(sims.mean()), float(sims.std(ddof=1))
     if held is not None:
         s = float(np.sqrt(np.mean(_scene_spreads(zones, ideal, keep, held, rng, N_PATTERNS, HELD_IMAGES) ** 2)))
     return FormResult(raw - b, s, raw, b, len(P), int((~keep).sum()))
-
-
-def _held_spreads(zones, ideal, keep, held, rng, n_scenes, n_images):
-    """Sample standard deviation of the noise-only zone over the images of each scene, (n_scenes,)."""
-    h = np.asarray(held(rng, n_scenes, n_images), float)[:, :, keep]
-    within = zones((ideal + h).reshape((-1,) + ideal.shape)).reshape(n_scenes, n_images)
-    return within.std(axis=1, ddof=1)
-
-
-def _line_reference(P):
-    c, d = fit_line_points(P)
-    return c + np.outer((P - c) @ d, d), d
-
-
-def _circle_reference(P):
-    c, _, r, E = fit_circle_points(P)
-    q = (P - c) @ E
-    return c + (r * q / np.linalg.norm(q, axis=1)[:, None]) @ E.T, (c, E)
 
 
 def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held=None):
@@ -310,8 +309,7 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, hel
     if len(P) < 3:
         raise ValueError("straightness needs at least 3 points")
     rng = np.random.default_rng(0) if rng is None else rng
-    ideal, d = _line_reference(P)
-    return _corrected(P, covs, _line_zone, ideal, d, rng, n_draws, errors, held)
+    return _corrected("straightness", P, covs, rng, n_draws, errors, held)
 
 
 def circularity(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held=None):
@@ -325,8 +323,7 @@ def circularity(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held
     if len(P) < 5:
         raise ValueError("circularity needs at least 5 points")
     rng = np.random.default_rng(0) if rng is None else rng
-    ideal, axis = _circle_reference(P)
-    return _corrected(P, covs, _circle_zone, ideal, axis, rng, n_draws, errors, held)
+    return _corrected("circularity", P, covs, rng, n_draws, errors, held)
 
 
 def scene_spreads(kind, points, point_covs, held, n_images, n_scenes=N_SCENES, rng=None):
@@ -367,20 +364,27 @@ def scene_spreads(kind, points, point_covs, held, n_images, n_scenes=N_SCENES, r
     ----------
     .. [1] JCGM 101:2008, 7.6 (the standard deviation of output values).
     """
-    if kind not in ("straightness", "circularity"):
+    if kind not in _FORMS:
         raise ValueError(f"no form value {kind!r}")
     if n_images < 2:
         raise ValueError("a spread needs at least 2 images")
     P = np.asarray(points, float).reshape(-1, 3)
     covs = np.asarray(point_covs, float).reshape(-1, 3, 3)
     rng = np.random.default_rng(0) if rng is None else rng
-    ideal, axis = (_line_reference if kind == "straightness" else _circle_reference)(P)
+    reference, _, zones = _FORMS[kind]
+    ideal, axis = reference(P)
     keep = _kept(covs, ideal, axis)
-    zones = _line_zones if kind == "straightness" else _circle_zones
     return _scene_spreads(zones, ideal[keep], keep, held, rng, n_scenes, n_images)
 
 
 def _scene_spreads(zones, ideal, keep, held, rng, n_scenes, n_images):
-    """``_held_spreads`` of n_scenes scenes, ``SCENE_BATCH`` at a time (bounds the memory)."""
-    return np.concatenate([_held_spreads(zones, ideal, keep, held, rng, n, n_images)
-                           for n in np.diff(np.r_[0:n_scenes:SCENE_BATCH, n_scenes])])
+    """Sample standard deviation of the noise-only zone over the images of each scene, (n_scenes,).
+
+    ``ideal`` are the kept points' places (``keep`` selects them from what
+    ``held`` draws); ``SCENE_BATCH`` scenes at a time, which bounds the memory.
+    """
+    out = []
+    for n in np.diff(np.r_[0:n_scenes:SCENE_BATCH, n_scenes]):
+        h = np.asarray(held(rng, n, n_images), float)[:, :, keep]
+        out.append(zones((ideal + h).reshape((-1,) + ideal.shape)).reshape(n, n_images).std(axis=1, ddof=1))
+    return np.concatenate(out)
