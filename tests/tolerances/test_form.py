@@ -54,16 +54,16 @@ def test_a_few_much_less_certain_points_do_not_set_the_zone():
 
 
 def test_the_points_left_out_do_not_depend_on_the_monte_carlo_seed():
-    # Points whose uncertainty lies just either side of the cut (2.8-3.2
-    # times the median) are left out by their covariances, exactly; read
-    # from 200 draws the choice changed from one seed to the next, and the
-    # raw zone with it.
+    # Points whose uncertainty lies just either side of the cut (0.93-1.07
+    # times MAX_SD_RATIO times the median) are left out by their
+    # covariances, exactly; read from 200 draws the choice changed from
+    # one seed to the next, and the raw zone with it.
     from partinspect.vision.pointerrors import PointErrorModel
 
     n = 100
     ring, th = _ring(n)
     sd = np.full(n, 0.01)
-    sd[40:60] = np.linspace(0.028, 0.032, 20)
+    sd[40:60] = np.linspace(0.93, 1.07, 20) * form.MAX_SD_RATIO * 0.01
     radial = np.c_[np.cos(th), np.sin(th), np.zeros(n)]
     model = PointErrorModel(np.arange(n, dtype=float) * 3.0, radial, ((sd, 1.0),))
     P = ring + model.draw(np.random.default_rng(0), 1)[0]
