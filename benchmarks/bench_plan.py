@@ -33,7 +33,7 @@ Per characteristic the table shows
   central 95 % of the spreads its error model gives over 400 scenes
   (:func:`partinspect.tolerances.evaluate.form_scene_spreads`: the
   scene's fixed Type B displacements change which points set the zone,
-  so a scene's spread may lie 30 % from the RMS over scenes that ``pred
+  so a scene's spread may lie 20-40 % from the RMS over scenes that ``pred
   u`` is), for the others the chi-square interval with the values'
   sample kurtosis (:func:`~partinspect.planning.check.chance_interval`);
 - ``u total``: the predicted u with the chain's Type B term for rim points

@@ -334,8 +334,8 @@ def form_interval(spreads, u_noise, level=0.95):
     points whose Type B displacements are fixed in a scene: which points
     set the zone depends on that pattern, so the spread over noise draws
     of one render differs from scene to scene by more than the chance of
-    the draws (for the sample parts' rims some -30 % to +35 % of its RMS,
-    5-95 %, with 50 draws). The prediction's ``u_noise`` is that RMS; the
+    the draws (for the sample parts' planned rims -21 to -34 % and +22 to
+    +38 % of its RMS, 5-95 %, with 50 draws). The prediction's ``u_noise`` is that RMS; the
     interval is the central ``level`` of the spreads the error model gives
     for as many draws of each scene
     (:func:`partinspect.tolerances.evaluate.form_scene_spreads`), which

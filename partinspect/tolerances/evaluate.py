@@ -463,6 +463,12 @@ def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, see
     return [evaluate_characteristic(c, parts, registration, inventory, k=k, seed=seed, n_mc=n_mc) for c in characteristics]
 
 
+def _form_points(record):
+    """A record's edge points and their covariances, or None (too few, or none with covariances, for a form value)."""
+    pts, pcs = getattr(record, "points", None), getattr(record, "point_covs", None)
+    return None if pts is None or pcs is None or len(pts) < 5 else (pts, pcs)
+
+
 def _errors(record):
     """The measured record's draws of its points' correlated errors, or None (independent draws)."""
     model = getattr(record, "point_errors", None)
@@ -500,11 +506,10 @@ def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_S
     if p is None:
         return None
     rec = registration.measured_feature(p.kind, p.index)
-    held = _held(rec)
-    pts, pcs = getattr(rec, "points", None), getattr(rec, "point_covs", None)
-    if held is None or pts is None or pcs is None or len(pts) < 5:
+    held, points = _held(rec), _form_points(rec)
+    if held is None or points is None:
         return None
-    return scene_spreads(c.type, pts, pcs, held, n_images, n_scenes, _rng(seed, c.id))
+    return scene_spreads(c.type, *points, held, n_images, n_scenes, _rng(seed, c.id))
 
 
 def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC,
@@ -530,11 +535,11 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         f = 2.0 if t == "diameter" else 1.0
         return _result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k, "first order (pose-invariant)")
     if t in ("straightness", "circularity"):
-        pts, pcs = getattr(rec[0], "points", None), getattr(rec[0], "point_covs", None)
-        if pts is None or pcs is None or len(pts) < 5:
+        points = _form_points(rec[0])
+        if points is None:
             return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
         fr = (straightness if t == "straightness" else circularity)(
-            pts, pcs, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
+            *points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
     if t in ("distance", "angle"):
@@ -561,9 +566,9 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         else:
             value, u = circle_profile(pf.center, pf.normal, pf.radius, pf.param_cov, nominal, rng, n_mc)
         details = {"fitted": value}
-        pts, pcs = getattr(rec[0], "points", None), getattr(rec[0], "point_covs", None)
-        if form_fn is not None and pts is not None and pcs is not None and len(pts) >= 5:
-            fr = form_fn(pts, pcs, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
+        points = _form_points(rec[0])
+        if form_fn is not None and points is not None:
+            fr = form_fn(*points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
                            n_excluded=fr.n_excluded)
