@@ -25,8 +25,8 @@ FLAT = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (3.0, 2.0))  # in v
 HIDDEN = FeatureVisibility((1.0, 1.0), (0.0, 0.0), (0.0, 0.0), (float("nan"),) * 2)
 
 
-def _registration(ids, wrms=1.0):
-    return SimpleNamespace(assignment={"circle": {}, "line": dict(enumerate(ids))}, weighted_rms=wrms)
+def _registration(ids, wrms=1.0, dof=60):
+    return SimpleNamespace(assignment={"circle": {}, "line": dict(enumerate(ids))}, weighted_rms=wrms, dof=dof)
 
 
 def test_missing_counts_only_edges_in_view_with_a_grey_step():
@@ -75,6 +75,24 @@ def test_a_persisting_situation_gives_its_advice():
     assert len(log) == 2  # one action for this situation, then nothing left to try
     assert [a["situation"] for a in advice] == ["residuals inconsistent with the noise"]
     assert "focus" in advice[0]["advice"]
+
+
+@pytest.mark.parametrize("wrms, dof, met", [(10.3, 120, True), (2.2, 60, True), (1.8, 60, False), (2.5, 3, False)])
+def test_a_registration_misfit_beyond_chance_and_the_limit_is_reported(wrms, dof, met):
+    # Beyond REGISTRATION_RMS_LIMIT and beyond chance (p < 1e-6): 2.5 on 3
+    # degrees of freedom is chi-square 19, p = 3e-4, which chance allows.
+    calls = []
+
+    def run(params):
+        calls.append(dict(params))
+        return _stereo(), _registration(["line-1"], wrms, dof), {"line-1": SEEN}
+
+    best, log, advice = measure_adaptively(run)
+    names = [a["situation"] for a in advice]
+    assert names == (["registration inconsistent"] if met else [])
+    assert len(calls) == 1  # no processing change can mend it: advice only
+    if met:
+        assert f"{wrms:.1f} times" in advice[0]["detail"] and "calibration" in advice[0]["advice"]
 
 
 def test_no_alignment_in_any_round_raises_the_first_error():
