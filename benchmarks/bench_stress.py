@@ -23,6 +23,9 @@ What it checks, and prints as tables that can be quoted:
   deviation, the nominal distance) lies inside measured +- U as often as
   the coverage claims (k = 2: 95.45 %), per characteristic type, with the
   RMS of error / u (1 when u is right);
+- the pose: the registered pose's squared Mahalanobis distance from the
+  true pose under its stated covariance (chi-square with 6 degrees of
+  freedom when honest), with the features left out of the pose fit;
 - decisions: fails of characteristics whose true value is inside the
   limits (false fails) and passes of ones outside (false passes);
 - memory: the peak resident set of each inspection (Linux ``VmHWM``, reset
@@ -61,6 +64,7 @@ sys.path.insert(0, str(ROOT))
 STEP_DIR = ROOT.parent / "shared" / "data" / "step"
 
 COVERAGE_CLAIM = math.erf(2.0 / math.sqrt(2.0))  # k = 2, normal: 95.45 %
+POSE_95 = 12.591587243743977  # chi-square(6) 95 % quantile
 
 # (name, STEP file, framing). "whole": the bounding box centred on the
 # fixation point; "hole": framed on one of its circles (parts larger than
@@ -226,6 +230,18 @@ def true_value(c, truth):
     return None
 
 
+def pose_mahalanobis(registration, truth):
+    """Squared Mahalanobis distance of the registered pose from the true one under its stated covariance.
+
+    Chi-square with 6 degrees of freedom when the pose covariance is honest
+    (95 % below 12.59).
+    """
+    from partinspect.cad.registration import pose_error
+
+    e = pose_error(np.asarray(registration["part_to_camera"], float), np.asarray(truth["part_to_camera"], float))
+    return float(e @ np.linalg.solve(np.asarray(registration["pose_covariance"], float), e))
+
+
 def inspect_one(run, folder):
     """Inspect one render in this process; a dict of what happened."""
     from partinspect.errors import InputError
@@ -254,7 +270,9 @@ def inspect_one(run, folder):
             rows.append(row)
         out.update(outcome=result.verdict, characteristics=rows, features=rep["summary"]["features"],
                    measured=rep["summary"]["features_measured"], not_inspected=rep["summary"].get("not_inspected", 0),
-                   reasons=_reason_counts(rep))
+                   reasons=_reason_counts(rep), pose_d2=pose_mahalanobis(rep["registration"], truth),
+                   weighted_rms=rep["registration"]["weighted_rms"],
+                   outliers=[o["feature"] for o in rep["registration"].get("outliers", [])])
     out["inspect_s"] = time.perf_counter() - t0
     out["peak_rss_mb"] = _peak_rss_mb()
     return out
@@ -326,6 +344,18 @@ def summarise(runs, results, size):
     print(f"Coverage per characteristic type (claim: {100 * COVERAGE_CLAIM:.2f} % inside measured +- U, "
           "RMS of error/u 1):")
     _table(["type", "judged", "measured", "true in +-U", "RMS err/u", "median |err/u|", "max |err/u|"], rows)
+
+    posed = [(run, res) for run, res in zip(runs, results) if "pose_d2" in res]
+    if posed:
+        d2 = np.array([res["pose_d2"] for _, res in posed])
+        print(f"Registered pose against the true one (squared Mahalanobis distance under the stated pose "
+              f"covariance; chi-square(6): 95 % below {POSE_95:.2f}): {np.sum(d2 <= POSE_95)} of {len(d2)} within, "
+              f"median {np.median(d2):.1f}, largest {d2.max():.1f}")
+        for run, res in posed:
+            if res["outliers"] or res["pose_d2"] > POSE_95:
+                print(f"  render {run['index']} ({run['part']}): {res['pose_d2']:.1f}, weighted RMS "
+                      f"{res['weighted_rms']:.2f}, left out of the pose: {', '.join(res['outliers']) or 'none'}")
+        print()
 
     decided = {"pass": 0, "fail": 0, "inconclusive": 0}
     false_fail, false_pass = [], []

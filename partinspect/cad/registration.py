@@ -32,6 +32,13 @@ with no pose given:
    measured line, i.e. the offset of the CAD line's points, in first order).
    Poorly known depth thus pulls the fit little. Radii carry no pose
    information. Only datum features (when ``datums`` are given) enter.
+   Without named datums, a feature whose residuals at the refined pose are
+   beyond any chance (``OUTLIER_P``) is left out and the pose refined
+   again, worst first, at most a quarter of them (a robust best fit): one
+   edge paired with a different edge in the other image, or a hole moved
+   on the part, would otherwise pull the pose and with it every other
+   feature. Such a feature is still assigned and measured against the pose
+   the others give, and is listed in ``Registration.outliers``.
 4. *Ambiguity.* The best-scoring hypotheses are grouped into distinct poses
    and each is refined; when a second distinct pose explains the data about
    as well (same score, chi-square within a factor ``AMBIGUITY_RATIO``), or
@@ -125,6 +132,16 @@ _SAME_POSE_ANGLE = np.deg2rad(2.0)
 _SAME_POSE_SHIFT = 2.0  # mm
 _MAX_LINE_SEEDS = 8  # longest measured lines used to seed line hypotheses
 _MAX_ITER = 30
+OUTLIER_P = 1e-9
+"""Without named datums, a matched feature whose own chi-square at the
+refined pose has a chance below this (for its 4 or 5 whitened residuals:
+beyond 46 or 51) is left out of the pose fit, worst first, at most a
+quarter of the features, and reported (``Registration.outliers``). It is
+still assigned and measured against the pose the others give. On the
+stress renders such features were edges matched to a different edge in
+the other image (the CAD edge itself hidden there, or lost in a face seen
+edge-on) at 40-300 standard uncertainties, and a line 10-17 off; renders
+of the sample parts otherwise reach 20 at most."""
 COST_TOL = 1e-10
 """The pose refinement has converged when a Gauss-Newton step would lower
 the chi-square by less than this fraction of it (``|J step|^2``; the
@@ -257,6 +274,10 @@ class Registration:
         Number of scalar residuals minus 6.
     n_hypotheses : int
         Pose hypotheses scored.
+    outliers : dict
+        CAD id -> (chi-square, residuals) of the matched features left out of
+        the pose fit as inconsistent with the others (``OUTLIER_P``); empty
+        when datums are named.
     """
 
     part_to_camera: np.ndarray
@@ -269,6 +290,7 @@ class Registration:
     chi2: float
     dof: int
     n_hypotheses: int = 0
+    outliers: dict = field(default_factory=dict)
     _circles: tuple = field(default=(), repr=False)
     _lines: tuple = field(default=(), repr=False)
     _fit: object = field(default=None, repr=False)
@@ -1028,6 +1050,10 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
                 f"{other['chi2']:.3g}); the part looks symmetric to the measured features"
             )
     r = first
+    if datum_set is None:
+        # Only the chosen pose: leaving features out of the competing
+        # hypotheses could make a wrong one fit as well as the right one.
+        r = _solve(first["T"], circles, lines, meas, cad, None, exclude_outliers=True)
     return Registration(
         part_to_camera=r["T"],
         pose_cov=r["cov"],
@@ -1039,6 +1065,7 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
         chi2=r["chi2"],
         dof=r["dof"],
         n_hypotheses=len(hyps),
+        outliers=r["outliers"],
         _circles=circles,
         _lines=lines,
         _fit={"J": r["J"], "rows": r["rows"]},
@@ -1079,12 +1106,14 @@ def _same_pose(R1, t1, R2, t2):
     return ang < _SAME_POSE_ANGLE and np.linalg.norm(t1 - t2) < _SAME_POSE_SHIFT
 
 
-def _solve(T, circles, lines, meas, cad, datum_set):
-    """Match, refine on the datums, re-match with the refined pose, refine again."""
+def _refine(T, circles, lines, meas, cad, datum_set, left_out):
+    """Match, refine on the datums (less ``left_out``, a set of (kind, measured index)), re-match, refine again."""
     for _ in range(3):
         circ, lin, _ = _match(meas, cad, T[:3, :3], T[:3, 3])
-        fc = {i: k for i, k in circ.items() if datum_set is None or cad.round_ids[k] in datum_set}
-        fl = {j: l for j, l in lin.items() if datum_set is None or cad.line_ids[l] in datum_set}
+        fc = {i: k for i, k in circ.items()
+              if (datum_set is None or cad.round_ids[k] in datum_set) and ("circle", i) not in left_out}
+        fl = {j: l for j, l in lin.items()
+              if (datum_set is None or cad.line_ids[l] in datum_set) and ("line", j) not in left_out}
         problem = _Problem(circles, lines, fc, fl, cad)
         if problem.n_res < 6:
             raise RegistrationError(
@@ -1097,10 +1126,50 @@ def _solve(T, circles, lines, meas, cad, datum_set):
         T = T_new
         if moved < 1e-6:
             break
+    _constraint_check(J)
+    return T, circ, lin, fc, fl, problem, J, r
+
+
+def _worst(problem, r):
+    """(kind, measured index, chi-square, residuals) of the feature with the least likely residuals, or None."""
+    from scipy import stats
+
+    worst, start = None, 0
+    for kind, index, n, _, _ in problem.items:
+        c2 = float(r[start:start + n] @ r[start:start + n])
+        start += n
+        p = stats.chi2.sf(c2, n)
+        if worst is None or p < worst[0]:
+            worst = (p, kind, index, c2, n)
+    return None if worst is None else worst[1:]
+
+
+def _solve(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
+    """Match, refine on the datums, re-match with the refined pose, refine again.
+
+    With ``exclude_outliers`` (no named datums), a feature inconsistent with
+    the others (``OUTLIER_P``) is then left out and the pose refined again,
+    worst first, while the rest still fix the pose.
+    """
+    from scipy import stats
+
+    left_out = {}
+    T, circ, lin, fc, fl, problem, J, r = _refine(T, circles, lines, meas, cad, datum_set, left_out)
+    limit = (len(fc) + len(fl)) // 4
+    while exclude_outliers and len(left_out) < limit:
+        kind, index, c2, n = _worst(problem, r)
+        if stats.chi2.sf(c2, n) >= OUTLIER_P:
+            break
+        trial = {**left_out, (kind, index): (c2, n)}
+        try:
+            refined = _refine(T, circles, lines, meas, cad, datum_set, trial)
+        except RegistrationError:
+            break  # the others alone leave the pose undetermined: keep the feature
+        left_out = trial
+        T, circ, lin, fc, fl, problem, J, r = refined
     circ2, lin2, _ = _match(meas, cad, T[:3, :3], T[:3, 3])
     if (circ2, lin2) != (circ, lin):
         circ, lin = circ2, lin2  # final assignment under the final pose
-    _constraint_check(J)
     cov = np.linalg.inv(J.T @ J)
     cov = 0.5 * (cov + cov.T)
     rows, start = {}, 0
@@ -1121,4 +1190,7 @@ def _solve(T, circles, lines, meas, cad, datum_set):
         "lin": lin,
         "score": len(circ) + len(lin),
         "datums": ids,
+        "outliers": {(cad.round_ids[circ[i]] if kind == "circle" else cad.line_ids[lin[i]]): (round(c2, 6), n)
+                     for (kind, i), (c2, n) in left_out.items()
+                     if i in (circ if kind == "circle" else lin)},
     }

@@ -200,7 +200,8 @@ def registration_summary(reg):
     if not reg:
         return None
     out = {"rms": reg.get("rms"), "weighted_rms": reg.get("weighted_rms"), "chi2": reg.get("chi2"),
-           "dof": reg.get("dof"), "datums": list(reg.get("datums") or []), "translation": None,
+           "dof": reg.get("dof"), "datums": list(reg.get("datums") or []),
+           "outliers": [o for o in reg.get("outliers") or [] if isinstance(o, dict)], "translation": None,
            "rotation_deg": None, "axis": None, "translation_std": _vec3(reg.get("translation_std")),
            "rotation_std_deg": _vec3(reg.get("rotation_std_deg"))}
     T = reg.get("part_to_camera")

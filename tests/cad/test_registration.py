@@ -135,7 +135,7 @@ def test_part_frame_covariance_is_honest(scene):
     assert 0.8 < rms < 1.25
 
 
-def test_deviated_hole_excluded_by_datums_does_not_drag_pose():
+def test_deviated_hole_left_out_of_the_pose_does_not_drag_it(monkeypatch):
     from partinspect.cad.step import load_step
 
     shape = load_step(EXAMPLES / "plate" / "part.step")
@@ -151,11 +151,22 @@ def test_deviated_hole_excluded_by_datums_does_not_drag_pose():
     assert np.linalg.norm(e_held[3:]) < 0.005
     assert np.rad2deg(np.linalg.norm(e_held[:3])) < 0.01
     assert "circle-4" not in held.datums and held.assignment["circle"][m.circle_ids.index("circle-4")] == "circle-4"
-    # with the moved hole among the datums the fit is pulled and the chi-square shows it
-    assert free.weighted_rms > 3 * held.weighted_rms
+    assert held.outliers == {}  # named datums are used as named
+    # Without named datums the moved hole (0.1 mm, some 50 of its standard
+    # uncertainties) is left out of the pose fit as inconsistent with the
+    # rest, and reported; the pose is then as good as with the datums named.
+    assert set(free.outliers) == {"circle-4"} and free.outliers["circle-4"][0] > 100
+    assert "circle-4" not in free.datums
+    assert np.allclose(free.part_to_camera, held.part_to_camera, atol=1e-9)
+    assert free.weighted_rms == pytest.approx(held.weighted_rms)
     # the moved hole measures 0.1 mm off in the part frame when it is not a datum
-    pf = [p for p in held.features_in_part_frame() if p.cad_id == "circle-4"][0]
-    assert abs((pf.center - inv["circle-4"].center)[0] - 0.1) < 0.01
+    for reg in (held, free):
+        pf = [p for p in reg.features_in_part_frame() if p.cad_id == "circle-4"][0]
+        assert abs((pf.center - inv["circle-4"].center)[0] - 0.1) < 0.01
+    # Kept in the fit (OUTLIER_P = 0), it pulls the pose and the chi-square shows it.
+    monkeypatch.setattr("partinspect.cad.registration.OUTLIER_P", 0.0)
+    pulled = register(m.circles, m.lines, inv)
+    assert pulled.outliers == {} and pulled.weighted_rms > 3 * held.weighted_rms
 
 
 def _square_plate():
@@ -254,3 +265,22 @@ def test_refinement_converges_when_the_features_scatter_beyond_their_covariances
     # covariance their honest uncertainties would give (scale^2 times the stated).
     e = pose_error(reg.part_to_camera, T)
     assert e @ np.linalg.solve(s2 * reg.pose_cov, e) < 25.7  # chi-square(6), p = 2e-4
+
+
+def test_a_line_matched_to_another_edge_is_left_out_of_the_pose(scene):
+    # As on stress renders where one image's edge was paired with a different
+    # edge in the other: a datum line 0.3 mm off (some 100 of its standard
+    # uncertainties) pulls an unguarded fit many standard deviations off the
+    # true pose; left out, the pose is within its stated covariance.
+    _, inv, T, ids = scene
+    lid = next(i for i in ids if inv[i].kind == "line")
+    d = np.asarray(inv[lid].end, float) - np.asarray(inv[lid].start, float)
+    off = np.cross(d, [0.3, 0.5, 0.8])
+    off *= 0.3 / np.linalg.norm(off)
+    m = measure_features(inv, T, ids, np.random.default_rng(5), n_points=0, shifts={lid: off})
+    reg = register(m.circles, m.lines, inv)
+    assert list(reg.outliers) == [lid] and lid not in reg.datums
+    assert reg.assignment["line"][m.line_ids.index(lid)] == lid  # still measured
+    e = pose_error(reg.part_to_camera, T)
+    assert e @ np.linalg.solve(reg.pose_cov, e) < 22.5  # chi-square(6), p = 1e-3
+    assert reg.weighted_rms < 1.6
