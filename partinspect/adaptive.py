@@ -131,9 +131,12 @@ REGISTRATION_RMS_LIMIT = 2.0
 about the CAD model as their covariances say) exceeds this, and whose
 chi-square is beyond chance (p < 1e-6), is a situation. Renders of the
 sample parts read 0.8-1.1 (one at 1.7), so the first-order model's
-approximations stay well below it; renders with strong lens distortion
-read 17-27, where a few short lines lie 30-70 of their standard
-uncertainties off the true edge, and a NIST part at noise 5.5 read 10."""
+approximations stay well below it. Stress renders where a few edges were
+paired with a different edge in the other image read 10-27 until the
+registration left such features out of the pose fit
+(:data:`partinspect.cad.registration.OUTLIER_P`), 0.9-1.1 since: what
+this situation now sees is a misfit spread over many features (a wrong
+calibration, a part of another revision, a part that moved)."""
 
 
 def _registration_inconsistent(s):

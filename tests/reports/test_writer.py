@@ -280,3 +280,16 @@ def test_adaptive_rounds_and_advice_are_shown_escaped():
     html = render_html(report)
     assert 'id="adaptive"' in html and "2 rounds" in html and "turn the part" in html
     assert "<script>x</script>" not in html and "&lt;script&gt;x&lt;/script&gt;" in html
+
+
+def test_features_left_out_of_the_alignment_are_named_escaped_and_valid():
+    report = synthetic.make_report()
+    assert "left out of the alignment" not in render_html(report)
+    report["registration"]["outliers"] = [{"feature": "line-4<b>", "chi2": 12222.238, "residuals": 4}]
+    jsonschema.validate(report, SCHEMA)
+    html = render_html(report)
+    assert "left out of the alignment" in html and "(χ² 12222.2 on 4)" in html
+    assert "line-4<b>" not in html and "line-4&lt;b&gt;" in html
+    report["registration"]["outliers"] = [{"feature": "line-4", "chi2": -1.0, "residuals": 4}]
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(report, SCHEMA)
