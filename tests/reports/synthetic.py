@@ -4,6 +4,7 @@ Built directly (random images with drawn edges, points with anisotropic
 covariances), not through the pipeline, so the report tests stay fast.
 """
 
+import copy
 import math
 
 import numpy as np
@@ -96,7 +97,7 @@ def make_report(chars=CHARS, part="part.step", verdict="fail", registration=True
                          "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame"}
         if registration else None,
         "features": feats,
-        "characteristics": list(chars),
+        "characteristics": copy.deepcopy(list(chars)),  # a test may change them
         "not_inspected": [char("line-9.straightness", "inconclusive", None, 0.0, 0.0, 0.1, type="straightness",
                                feature="line-9", source="ISO2768-mK (general tolerance)",
                                reason="line-9 faces away from both cameras")],
