@@ -35,11 +35,13 @@ What it checks, and prints as tables that can be quoted:
 Usage::
 
     python3 benchmarks/bench_stress.py                    # 20 renders, 2448 x 2048
-    STRESS_N=4 python3 benchmarks/bench_stress.py         # fewer
-    STRESS_SIZE=1224x1024 STRESS_SEED=3 STRESS_DIR=/tmp/stress python3 benchmarks/bench_stress.py
+    python3 benchmarks/bench_stress.py --n 4              # fewer
+    python3 benchmarks/bench_stress.py --size 1224x1024 --seed 3 --dir /tmp/stress
 
-``STRESS_DIR`` keeps the renders and reports (and reuses renders already
-there); by default they go to a temporary folder that is removed.
+``--dir`` keeps the renders and reports (and reuses renders already
+there); by default they go to a temporary folder that is removed. Each
+option also reads an environment variable (``STRESS_N``, ``STRESS_SEED``,
+``STRESS_SIZE``, ``STRESS_DIR``).
 """
 
 from __future__ import annotations
@@ -401,11 +403,24 @@ def summarise(runs, results, size):
     return peak, outcomes.get("crash", 0)
 
 
+def _args():
+    """Options; each defaults to its environment variable (``STRESS_N`` etc.), then to the usual run."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=int(os.environ.get("STRESS_N", "20")), help="renders (default 20)")
+    ap.add_argument("--seed", type=int, default=int(os.environ.get("STRESS_SEED", "0")),
+                    help="seed of the renders' parts, poses and noise (default 0)")
+    ap.add_argument("--size", default=os.environ.get("STRESS_SIZE", "2448x2048"), help="image size WxH (default 2448x2048)")
+    ap.add_argument("--dir", default=os.environ.get("STRESS_DIR"),
+                    help="keep renders and reports here, and reuse renders already there (default: a temporary folder)")
+    return ap.parse_args()
+
+
 def main():
-    n = int(os.environ.get("STRESS_N", "20"))
-    seed = int(os.environ.get("STRESS_SEED", "0"))
-    size = tuple(int(v) for v in os.environ.get("STRESS_SIZE", "2448x2048").lower().split("x"))
-    keep = os.environ.get("STRESS_DIR")
+    args = _args()
+    n, seed, keep = args.n, args.seed, args.dir
+    size = tuple(int(v) for v in args.size.lower().split("x"))
     base = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="partinspect-stress-"))
     base.mkdir(parents=True, exist_ok=True)
     runs = plan(n, seed)
