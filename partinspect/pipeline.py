@@ -410,7 +410,7 @@ def registration_entry(reg):
         "dof": int(reg.dof),
         "datums": list(reg.datums),
         "outliers": [{"feature": fid, "chi2": round(float(c2), 3), "residuals": int(n)}
-                     for fid, (c2, n) in sorted(getattr(reg, "outliers", {}).items())],
+                     for fid, (c2, n) in sorted(reg.outliers.items())],
         "pose_covariance": _mat(reg.pose_cov),
         "rotation_std_deg": _vec(np.degrees(std[:3]), 9),
         "translation_std": _vec(std[3:], 9),

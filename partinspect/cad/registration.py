@@ -1107,7 +1107,7 @@ def _same_pose(R1, t1, R2, t2):
 
 
 def _refine(T, circles, lines, meas, cad, datum_set, left_out):
-    """Match, refine on the datums (less ``left_out``, a set of (kind, measured index)), re-match, refine again."""
+    """Match, refine on the datums (less those keyed (kind, measured index) in ``left_out``), re-match, refine again."""
     for _ in range(3):
         circ, lin, _ = _match(meas, cad, T[:3, :3], T[:3, 3])
         fc = {i: k for i, k in circ.items()
@@ -1131,7 +1131,7 @@ def _refine(T, circles, lines, meas, cad, datum_set, left_out):
 
 
 def _worst(problem, r):
-    """(kind, measured index, chi-square, residuals) of the feature with the least likely residuals, or None."""
+    """(chance, kind, measured index, chi-square, residuals) of the feature with the least likely residuals."""
     from scipy import stats
 
     worst, start = None, 0
@@ -1141,7 +1141,7 @@ def _worst(problem, r):
         p = stats.chi2.sf(c2, n)
         if worst is None or p < worst[0]:
             worst = (p, kind, index, c2, n)
-    return None if worst is None else worst[1:]
+    return worst
 
 
 def _solve(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
@@ -1151,14 +1151,12 @@ def _solve(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
     the others (``OUTLIER_P``) is then left out and the pose refined again,
     worst first, while the rest still fix the pose.
     """
-    from scipy import stats
-
     left_out = {}
     T, circ, lin, fc, fl, problem, J, r = _refine(T, circles, lines, meas, cad, datum_set, left_out)
     limit = (len(fc) + len(fl)) // 4
     while exclude_outliers and len(left_out) < limit:
-        kind, index, c2, n = _worst(problem, r)
-        if stats.chi2.sf(c2, n) >= OUTLIER_P:
+        p, kind, index, c2, n = _worst(problem, r)  # the refinement needs 6 residuals: there is one
+        if p >= OUTLIER_P:
             break
         trial = {**left_out, (kind, index): (c2, n)}
         try:

@@ -284,3 +284,23 @@ def test_a_line_matched_to_another_edge_is_left_out_of_the_pose(scene):
     e = pose_error(reg.part_to_camera, T)
     assert e @ np.linalg.solve(reg.pose_cov, e) < 22.5  # chi-square(6), p = 1e-3
     assert reg.weighted_rms < 1.6
+
+
+def test_pose_covariance_stays_honest_with_a_line_left_out(scene):
+    # Over repeated noise draws, each with a datum line 0.3 mm off (left
+    # out), the pose scatters about the truth as its stated covariance says.
+    _, inv, T, ids = scene
+    lid = next(i for i in ids if inv[i].kind == "line")
+    d = np.asarray(inv[lid].end, float) - np.asarray(inv[lid].start, float)
+    off = np.cross(d, [0.3, 0.5, 0.8])
+    off *= 0.3 / np.linalg.norm(off)
+    rng = np.random.default_rng(12)
+    d2 = []
+    for _ in range(60):
+        m = measure_features(inv, T, ids, rng, n_points=0, shifts={lid: off})
+        reg = register(m.circles, m.lines, inv, pose_hint=T)
+        assert list(reg.outliers) == [lid]
+        e = pose_error(reg.part_to_camera, T)
+        d2.append(e @ np.linalg.solve(reg.pose_cov, e))
+    coverage = np.mean(np.array(d2) <= stats.chi2.ppf(0.95, 6))
+    assert 0.85 <= coverage <= 1.0 and 3.5 < np.mean(d2) < 9.0  # chi-square(6): mean 6
