@@ -231,3 +231,61 @@ def test_slot_ends_reach_the_points_where_the_sides_touch_them():
                 extents.append(360.0 - np.diff(np.r_[a, a[0] + 360.0]).max())
     assert np.median(extents) > 159.0, np.round(extents)
     assert sum(e < 150.0 for e in extents) <= 1, np.round(extents)
+
+
+def _spur_and_arc(seed, sd=0.05):
+    """Edge points of a straight weak edge (9 points) running into a rim
+    stretch (26 points, 75 deg of a circle of radius 20 px) at a right-angled
+    corner, as one contour: how a hole's inner edge joins its rim."""
+    from partinspect.vision.contours import Contour
+    from partinspect.vision.edges import EdgePoints
+
+    rng = np.random.default_rng(seed)
+    c, r = np.array([100.0, 100.0]), 20.0
+    phi = np.deg2rad(np.linspace(200.0, 275.0, 26))
+    arc_n = np.column_stack([np.cos(phi), np.sin(phi)])
+    arc = c + r * arc_n
+    # The spur leaves the arc's first point along the arc's normal, inward.
+    inward = -arc_n[0]
+    spur = arc[0] + np.outer(np.arange(9, 0, -1), inward)
+    spur_n = np.tile([-inward[1], inward[0]], (9, 1))
+    normal = np.vstack([spur_n, arc_n])
+    xy = np.vstack([spur, arc]) + rng.normal(0.0, sd, (35, 1)) * normal
+    t = np.column_stack([-normal[:, 1], normal[:, 0]])
+    cov = sd**2 * np.einsum("ni,nj->nij", normal, normal) + np.einsum("ni,nj->nij", t, t) / 12.0
+    n = len(xy)
+    edges = EdgePoints(xy, normal, np.full(n, 20.0), cov, np.round(xy[:, ::-1]).astype(np.int32), np.full(n, 1.2),
+                       (200, 200), 1.0, 2.0, 0.5, None, None)
+    return edges, Contour(np.arange(n), False)
+
+
+def test_a_rim_stretch_joined_by_another_edge_at_a_corner_is_kept():
+    # The bracket's 4.5 mm hole (40 px across) in some noise draws: a weak
+    # edge inside the hole joined 75 deg of its rim through a corner, the
+    # contour failed its test and Ramer's rule halved the rim stretch into
+    # two pieces too short for an arc after their trims: the stretch was
+    # lost. Split at the corner, the rim stretch is one arc.
+    from partinspect.vision import contours as C
+
+    for seed in range(3):
+        edges, contour = _spur_and_arc(seed)
+        segs = C.segment_contour(edges, contour)
+        arcs = [s for s in segs if s.kind == "arc"]
+        assert len(arcs) == 1, [(s.kind, len(s.index)) for s in segs]
+        # Its fit takes rim points only, most of them (75 deg of arc is too
+        # short to fix an ellipse's shape: its parameters are not tested).
+        fitted = arcs[0].fit_index
+        assert fitted.min() >= 9 and len(fitted) >= 18
+        assert np.abs(np.linalg.norm(edges.xy[fitted] - 100.0, axis=1) - 20.0).max() < 0.25
+
+
+def test_split_position_prefers_a_corner_over_the_farthest_point():
+    from partinspect.vision.contours import CORNER_TURN, _split_position
+
+    edges, _ = _spur_and_arc(0, sd=0.0)
+    assert _split_position(edges.xy, edges.normal, 4) in (8, 9)
+    # A smooth arc (turning 7.5 deg per point) has no corner: Ramer's farthest point.
+    phi = np.deg2rad(np.linspace(0.0, 180.0, 25))
+    n = np.column_stack([np.cos(phi), np.sin(phi)])
+    assert _split_position(20.0 * n, n, 4) == 12
+    assert 2 * np.deg2rad(7.5) < CORNER_TURN
