@@ -82,3 +82,31 @@ def test_arc_partners_only_where_the_right_image_sees_the_rim():
     d = np.min(np.linalg.norm(c.right[:, None] - fr.ideal.xy[None], axis=2), axis=1)
     assert d.max() <= 2.0
     assert 0.3 * len(X) < len(c) < 0.6 * len(X)
+
+
+def test_a_point_off_the_rim_where_the_epipolar_line_touches_it_gets_no_partner():
+    """A left rim point 1 px off its ellipse at the epipolar tangent point: its
+    epipolar line then crosses the right ellipse twice at steeper angles, and
+    the partner found there lies far along the rim. It is dropped, judged on
+    the left ellipse; every 3D point kept lies on the circle."""
+    from partinspect.vision.correspondences import _ellipse_normal_sin
+
+    geo = epipolar_geometry(RIG)
+    centre, normal, r = np.array([15.0, 5.0, 395.0]), np.array([0.2, -0.5, -0.8]), 5.0
+    X = circle(centre, normal, r, n=400)
+    fl, fr = feature("arc", X, P1), feature("arc", X, P2)
+    x = fl.ideal.xy.copy()
+    lines = geo.left_lines(x)
+    sin_l = _ellipse_normal_sin(x, np.column_stack([-lines[:, 1], lines[:, 0]]), np.asarray(fl.fit.params))
+    for k in np.argsort(sin_l)[:2]:  # the two tangent points, one on each side
+        # Inward (outward, the epipolar line misses the right ellipse and
+        # the point has no partner anyway): the partner found lies 10 px
+        # along the right ellipse, where the line crosses it at 11 deg.
+        inward = fl.fit.params[:2] - x[k]
+        x[k] += 1.0 * inward / np.linalg.norm(inward)
+    c = correspond(fl, fr, geo, xy=x)
+    n = normal / np.linalg.norm(normal)
+    q = c.points - centre
+    d = np.hypot(q @ n, np.linalg.norm(q - np.outer(q @ n, n), axis=1) - r)
+    assert len(c) > 0.6 * len(X)
+    assert d.max() < 0.02, d.max()  # mm; a wrong partner puts the point tenths of a mm off
