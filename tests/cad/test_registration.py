@@ -267,16 +267,21 @@ def test_refinement_converges_when_the_features_scatter_beyond_their_covariances
     assert e @ np.linalg.solve(s2 * reg.pose_cov, e) < 25.7  # chi-square(6), p = 2e-4
 
 
+def _datum_line_off(inv, ids):
+    """The scene's first line and a shift of 0.3 mm across it, mm."""
+    lid = next(i for i in ids if inv[i].kind == "line")
+    d = np.asarray(inv[lid].end, float) - np.asarray(inv[lid].start, float)
+    off = np.cross(d, [0.3, 0.5, 0.8])
+    return lid, off * 0.3 / np.linalg.norm(off)
+
+
 def test_a_line_matched_to_another_edge_is_left_out_of_the_pose(scene):
     # As on stress renders where one image's edge was paired with a different
     # edge in the other: a datum line 0.3 mm off (some 100 of its standard
     # uncertainties) pulls an unguarded fit many standard deviations off the
     # true pose; left out, the pose is within its stated covariance.
     _, inv, T, ids = scene
-    lid = next(i for i in ids if inv[i].kind == "line")
-    d = np.asarray(inv[lid].end, float) - np.asarray(inv[lid].start, float)
-    off = np.cross(d, [0.3, 0.5, 0.8])
-    off *= 0.3 / np.linalg.norm(off)
+    lid, off = _datum_line_off(inv, ids)
     m = measure_features(inv, T, ids, np.random.default_rng(5), n_points=0, shifts={lid: off})
     reg = register(m.circles, m.lines, inv)
     assert list(reg.outliers) == [lid] and lid not in reg.datums
@@ -290,10 +295,7 @@ def test_pose_covariance_stays_honest_with_a_line_left_out(scene):
     # Over repeated noise draws, each with a datum line 0.3 mm off (left
     # out), the pose scatters about the truth as its stated covariance says.
     _, inv, T, ids = scene
-    lid = next(i for i in ids if inv[i].kind == "line")
-    d = np.asarray(inv[lid].end, float) - np.asarray(inv[lid].start, float)
-    off = np.cross(d, [0.3, 0.5, 0.8])
-    off *= 0.3 / np.linalg.norm(off)
+    lid, off = _datum_line_off(inv, ids)
     rng = np.random.default_rng(12)
     d2 = []
     for _ in range(60):
