@@ -5,8 +5,10 @@ the edge crosses the pixel it is read in (its sub-pixel phase). Along a
 straight edge that phase steps by ``tan a`` per pixel of the dominant
 axis (``a`` the edge's angle to it), so the bias repeats every
 ``1 / frac(tan a)`` points: a short ripple for most directions, a slow
-pattern within a few degrees of 45 deg (and of an axis), which a line fit
-does not absorb and a straightness zone sees as form. The table gives, per
+pattern within a degree or so of 45 deg, which a line fit does not absorb
+and a straightness zone sees as form (near an axis the phase steps slowly
+too, but there the estimator blends into the plain parabola, which is
+nearly exact). The table gives, per
 optical blur (Gaussian, px) and edge angle, the RMS of the points'
 distances to the true line (``all``) and of their 15-point running mean
 (``slow``: the part a form zone sees), for the estimator as used (the

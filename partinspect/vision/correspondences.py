@@ -192,6 +192,12 @@ def _ellipse_normal_sin(points, direction, params):
     return np.abs(gx * direction[:, 0] + gy * direction[:, 1]) / np.hypot(gx, gy)
 
 
+def _left_crossing_sin(geo, x, left_params):
+    """|sin| of the angle at which each left point's epipolar line crosses the left fitted ellipse there."""
+    lines = geo.left_lines(x)  # normalised: (-l1, l0) is the unit direction
+    return _ellipse_normal_sin(x, np.column_stack([-lines[:, 1], lines[:, 0]]), left_params)
+
+
 def _partners(geo, kind, x, right_params, left_params, rank=None, lines_r=None, with_sin=True):
     """Right partners of left points x on the right curve; also the rank used for ellipses.
 
@@ -282,9 +288,7 @@ def correspond(left, right, geo, *, xy=None, min_angle=np.deg2rad(10.0), step=1e
         # where the epipolar line touches the rim, took a partner 14 deg
         # along the right ellipse and put a circularity of 0.32 mm (12 times
         # its stated u) on a round hole.
-        lines_l = geo.left_lines(x)
-        sin_l = _ellipse_normal_sin(x, np.column_stack([-lines_l[:, 1], lines_l[:, 0]]), pl)
-        keep &= sin_l >= np.sin(min_angle)
+        keep &= _left_crossing_sin(geo, x, pl) >= np.sin(min_angle)
     if kind == "line":
         # Only where the right image sees the edge too: the fitted right line
         # extended past its points would place a left-only stretch (or a

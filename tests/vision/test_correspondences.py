@@ -89,15 +89,14 @@ def test_a_point_off_the_rim_where_the_epipolar_line_touches_it_gets_no_partner(
     epipolar line then crosses the right ellipse twice at steeper angles, and
     the partner found there lies far along the rim. It is dropped, judged on
     the left ellipse; every 3D point kept lies on the circle."""
-    from partinspect.vision.correspondences import _ellipse_normal_sin
+    from partinspect.vision.correspondences import _left_crossing_sin
 
     geo = epipolar_geometry(RIG)
     centre, normal, r = np.array([15.0, 5.0, 395.0]), np.array([0.2, -0.5, -0.8]), 5.0
     X = circle(centre, normal, r, n=400)
     fl, fr = feature("arc", X, P1), feature("arc", X, P2)
     x = fl.ideal.xy.copy()
-    lines = geo.left_lines(x)
-    sin_l = _ellipse_normal_sin(x, np.column_stack([-lines[:, 1], lines[:, 0]]), np.asarray(fl.fit.params))
+    sin_l = _left_crossing_sin(geo, x, np.asarray(fl.fit.params))
     for k in np.argsort(sin_l)[:2]:  # the two tangent points, one on each side
         # Inward (outward, the epipolar line misses the right ellipse and
         # the point has no partner anyway): the partner found lies 10 px
