@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from partinspect.simulate.render import DEFAULT_SHADING, blur, camera_in_part, render_radiance, sensor  # noqa: E402
+from partinspect.simulate.render import DEFAULT_SHADING, camera_in_part, render_radiance, sensor  # noqa: E402
 from partinspect.vision import forked as forked_module  # noqa: E402
 from partinspect.vision.ideal import camera_matrices  # noqa: E402
 from partinspect.vision.stereo import measure_stereo  # noqa: E402
@@ -67,8 +67,8 @@ def radiance(name, size, light_rig=None):
     out = []
     for i in range(2):
         K, D, R, t = camera_in_part(rig, i, pose)
-        img, _ = render_radiance(p.scene, K, D, R, t, rig.image_size, light)
-        out.append(blur(img, 0.6))
+        img, _ = render_radiance(p.scene, K, D, R, t, rig.image_size, light, psf=0.6)
+        out.append(img)
     return rig, pose, out
 
 

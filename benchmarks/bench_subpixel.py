@@ -5,16 +5,15 @@ the edge crosses the pixel it is read in (its sub-pixel phase). Along a
 straight edge that phase steps by ``tan a`` per pixel of the dominant
 axis (``a`` the edge's angle to it), so the bias repeats every
 ``1 / frac(tan a)`` points: a short ripple for most directions, a slow
-pattern within a degree or so of 45 deg, which a line fit does not absorb
-and a straightness zone sees as form (near an axis the phase steps slowly
-too, but there the estimator blends into the plain parabola, which is
-nearly exact). The table gives, per
-optical blur (Gaussian, px) and edge angle, the RMS of the points'
-distances to the true line (``all``) and of their 15-point running mean
-(``slow``: the part a form zone sees), for the estimator as used (the
-parabola through the gradient magnitudes blended into the one through
-their logarithms by ``edges.BLEND_ANGLE``) and, as baselines in the same
-run, either parabola alone.
+pattern near an axis and near 45 deg, which a line fit does not absorb and
+a straightness zone sees as form. The edges are formed as in a camera (a
+Gaussian PSF of ``blur`` px, then integration over each pixel's square:
+``tests.vision.synthetic.render_optics``). The table gives, per blur and
+edge angle, the RMS of the points' distances to the true line (``all``)
+and of their 15-point running mean (``slow``: the part a form zone sees),
+for the estimator as used (the vertex of the parabola through the
+logarithms of the three gradient magnitudes) and, as the baseline in the
+same run, the plain parabola through the magnitudes (Devernay's).
 
     python3 benchmarks/bench_subpixel.py [--blurs 0.4 0.6 0.8 1.0]
 """
@@ -36,7 +35,16 @@ ANGLES = (0.5, 2.0, 5.0, 10.0, 20.0, 30.0, 40.0, 42.0, 43.0, 44.0, 44.5, 45.0)
 SIZE = 240
 MARGIN = 30
 RUN = 15  # points in the running mean ("slow")
-ESTIMATORS = {"as used": None, "parabola": 1e9, "log-parabola": 1e-9}  # BLEND_ANGLE, rad
+
+
+def parabola_offset(a, b, c):
+    """Devernay's vertex of the parabola through the magnitudes, and its Jacobian."""
+    D = a - 2.0 * b + c
+    J = np.column_stack([(c - b), (a - c), (b - a)]) / (D * D)[:, None]
+    return (a - c) / (2.0 * D), J
+
+
+ESTIMATORS = {"as used": None, "parabola": parabola_offset}
 
 
 def residuals(angle_deg, blur, offset=0.3):
@@ -65,7 +73,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--blurs", type=float, nargs="+", default=[0.4, 0.6, 0.8, 1.0])
     args = ap.parse_args(argv)
-    saved = edges.BLEND_ANGLE
+    saved = edges._subpixel_offset
     print("systematic error of edge points on exact straight edges, px RMS (all / slow = %d-point running mean); "
           "sigma 1, no noise, %dx%d px" % (RUN, SIZE, SIZE))
     head = "blur  angle   " + "   ".join(f"{name:>17s}" for name in ESTIMATORS)
@@ -75,12 +83,12 @@ def main(argv=None):
         for blur in args.blurs:
             for ang in ANGLES:
                 cells = []
-                for blend in ESTIMATORS.values():
-                    edges.BLEND_ANGLE = saved if blend is None else blend
+                for estimator in ESTIMATORS.values():
+                    edges._subpixel_offset = saved if estimator is None else estimator
                     cells.append("%.4f / %.4f" % figures(residuals(ang, blur)))
                 print(f"{blur:4.1f}  {ang:5.1f}   " + "   ".join(f"{c:>17s}" for c in cells))
     finally:
-        edges.BLEND_ANGLE = saved
+        edges._subpixel_offset = saved
 
 
 if __name__ == "__main__":

@@ -123,7 +123,7 @@ def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shadin
     Each draw of a Monte Carlo check is ``sensor(image, noise, rng)`` of
     these: the ray casting is done once.
     """
-    from partinspect.simulate.render import DEFAULT_SHADING, SAMPLES, blur, camera_in_part, render_radiance
+    from partinspect.simulate.render import DEFAULT_SHADING, SAMPLES, camera_in_part, render_radiance
 
     shading = shading or DEFAULT_SHADING
     samples = SAMPLES if samples is None else samples
@@ -131,8 +131,9 @@ def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shadin
     out = []
     for index in (0, 1):
         K, D, R, t = camera_in_part(calib, index, part_to_camera)
-        img, _ = render_radiance(scene, K, D, R, t, calib.image_size, light, shading=shading, samples=samples)
-        out.append(blur(img, blur_sigma))
+        img, _ = render_radiance(scene, K, D, R, t, calib.image_size, light, shading=shading, samples=samples,
+                                 psf=blur_sigma)
+        out.append(img)
     return tuple(out)
 
 

@@ -33,6 +33,56 @@ def test_sample_pattern_has_distinct_offsets():
         np.testing.assert_allclose(p.mean(axis=0), 0, atol=1e-12)
 
 
+@pytest.mark.parametrize("psf", [0.4, 0.6, 1.0])
+def test_psf_kernel_is_the_psf_between_two_pixel_squares(psf):
+    from partinspect.simulate.render import psf_kernel
+
+    from scipy.special import ndtr
+
+    k = psf_kernel(psf)
+    x = np.arange(len(k)) - len(k) // 2
+    assert k.sum() == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(k, k[::-1], atol=1e-15)
+    # The PSF integrated over the receiving pixel, averaged over the emitting one.
+    u, w = np.polynomial.legendre.leggauss(40)
+    u, w = u / 2, w / 2
+    direct = [(w * (ndtr((j - u + 0.5) / psf) - ndtr((j - u - 0.5) / psf))).sum() for j in x]
+    np.testing.assert_allclose(k, direct, atol=1e-12)
+
+
+@pytest.mark.parametrize("angle", [2.0, 30.0, 44.0])
+def test_rays_spread_by_the_psf_give_the_camera_image_of_an_edge(angle):
+    """Every pixel supersampled with the renderer's rays on an analytic half-plane,
+    its rays spread by the PSF (what render_radiance does with the ray caster's
+    greys): the image is the optics-then-pixel image of the exact edge."""
+    from partinspect.simulate.render import SAMPLES, _ray_weights, optics
+    from tests.vision.synthetic import HalfPlane, render_optics
+
+    th = np.radians(angle)
+    hp = HalfPlane(-np.sin(th), np.cos(th), -(-np.sin(th) * 20.3 + np.cos(th) * 19.6))
+    n, psf = 40, 0.6
+    offsets = sample_pattern(SAMPLES)
+    rows, cols = np.divmod(np.arange(n * n), n)
+    grey = np.where(hp.inside(cols[:, None] + offsets[:, 0], rows[:, None] + offsets[:, 1]), 160.0, 40.0)
+    weights, kc, rad = _ray_weights(offsets, psf)
+    img = np.zeros((n + 2 * rad, n + 2 * rad))
+    spread = (grey @ weights).reshape(n, n, 2 * rad + 1, 2 * rad + 1)
+    for r in range(n):
+        for c in range(n):
+            img[r : r + 2 * rad + 1, c : c + 2 * rad + 1] += spread[r, c]
+    img = img[rad:-rad, rad:-rad]
+    exact = render_optics([(hp, 160.0)], n, n, 40.0, psf)
+    inner = slice(2 * rad, n - 2 * rad)
+    # 256 rays resolve an edge's coverage to 1/256 along the axes, more
+    # coarsely near 45 deg (the lattice's diagonal rows): 0.29 grey of the
+    # 120-grey step at 44 deg.
+    assert np.abs(img - exact)[inner, inner].max() < 0.4
+    # A pixel of uniform grey spreads as the separable kernel.
+    np.testing.assert_allclose(kc.sum(), 1.0, atol=1e-12)
+    flat = optics(np.pad(np.ones((1, 1)), rad), psf)
+    np.testing.assert_allclose(flat.ravel(), kc, atol=1e-12)
+
+
 def test_shading_is_lambertian_with_the_exact_normal(plate):
     """Rays onto the top face get ambient + albedo * n.l, and misses the background."""
     rig, pose, _ = plate.render()

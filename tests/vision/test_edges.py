@@ -1,15 +1,13 @@
 import numpy as np
 import pytest
-from scipy import ndimage
 
 from partinspect.vision.edges import (
     edge_error_correlation, edge_points, gaussian_derivative_kernels, gradient, gradient_noise_std)
-from tests.vision.synthetic import Disc, HalfPlane, render, render_clean
+from tests.vision.synthetic import Disc, HalfPlane, render, render_optics
 
 
 def _draws(shape, H, W, contrast=80.0, noise=2.0, seeds=range(4), margin=10):
-    clean = render_clean([(shape, 60.0 + contrast)], H, W, background=60.0)
-    blurred = ndimage.gaussian_filter(clean, 0.6, mode="nearest")
+    blurred = render_optics([(shape, 60.0 + contrast)], H, W, 60.0, 0.6)
     err, std = [], []
     for seed in seeds:
         ep = edge_points(render([], H, W, blur=0, noise=noise, seed=seed, clean=blurred), 1.0)
@@ -61,7 +59,7 @@ def test_circular_edge_accuracy_and_predicted_std():
 def test_edge_error_correlation_along_vertical_edge():
     err = []
     hp = HalfPlane(1.0, 0.0, -60.3)
-    clean = ndimage.gaussian_filter(render_clean([(hp, 160.0)], 120, 120, 60.0), 0.6, mode="nearest")
+    clean = render_optics([(hp, 160.0)], 120, 120, 60.0, 0.6)
     for seed in range(6):
         ep = edge_points(render([], 120, 120, blur=0, noise=2.0, seed=seed, clean=clean), 1.0, noise=2.0)
         o = np.argsort(ep.xy[:, 1])
@@ -96,12 +94,12 @@ def _ramp_step(angle, ramp):
     """A straight step (60 -> 160 grey) with a linear ramp of ``ramp`` grey/px on its dark side only."""
     A, B = np.cos(angle), np.sin(angle)
     hp = HalfPlane(A, B, -(A * 60.3 + B * 50.2))  # inside (dark side of the normal) is A x + B y + C < 0
-    clean = render_clean([(hp, 60.0)], 100, 120, background=160.0)
+    from partinspect.simulate.render import optics
+
     rows, cols = np.mgrid[0:100, 0:120].astype(float)
     d = hp.sdist(cols, rows)
     # The ramp rises towards the edge on the dark side: grey - ramp * |d| there (pixel-centre values).
-    clean = clean + ramp * np.minimum(d, 0.0)
-    img = ndimage.gaussian_filter(clean, 0.6, mode="nearest")
+    img = render_optics([(hp, 60.0)], 100, 120, 160.0, 0.6) + optics(ramp * np.minimum(d, 0.0), 0.6)
     ep = edge_points(img, 1.0, noise=2.0)
     ok = (ep.xy[:, 0] > 15) & (ep.xy[:, 0] < 105) & (ep.xy[:, 1] > 15) & (ep.xy[:, 1] < 85)
     ok &= np.abs(hp.distance(ep.xy)) < 1.0
@@ -127,8 +125,7 @@ def test_background_shift_predicts_the_displacement_by_a_one_sided_ramp(angle):
 
 def test_background_bound_of_pure_noise_is_small():
     # Image noise beside a clean edge: its expected share is removed from the bound.
-    clean = ndimage.gaussian_filter(render_clean([(HalfPlane(1.0, 0.0, -60.3), 160.0)], 100, 120, 60.0), 0.6,
-                                    mode="nearest")
+    clean = render_optics([(HalfPlane(1.0, 0.0, -60.3), 160.0)], 100, 120, 60.0, 0.6)
     b = []
     for seed in range(3):
         ep = edge_points(render([], 100, 120, blur=0, noise=2.0, seed=seed, clean=clean), 1.0, noise=2.0)
@@ -146,8 +143,7 @@ def test_curvature_bias_removed_by_deblurred(radius):
 
     c = (radius + 20.3, radius + 19.6)
     n = int(2 * radius + 40)
-    img = ndimage.gaussian_filter(render_clean([(Disc(*c, radius), 60.0)], n, n, background=200.0), 0.6,
-                                  mode="nearest")
+    img = render_optics([(Disc(*c, radius), 60.0)], n, n, 200.0, 0.6)
     ep = edge_points(img, 1.0, noise=2.0)
     r = np.hypot(ep.xy[:, 0] - c[0], ep.xy[:, 1] - c[1])
     ok = np.abs(r - radius) < 1.5

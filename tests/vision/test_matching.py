@@ -127,12 +127,10 @@ BRACKET_LEFT_OVER = {
     # out as two arcs whose union the merge refused (RMS 0.185 px against the limit
     # of 0.170 px; the displaced points where the rim turns towards the shadow);
     # with 16 x 16 it comes out whole.
-    # line-1, right image: found whole (42 points), but merged with a 9-point piece of
-    # another edge that lies on its extension about 130 px beyond its end. The union is one line
-    # within the noise (likelihood-ratio p = 0.21), which is what the merge tests; collinear
-    # pieces with a gap between are merged by design (an edge interrupted by an occlusion).
-    # The labeller then puts the union's mean distance from line-1 above 1 px.
-    ("right", "line-1"): "absent",
+    # line-1, right image: with the pixels blurred digitally (before the renderer's PSF came
+    # before the pixel's integration) it was merged with a 9-point piece of another edge on
+    # its extension 130 px beyond its end (the union one line within the noise, p = 0.21;
+    # collinear pieces with a gap are merged by design); it now comes out alone.
     # line-21, both images: two collinear lines of opposite polarity (the faces beside it
     # exchange brightness along it: the grey level rises across one piece and falls across
     # the other), 10 px apart. Their union is one line within the noise (chi-square

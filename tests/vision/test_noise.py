@@ -2,14 +2,14 @@ import numpy as np
 import pytest
 
 from partinspect.vision.noise import estimate_noise
-from tests.vision.synthetic import Disc, rectangle, render, render_clean
+from tests.vision.synthetic import Disc, rectangle, render, render_optics
 
 SHAPES = [(rectangle(150, 120, 180, 140, 0.3), 200.0), (Disc(150, 120, 40), 60.0), (Disc(80, 70, 15), 120.0)]
 
 
 @pytest.fixture(scope="module")
 def clean():
-    return render_clean(SHAPES, 240, 300)
+    return render_optics(SHAPES, 240, 300)
 
 
 @pytest.mark.parametrize("sigma", [0.5, 1.0, 2.0, 4.0, 8.0])

@@ -194,7 +194,7 @@ def test_a_rim_fading_against_its_lit_wall_does_not_bend_its_arc():
     uncertainties. Such points are now left out (matching.FADE_RATIO): the
     rim is then in two short pieces whose fits disagree and is not measured,
     and every hole rim measured is within its 99.9 % ellipsoid."""
-    from partinspect.simulate.render import blur, camera_in_part, render_radiance, sensor
+    from partinspect.simulate.render import camera_in_part, render_radiance, sensor
 
     p = S.part("plate")
     rig = p.rig(False, S.SIZE)
@@ -203,7 +203,7 @@ def test_a_rim_fading_against_its_lit_wall_does_not_bend_its_arc():
     rad = []
     for i in range(2):
         K, D, R, t = camera_in_part(rig, i, pose)
-        rad.append(blur(render_radiance(p.scene, K, D, R, t, rig.image_size, light)[0], 0.6))
+        rad.append(render_radiance(p.scene, K, D, R, t, rig.image_size, light, psf=0.6)[0])
     rng = np.random.default_rng(2000)
     for _ in range(6):  # bench_stereo's draw 3 of this light
         rng.standard_normal(rad[0].shape)
