@@ -475,6 +475,11 @@ def _errors(record):
     return None if model is None else model.draw
 
 
+def _outlier_z(record):
+    """The measured record's outlier threshold for its points' simulated errors, or None."""
+    return getattr(getattr(record, "point_errors", None), "outlier_z", None)
+
+
 def _held(record):
     """Draws with the record's Type B parts held per scene, or None (no error model).
 
@@ -509,7 +514,7 @@ def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_S
     held, points = _held(rec), _form_points(rec)
     if held is None or points is None:
         return None
-    return scene_spreads(c.type, *points, held, n_images, n_scenes, _rng(seed, c.id))
+    return scene_spreads(c.type, *points, held, n_images, n_scenes, _rng(seed, c.id), _outlier_z(rec))
 
 
 def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC,
@@ -539,7 +544,8 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         if points is None:
             return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
         fr = (straightness if t == "straightness" else circularity)(
-            *points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
+            *points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None,
+            outlier_z=_outlier_z(rec[0]))
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
     if t in ("distance", "angle"):
@@ -568,7 +574,8 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         details = {"fitted": value}
         points = _form_points(rec[0])
         if form_fn is not None and points is not None:
-            fr = form_fn(*points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None)
+            fr = form_fn(*points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None,
+            outlier_z=_outlier_z(rec[0]))
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
                            n_excluded=fr.n_excluded)

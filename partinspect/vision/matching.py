@@ -95,6 +95,7 @@ __all__ = [
     "REASONS",
     "MIN_EPIPOLAR_ANGLE",
     "MIN_AXIS_RATIO",
+    "chauvenet_z",
 ]
 
 MIN_EPIPOLAR_ANGLE = np.deg2rad(8.0)
@@ -383,14 +384,26 @@ for Gaussian errors (0.27 %)."""
 
 
 
-def _outlier_threshold(z):
-    """Chauvenet's threshold for |normalised residuals| ``z`` (see ``OUTLIER_ALPHA``)."""
+def chauvenet_z(n):
+    """Chauvenet's threshold for the |normalised residuals| of a feature of ``n`` points (see ``OUTLIER_ALPHA``).
+
+    The threshold before the scaling by the residuals' robust spread (3.9
+    for 500 points).
+
+    References
+    ----------
+    .. [1] Taylor, J. R. (1997). An Introduction to Error Analysis, 2nd
+           ed., section 6.2 (Chauvenet's criterion).
+    """
     from scipy.special import ndtri
 
-    n = len(z)
-    t = min(float(-ndtri(OUTLIER_ALPHA / (2.0 * n))), OUTLIER_Z_MAX)
+    return min(float(-ndtri(OUTLIER_ALPHA / (2.0 * max(int(n), 1)))), OUTLIER_Z_MAX)
+
+
+def _outlier_threshold(z):
+    """Chauvenet's threshold for |normalised residuals| ``z``, scaled by their robust spread (see ``OUTLIER_ALPHA``)."""
     spread = 1.4826 * float(np.median(z))  # MAD of z about zero
-    return t * max(1.0, spread)
+    return chauvenet_z(len(z)) * max(1.0, spread)
 
 
 _IDEAL_FIELDS = ("xy", "cov", "normal", "normal_std", "jacobian")

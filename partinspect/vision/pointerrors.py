@@ -109,6 +109,12 @@ class PointErrorModel:
     systematic : tuple of int
         Indices into ``components`` of the Type B ones: fixed for one scene
         and lighting, unknown (:meth:`draw_held`).
+    outlier_z : float or None
+        The image fits rejected edge points whose residual exceeded this
+        many of their standard uncertainties, so the points are those that
+        passed; a simulation of them leaves out the simulated points
+        beyond it (``outlier_z`` of :func:`partinspect.tolerances.form.straightness`).
+        None: no such test.
     """
 
     arc_length: np.ndarray
@@ -117,6 +123,7 @@ class PointErrorModel:
     common_jacobian: np.ndarray | None = None
     common_cov: np.ndarray | None = None
     systematic: tuple = ()
+    outlier_z: float | None = None
 
     def draw(self, rng, n_draws):
         """Simulated errors of the points, shape (n_draws, N, 3), mm."""
@@ -160,7 +167,7 @@ class PointErrorModel:
         return out
 
 
-def point_error_model(corr, normals, components, systematic=()):
+def point_error_model(corr, normals, components, systematic=(), outlier_z=None):
     """The :class:`PointErrorModel` of a feature's correspondences.
 
     Parameters
@@ -175,6 +182,8 @@ def point_error_model(corr, normals, components, systematic=()):
         left feature's points, with their correlation lengths, px.
     systematic : tuple of int
         Which of ``components`` are Type B (see :class:`PointErrorModel`).
+    outlier_z : float, optional
+        See :class:`PointErrorModel`.
     """
     idx = corr.left_index
     steps = np.linalg.norm(np.diff(corr.left, axis=0), axis=1)
@@ -183,7 +192,7 @@ def point_error_model(corr, normals, components, systematic=()):
     J = np.einsum("nij,nj->ni", corr.jac_left, n)
     comps = tuple((np.asarray(std, float)[idx] if np.ndim(std) else np.full(len(idx), float(std)), length)
                   for std, length in components)
-    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov, tuple(systematic))
+    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov, tuple(systematic), outlier_z)
 
 
 def short_scale_ratio(r, sigma, xy, length):

@@ -107,7 +107,8 @@ from partinspect.vision.forked import forked
 from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
                                       fit_circle_3d, fit_line_3d)
 from partinspect.vision.ideal import camera_matrices, to_ideal
-from partinspect.vision.matching import ImageFeature, arc_circle, epipolar_geometry, image_features, match_features
+from partinspect.vision.matching import (ImageFeature, arc_circle, chauvenet_z, epipolar_geometry, image_features,
+                                         match_features)
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
@@ -826,7 +827,9 @@ def _point_errors(fl, corr, view):
     if view.bias is not None:
         systematic = (len(comps),)
         comps.append((view.bias, view.bias_corr_length))
-    return point_error_model(corr, fl.ideal.normal, comps, systematic)
+    # The left feature's fit rejected its points beyond Chauvenet's threshold
+    # (matching._make_features): the form's simulation cuts its tails there too.
+    return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)))
 
 
 def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):

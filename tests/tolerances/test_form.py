@@ -160,7 +160,7 @@ def test_scene_spreads_hold_the_spread_of_scenes_with_strong_ends():
     lo, hi = form_interval(sp, held.u)
     c_lo, c_hi = chance_interval(images)
     assert lo < c_lo - 0.03 and hi > c_hi + 0.08
-    keep = form._kept(covs, ring, (np.array([0, 0, 300.0]), np.eye(3)[:, :2]))
+    keep, _ = form._kept(covs, ring, (np.array([0, 0, 300.0]), np.eye(3)[:, :2]))
     assert keep.sum() == held.n_points < n
     seen = np.array([form._circle_zones((ring + model.draw_held(rng, 1, images)[0])[:, keep]).std(ddof=1)
                      for _ in range(200)]) / held.u
@@ -175,3 +175,55 @@ def test_scene_spreads_rejects_what_it_cannot_spread():
         form.scene_spreads("diameter", ring, covs, None, 10)
     with pytest.raises(ValueError, match="2 images"):
         form.scene_spreads("circularity", ring, covs, None, 1)
+
+
+def _cut_zones(ideal, sd, directions, t, rng, n_sets, zone):
+    """Zones of point sets whose errors beyond ``t`` standard deviations were rejected, as the image fits reject them."""
+    out = []
+    for _ in range(n_sets):
+        e = rng.standard_normal(len(ideal))
+        ok = np.abs(e) <= t
+        out.append(zone(ideal[ok] + (e[ok] * sd[ok])[:, None] * directions[ok]))
+    return np.array(out)
+
+
+def test_the_zones_spread_is_that_of_points_that_passed_the_outlier_test():
+    # The fits reject points beyond Chauvenet's threshold (3.9 for 500
+    # points), so a measured zone never sees the Gaussian tails beyond it; a
+    # zone is a maximum, set by those tails. With the cut simulated, u is
+    # the spread of such zones; with the tails kept it was some 20 % larger.
+    from partinspect.vision.matching import chauvenet_z
+
+    n = 500
+    line = np.c_[np.linspace(0, 50, n), np.zeros(n), np.full(n, 300.0)]
+    sd = np.full(n, 0.01)
+    covs = np.zeros((n, 3, 3))
+    covs[:, 1, 1] = sd**2
+    t = chauvenet_z(n)
+    rng = np.random.default_rng(3)
+    seen = _cut_zones(line, sd, np.tile([0.0, 1.0, 0.0], (n, 1)), t, rng, 3000, form._line_zone).std(ddof=1)
+    P = line + np.c_[np.zeros(n), rng.normal(0, 0.01, n), np.zeros(n)]
+    cut = straightness(P, covs, np.random.default_rng(0), n_draws=2000, outlier_z=t)
+    full = straightness(P, covs, np.random.default_rng(0), n_draws=2000)
+    assert cut.u == pytest.approx(seen, rel=0.06)
+    assert full.u > 1.12 * seen
+    # The noise-only mean moves far less than the spread: the tails beyond t are rare.
+    assert cut.noise_bias == pytest.approx(full.noise_bias, rel=0.02)
+
+
+def test_a_rims_zone_is_cut_the_same_way():
+    from partinspect.vision.matching import chauvenet_z
+
+    n = 150
+    ring, th = _ring(n)
+    sd = np.full(n, 0.01)
+    covs = _radial_covs(th, sd)
+    t = chauvenet_z(n)
+    radial = np.c_[np.cos(th), np.sin(th), np.zeros(n)]
+    rng = np.random.default_rng(4)
+    seen = _cut_zones(ring, sd, radial, t, rng, 3000, form._circle_zone).std(ddof=1)
+    P = _draws(ring, th, sd, rng)
+    cut = circularity(P, covs, np.random.default_rng(0), n_draws=2000, outlier_z=t)
+    full = circularity(P, covs, np.random.default_rng(0), n_draws=2000)
+    assert cut.u == pytest.approx(seen, rel=0.06)
+    assert full.u > 1.08 * seen

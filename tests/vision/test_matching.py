@@ -284,3 +284,15 @@ def test_partial_arc_keeps_its_stretch_between_a_tangent_line_and_a_junction(see
             a = np.sort(np.arctan2(f.ideal.xy[:, 1] - c[1], f.ideal.xy[:, 0] - c[0]))
             extents.append(np.degrees(2 * np.pi - np.diff(np.r_[a, a[0] + 2 * np.pi]).max()))
     assert max(extents, default=0) >= 150, extents
+
+
+def test_chauvenet_threshold_grows_with_the_points_and_is_capped():
+    from scipy.stats import norm
+
+    from partinspect.vision.matching import OUTLIER_ALPHA, OUTLIER_Z_MAX, chauvenet_z
+
+    # A clean feature of n points loses one to the test with chance OUTLIER_ALPHA.
+    for n in (20, 150, 500, 900):
+        assert 2 * n * norm.sf(chauvenet_z(n)) == pytest.approx(OUTLIER_ALPHA, rel=1e-6)
+    assert chauvenet_z(150) == pytest.approx(3.59, abs=0.01) and chauvenet_z(500) == pytest.approx(3.89, abs=0.01)
+    assert chauvenet_z(10**9) == OUTLIER_Z_MAX

@@ -61,6 +61,18 @@ def test_result_structure_and_nothing_dropped():
             assert 0 < f.angle_end - f.angle_start <= 2 * np.pi + 1e-9
 
 
+def test_the_points_error_model_cuts_its_tails_where_the_left_fit_rejected_points():
+    # A form zone is set by its points' largest errors; the left fit let
+    # through only points within Chauvenet's threshold for its count, and
+    # the model the form's simulation draws from says so.
+    from partinspect.vision.matching import chauvenet_z
+
+    rig, res = measured(0)
+    for f in res.features:
+        n = len(res.left.features[f.left].ideal.xy)
+        assert f.point_errors.outlier_z == pytest.approx(chauvenet_z(n))
+
+
 def test_lines_accurate_and_honest():
     z = []
     for seed in SEEDS:
