@@ -3,8 +3,9 @@
 Nothing is rendered and nothing is measured: the CAD edges are projected
 into both cameras at the pose, turned into the edge points the detector
 would give (one per pixel of the dominant image axis, where the edge is in
-the image, unoccluded and shows contrast, with the standard uncertainty of
-:func:`partinspect.planning.edge_model.edge_point_std`), and those points,
+the image, unoccluded and shows contrast, with the standard uncertainty the
+detector states for such an edge and its scatter,
+:func:`partinspect.planning.edge_model.stated_std_pattern`), and those points,
 lying exactly on the true edges, go through the measurement chain's *own*
 code from the 2D fits on:
 
@@ -61,7 +62,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from partinspect.planning.edge_model import DetectorModel, detector_parameters, edge_point_std, profile_width
+from partinspect.planning.edge_model import (
+    DetectorModel, detector_parameters, profile_width, stated_std_pattern)
 
 __all__ = [
     "EPIPOLAR_MIN_ANGLE",
@@ -496,7 +498,8 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
         contrast = np.abs(g[len(uv):] - g[: len(uv)])
     else:
         contrast = np.zeros(0)
-    std = edge_point_std(contrast, model.pixel_noise, model.blur, model.sigma)
+    std0, pattern = stated_std_pattern(uv, normal, contrast, model)
+    std = std0 * pattern
     bound = bstd = None
     if kind != "line" and len(uv):
         from partinspect.vision.stereo import smoothed_background

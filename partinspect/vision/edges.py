@@ -289,6 +289,73 @@ def _subpixel_offset(a, b, c):
     return off, J
 
 
+def _magnitude_covariance(n_ax, sigma):
+    """Noise covariance of the three magnitudes per unit noise variance, (s0, s1, s2) per point, shape (N, 3).
+
+    The magnitude noise is n . delta_g, and for lag k along the axis the
+    gradient components along / across the axis have covariances
+    along[k] / across[k]; S = [[s0, s1, s2], [s1, s0, s1], [s2, s1, s0]].
+    """
+    n_ax2 = n_ax * n_ax
+    along, across = _lag_covariances(sigma, 2)
+    return np.stack([n_ax2 * along[k] + (1.0 - n_ax2) * across[k] for k in range(3)], axis=1)
+
+
+def _normal_variance(J, n_ax, sigma):
+    """Variance across the edge of a point found with offset Jacobian J, per unit image-noise variance, px^2."""
+    s = _magnitude_covariance(n_ax, sigma)
+    var_off = (J[:, 0] ** 2 + J[:, 1] ** 2 + J[:, 2] ** 2) * s[:, 0] \
+        + 2.0 * (J[:, 0] * J[:, 1] + J[:, 1] * J[:, 2]) * s[:, 1] \
+        + 2.0 * J[:, 0] * J[:, 2] * s[:, 2]
+    return var_off * n_ax * n_ax
+
+
+def stated_std_spread(magnitudes, n_ax, sigma, noise):
+    """Relative standard deviation, from image noise, of the uncertainty a point is given.
+
+    :func:`edge_points` states each point's standard uncertainty from the
+    three gradient magnitudes it read, which carry noise: the stated value
+    scatters from point to point, and a point whose noise flattened its
+    profile both moves further and is stated more uncertain. First-order
+    propagation of the magnitudes' noise into the logarithm of the stated
+    standard uncertainty.
+
+    Parameters
+    ----------
+    magnitudes : ndarray, shape (N, 3)
+        Noise-free gradient magnitudes at the three samples (-1, 0, +1
+        along the axis), grey levels / px.
+    n_ax : ndarray, shape (N,)
+        |n . e|, the normal's component along that axis.
+    sigma, noise : float
+        Edge filter scale, px; image noise, grey levels.
+
+    Returns
+    -------
+    cv : ndarray, shape (N,)
+        Standard deviation of log(stated standard uncertainty).
+    std : ndarray, shape (N,)
+        The stated standard uncertainty for noise-free magnitudes, px.
+    """
+    m = np.asarray(magnitudes, float)
+    n_ax = np.asarray(n_ax, float)
+
+    def log_std(mm):
+        _, J = _subpixel_offset(*mm.T)
+        return 0.5 * np.log(_normal_variance(J, n_ax, sigma))
+
+    f0 = log_std(m)
+    g = np.empty_like(m)
+    for j in range(3):
+        mm = m.copy()
+        step = 1e-5 * m[:, j]
+        mm[:, j] += step
+        g[:, j] = (log_std(mm) - f0) / step
+    s = _magnitude_covariance(n_ax, sigma)
+    var = sum(g[:, i] * g[:, j] * s[:, abs(i - j)] for i in range(3) for j in range(3))
+    return noise * np.sqrt(var), noise * np.exp(f0)
+
+
 def _bilinear(img, x, y):
     """Bilinear samples of ``img`` at (x, y), px (OpenCV pixel frame, clamped at the borders)."""
     H, W = img.shape
@@ -486,17 +553,7 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
     ey = 1.0 - ex
     xy = np.column_stack([cols + off * ex, rows + off * ey])
 
-    # Noise covariance of the three magnitudes (per unit noise variance):
-    # the magnitude noise is n . delta_g, and for lag k along the axis the
-    # gradient components along / across the axis have covariances
-    # along[k] / across[k].
-    along, across = _lag_covariances(sigma, 2)
-    s = np.stack([n_ax2 * along[k] + (1.0 - n_ax2) * across[k] for k in range(3)], axis=1)
-    # S = [[s0, s1, s2], [s1, s0, s1], [s2, s1, s0]]
-    var_off = (J[:, 0] ** 2 + J[:, 1] ** 2 + J[:, 2] ** 2) * s[:, 0] \
-        + 2.0 * (J[:, 0] * J[:, 1] + J[:, 1] * J[:, 2]) * s[:, 1] \
-        + 2.0 * J[:, 0] * J[:, 2] * s[:, 2]
-    var_n = noise * noise * var_off * n_ax2
+    var_n = noise * noise * _normal_variance(J, n_ax, sigma)
     t = np.column_stack([-nrm[:, 1], nrm[:, 0]])
     cov = var_n[:, None, None] * nrm[:, :, None] * nrm[:, None, :] \
         + ALONG_EDGE_VARIANCE * t[:, :, None] * t[:, None, :]

@@ -64,3 +64,27 @@ def test_one_point_per_pixel_of_the_dominant_axis():
     tp = detector_parameters(t, uv)
     assert len(tp) == int(100 * np.cos(ang))
     assert np.allclose(np.diff(tp), 1 / np.cos(ang), rtol=0.01)
+
+
+@pytest.mark.parametrize("deg", [3.0, 20.0, 44.0])
+def test_stated_std_pattern_states_what_the_detector_states(deg):
+    """Per point, the uncertainty the detector gives a noise-free edge at the
+    point's direction and sub-pixel phase, and a scatter factor of the size
+    the noisy magnitudes give it."""
+    from partinspect.planning.edge_model import stated_std_pattern
+    from tests.vision.synthetic import HalfPlane, render_optics
+
+    th = np.deg2rad(deg)
+    hp = HalfPlane(-np.sin(th), np.cos(th), -(-np.sin(th) * 60.3 + np.cos(th) * 60.2))
+    model = DetectorModel()
+    e = edge_points(render_optics([(hp, 140.0)], 120, 120, 60.0, model.blur), 1.0, noise=model.pixel_noise)
+    inner = (np.abs(e.xy - 60).max(axis=1) < 40) & (np.abs(hp.distance(e.xy)) < 1)
+    xy, n = e.xy[inner], e.normal[inner]
+    order = np.argsort(xy @ np.array([np.cos(th), np.sin(th)]))
+    std, pattern = stated_std_pattern(xy[order], n[order], np.full(len(xy), 80.0), model)
+    np.testing.assert_allclose(std, e.normal_std[inner][order], rtol=0.03)
+    # Near 45 deg the detector states more than the direction-free formula.
+    ratio = np.median(std) / edge_point_std(80.0, model.pixel_noise, model.blur, model.sigma)
+    assert (ratio > 1.025) if deg == 44.0 else (0.97 < ratio < 1.02), ratio
+    assert 0.02 < np.std(np.log(pattern)) < 0.08
+    np.testing.assert_array_equal(pattern, stated_std_pattern(xy[order], n[order], np.full(len(xy), 80.0), model)[1])

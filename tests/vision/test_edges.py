@@ -207,3 +207,37 @@ def test_corrected_points_noise_as_the_3d_views_state_it():
         model.append((e.normal_std[m] ** 2 + smooth ** 2 + (BACKGROUND_CORRECTION * rest) ** 2)[mid])
     ratio = np.concatenate(got).std() / np.sqrt(np.concatenate(model).mean())
     assert 0.92 < ratio < 1.08, ratio
+
+
+def test_stated_std_spread_predicts_how_the_stated_uncertainties_scatter():
+    """The uncertainty each point is given comes from its own noisy magnitudes:
+    its log scatters over noise draws as stated_std_spread says."""
+    from partinspect.vision.edges import _subpixel_offset, stated_std_spread
+
+    th = np.radians(30.0)
+    hp = HalfPlane(-np.sin(th), np.cos(th), -(-np.sin(th) * 60.3 + np.cos(th) * 60.2))
+    clean = render_optics([(hp, 140.0)], 120, 120, 60.0, 0.6)
+    ref = edge_points(clean, 1.0, noise=2.0)
+    inner = (np.abs(ref.xy - 60).max(axis=1) < 40) & (np.abs(hp.distance(ref.xy)) < 1)
+    key = {tuple(p): i for i, p in enumerate(ref.pixel[inner])}
+    logs = [[] for _ in key]
+    for seed in range(40):
+        e = edge_points(render([], 120, 120, noise=2.0, seed=seed, quantise=False, clean=clean), 1.0, noise=2.0)
+        for p, s in zip(e.pixel, e.normal_std):
+            if tuple(p) in key:
+                logs[key[tuple(p)]].append(np.log(s))
+    measured = np.sqrt(np.mean([np.var(v, ddof=1) for v in logs if len(v) > 30]))
+    # Noise-free magnitudes at each reference point's three samples.
+    g = ref.take(inner)
+    horiz = np.abs(g.normal[:, 0]) >= np.abs(g.normal[:, 1])
+    n_ax = np.where(horiz, np.abs(g.normal[:, 0]), np.abs(g.normal[:, 1]))
+    from partinspect.vision.edges import gradient
+
+    mag = np.hypot(*gradient(clean, 1.0)).astype(float)
+    r, c = g.pixel.T
+    dr, dc = np.where(horiz, 0, 1), np.where(horiz, 1, 0)
+    m = np.stack([mag[r - dr, c - dc], mag[r, c], mag[r + dr, c + dc]], axis=1)
+    cv, std = stated_std_spread(m, n_ax, 1.0, 2.0)
+    np.testing.assert_allclose(std, g.normal_std, rtol=1e-3)  # the noise-free statement itself
+    assert 0.85 < measured / np.sqrt(np.mean(cv ** 2)) < 1.15, (measured, np.sqrt(np.mean(cv ** 2)))
+    assert 0.02 < measured < 0.1
