@@ -252,13 +252,12 @@ def stated_std_pattern(uv, normal, contrast, model, rng=None):
 
     The detector states each point's standard uncertainty from the noisy
     gradient magnitudes it read (:func:`partinspect.vision.edges.stated_std_spread`),
-    so the stated values scatter from point to point, by 2-10 % for the
-    sample parts' edges, and the chain's form Monte Carlo draws its errors
-    with them: a zone (a maximum) is set by the points stated most
-    uncertain, and the chain's form u comes out 5-11 % above the one from
-    a uniform uncertainty (the bracket's line-2, -3 and -7 in three noise
-    draws), which is what the spread of its form values over noise draws
-    shows. The prediction draws one such pattern so that its form u is
+    so the stated values scatter from point to point (by 5-7 % on the
+    bracket's line-2, -3 and -7), and the chain's form Monte Carlo draws
+    its errors with them: a zone (a maximum) is set by the points stated
+    most uncertain, and the chain's form u comes out 5-12 % above the one
+    from a uniform uncertainty (those lines in three noise draws), which is
+    what the spread of its form values over noise draws shows. The prediction draws one such pattern so that its form u is
     the one the chain will state.
 
     Parameters

@@ -480,6 +480,11 @@ def _outlier_z(record):
     return getattr(getattr(record, "point_errors", None), "outlier_z", None)
 
 
+def _simulation(record, one_scene):
+    """Keyword arguments of a form function that simulate the record's points as the chain made them."""
+    return {"errors": _errors(record), "held": _held(record) if one_scene else None, "outlier_z": _outlier_z(record)}
+
+
 def _held(record):
     """Draws with the record's Type B parts held per scene, or None (no error model).
 
@@ -544,8 +549,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         if points is None:
             return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
         fr = (straightness if t == "straightness" else circularity)(
-            *points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None,
-            outlier_z=_outlier_z(rec[0]))
+            *points, rng, **_simulation(rec[0], one_scene))
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
     if t in ("distance", "angle"):
@@ -574,8 +578,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         details = {"fitted": value}
         points = _form_points(rec[0])
         if form_fn is not None and points is not None:
-            fr = form_fn(*points, rng, errors=_errors(rec[0]), held=_held(rec[0]) if one_scene else None,
-            outlier_z=_outlier_z(rec[0]))
+            fr = form_fn(*points, rng, **_simulation(rec[0], one_scene))
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
                            n_excluded=fr.n_excluded)

@@ -268,11 +268,12 @@ def _subpixel_offset(a, b, c):
     exact for a Gaussian profile, and the magnitude of a blurred edge read
     along any line across it is close to one. On noise-free straight edges
     formed as in a camera (a Gaussian PSF of 0.6-1.0 px, then integration
-    over the pixel's square; sigma 1) its systematic error is below 0.003
-    px at every direction (below 0.0002 px from 20 deg to the axes on),
-    against up to 0.03 px for the plain parabola through (a, b, c); it
-    grows as the PSF narrows (0.015 px near the axes for a PSF of 0.4 px,
-    where the pixel's square makes the profile flat-topped).
+    over the pixel's square; sigma 1) its systematic error is below 0.0022
+    px RMS at every direction and below 0.0004 px at 20 deg or more from
+    the image axes, against up to 0.022 px RMS for the plain parabola
+    through (a, b, c); it grows as the PSF narrows (0.010 px RMS near the
+    axes for a PSF of 0.4 px, where the pixel's square makes the profile
+    flat-topped).
     ``benchmarks/bench_subpixel.py`` measures it.
 
     Returns
