@@ -468,7 +468,7 @@ def render_radiance(
     if not adaptive:
         rows, cols = np.divmod(np.arange(w * h), w)
         img = _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail).reshape(h, w)
-        return _with_psf(img, detail), {"rays": w * h * len(offsets), "supersampled": w * h}
+        return _with_psf(img, detail, offsets), {"rays": w * h * len(offsets), "supersampled": w * h}
     corner, cgrey = _cast_grid(rs, K, D, R, t, np.arange(w + 1) - 0.5, np.arange(h + 1) - 0.5, light, shading, True)
     centre, img = _cast_grid(rs, K, D, R, t, np.arange(w, dtype=float), np.arange(h, dtype=float), light, shading, True)
     uniform = np.ones((h, w), bool)
@@ -487,14 +487,25 @@ def render_radiance(
     rows, cols = np.nonzero(~uniform)
     img[rows, cols] = _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail)
     rays = (w + 1) * (h + 1) + w * h + len(rows) * len(offsets)
-    return _with_psf(img, detail), {"rays": rays, "supersampled": len(rows)}
+    return _with_psf(img, detail, offsets), {"rays": rays, "supersampled": len(rows)}
 
 
-def _with_psf(img, detail):
+def _with_psf(img, detail, offsets):
     if detail is None:
         return img
+    import cv2
+
     image, psf = detail
-    return (optics(img, psf) + image).astype(np.float32)
+    # Uniform pixels spread with the rays' own kernel, not psf_kernel's exact
+    # one, so that a pixel spreads alike whether it was supersampled or not.
+    # With the exact kernel here, the rays' quadrature error (up to 0.0018
+    # of a weight) was left wherever supersampled and uniform pixels meet: a
+    # pattern of up to 0.6 grey along every edge's band that moved the edges
+    # of rendered parts by up to 0.005 px against full supersampling.
+    _, kc, rad = _ray_weights(offsets, psf)
+    spread = cv2.filter2D(np.asarray(img, np.float64), -1, kc.reshape(2 * rad + 1, 2 * rad + 1),
+                          borderType=cv2.BORDER_REPLICATE)
+    return (spread + image).astype(np.float32)
 
 
 def _box_psf(d, psf):
@@ -547,7 +558,11 @@ def _ray_weights(offsets, psf):
         Ray s to neighbour (dy, dx), divided by the m rays, row-major in
         (dy, dx) from -R to R.
     kc : ndarray, shape ((2R+1)^2,)
-        The same for a pixel of uniform grey (:func:`psf_kernel`, outer product).
+        The same for a pixel of uniform grey: the sum of ``weights`` over the
+        rays. It is :func:`psf_kernel`'s outer product to the lattice's
+        quadrature error (up to 0.0018 of a weight at 16 x 16 rays, halving
+        as n doubles), and point-symmetric (so is the lattice), so it sums
+        to 1 and moves nothing.
     R : int
     """
     R = _psf_radius(psf)
@@ -555,8 +570,7 @@ def _ray_weights(offsets, psf):
     wx = _box_psf(k[None, :] - offsets[:, :1], psf)  # (m, 2R+1)
     wy = _box_psf(k[None, :] - offsets[:, 1:], psf)
     weights = (wy[:, :, None] * wx[:, None, :]).reshape(len(offsets), -1) / len(offsets)
-    kern = psf_kernel(psf)
-    return weights, np.outer(kern, kern).ravel(), R
+    return weights, weights.sum(axis=0), R
 
 
 def optics(image, psf):
@@ -574,8 +588,8 @@ def optics(image, psf):
     ndarray of float64, shape (H, W)
         Each pixel's integral of the blurred radiance (:func:`psf_kernel`
         along both axes), borders replicated. Exact where the radiance is
-        uniform within each pixel; :func:`render_radiance` adds, for the
-        pixels it supersamples, what their rays spread beyond that.
+        uniform within each pixel (:func:`render_radiance` spreads its
+        pixels with its rays' own kernel instead, see :func:`_ray_weights`).
     """
     import cv2
 
