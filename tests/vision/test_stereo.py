@@ -353,3 +353,84 @@ def test_an_exception_in_either_images_chain_is_raised_as_it_is(parallel, side):
     L, R = (white, R) if side == "left" else (L, white)
     with pytest.raises(ValueError, match="no unsaturated pixels"):
         measure_stereo(L, R, rig, parallel=parallel)
+
+
+def _tip_arc(bump):
+    """A flat ellipse's arc round its tip (ideal px), with 13 points just past the tip off the rim.
+
+    Their offsets are those the stress run's ftc_09 rim showed there (up
+    to 1.16 px, rising over 6 points and falling over 7), scaled by
+    ``bump``.
+
+    Returns the right ImageFeature, its View and the true ellipse's parameters.
+    """
+    from partinspect.vision.fit3d import View
+    from partinspect.vision.fitting import fit_ellipse
+    from partinspect.vision.ideal import IdealPoints
+    from partinspect.vision.matching import ImageFeature
+
+    true = np.array([100.0, 80.0, 30.0, 6.5, 0.46])
+    xc, yc, a, b, th = true
+    c, s = np.cos(th), np.sin(th)
+    # One point per pixel of arc length from t = -2.4 to 2.4 rad, the tip at t = 0.
+    tt = np.linspace(-2.4, 2.4, 4000)
+    loc = np.c_[a * np.cos(tt), b * np.sin(tt)]
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(loc, axis=0), axis=1))]
+    t = np.interp(np.arange(0.0, arc[-1], 1.0), arc, tt)
+    xy = np.c_[xc + a * np.cos(t) * c - b * np.sin(t) * s, yc + a * np.cos(t) * s + b * np.sin(t) * c]
+    nl = np.c_[np.cos(t) / a, np.sin(t) / b]  # outward normal in the ellipse's frame
+    n = np.c_[nl[:, 0] * c - nl[:, 1] * s, nl[:, 0] * s + nl[:, 1] * c]
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    profile = np.array([0.05, 0.09, 0.14, 0.19, 0.30, 0.53, 1.16, 0.78, 0.52, 0.35, 0.28, 0.22, 0.17])
+    first = int(np.argmin(np.abs(t)))
+    off = np.zeros(len(t))
+    off[first:first + len(profile)] = bump * profile
+    xy = xy + off[:, None] * n
+    sigma = np.full(len(t), 0.015)
+    bias = 0.03 + 0.10 * np.exp(-(t / 0.15) ** 2)  # the Type B bound grows where the rim fades
+    along = np.c_[-n[:, 1], n[:, 0]]
+    cov = (sigma ** 2)[:, None, None] * n[:, :, None] * n[:, None, :] + 1e-4 * along[:, :, None] * along[:, None, :]
+    ideal = IdealPoints(xy, cov, n, sigma, np.repeat(np.eye(2)[None], len(t), axis=0))
+    fit = fit_ellipse(xy, cov, corr_length=1.0, start=true)
+    f = ImageFeature("arc", (0,), np.arange(len(t)), xy, cov, ideal, fit, 1.2, 1)
+    view = View(xy, sigma, np.eye(3, 4), 1.0, bias, 10.0)
+    return f, view, true
+
+
+def _max_distance(params, true):
+    """Largest distance (px) of the ellipse ``params`` from the ellipse ``true`` along the latter."""
+    def pts(p, t):
+        xc, yc, a, b, th = p
+        return np.c_[xc + a * np.cos(t) * np.cos(th) - b * np.sin(t) * np.sin(th),
+                     yc + a * np.cos(t) * np.sin(th) + b * np.sin(t) * np.cos(th)]
+    ref, other = pts(true, np.linspace(-2.4, 2.4, 500)), pts(params, np.linspace(0, 2 * np.pi, 20000))
+    return float(np.sqrt(((ref[:, None] - other[None]) ** 2).sum(-1).min(1)).max())
+
+
+def test_the_partner_ellipse_leaves_out_points_beyond_their_whole_uncertainty():
+    from partinspect.vision.stereo import as_fitted
+
+    f, view, true = _tip_arc(1.0)
+    bent = _max_distance(f.fit.params, true)
+    got = as_fitted(f, view, 1.0)
+    # The image fit takes the tip in and bends (as the stress run's ftc_09
+    # rim did, by tenths of a pixel); the partner ellipse judged by the
+    # points' whole uncertainty leaves the worst out and stays on the rim.
+    assert bent > 0.25
+    assert _max_distance(got.fit.params, true) < 0.1
+    assert len(got.fit.residuals) < len(f.ideal.xy)
+    assert len(got.ideal.xy) == len(f.ideal.xy)  # the edge is still seen there
+
+
+def test_the_partner_ellipse_of_a_clean_arc_keeps_every_point():
+    from partinspect.vision.fitting import fit_ellipse
+    from partinspect.vision.stereo import as_fitted
+
+    f, view, true = _tip_arc(0.0)
+    rng = np.random.default_rng(3)
+    xy = view.xy + rng.normal(0.0, 0.015, len(view.xy))[:, None] * f.ideal.normal
+    view = replace(view, xy=xy)
+    got = as_fitted(f, view, 1.0)
+    plain = fit_ellipse(xy, f.ideal.cov, corr_length=1.0, start=f.fit.params)
+    assert len(got.fit.residuals) == len(xy)
+    assert np.array_equal(got.fit.params, plain.params)
