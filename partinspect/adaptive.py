@@ -18,10 +18,18 @@ filter's scale (px); ``k_low``, ``k_high``, the hysteresis thresholds in
 units of the gradient noise; ``min_points``, the fewest edge points a
 feature needs to be matched.
 
-A round is better than another when it measures more of the CAD edges
-that the cameras see at the registered pose, then when its registration
-fits better (smaller weighted RMS). Uncertainties need no adjustment for
-the choice: each round's covariances describe that round's own data.
+A round is better than another when it aligns the CAD model where the
+other does not, then when it measures more of the CAD edges that the
+cameras see at the registered pose, then, measuring as many, when it mends
+a situation the other meets and meets no new one (:func:`better`). Between
+rounds that tie, the earlier is kept: the defaults are the parameters the
+chain's error model is checked at (``bench_stereo``, ``bench_plan``),
+while lower hysteresis thresholds admit weaker edge points, such as where
+a rim's contrast fades, whose stated uncertainty is checked less. A
+smaller registration misfit alone does not make a round better: it moves
+with which features the pose fit leaves out, not with how well the
+features are measured. Uncertainties need no adjustment for the choice:
+each round's covariances describe that round's own data.
 
 References
 ----------
@@ -40,7 +48,7 @@ import numpy as np
 
 from partinspect.errors import InputError
 
-__all__ = ["DEFAULTS", "MAX_ROUNDS", "Situation", "SITUATIONS", "State", "Round", "state_of", "met_situations", "measure_adaptively"]
+__all__ = ["DEFAULTS", "MAX_ROUNDS", "Situation", "SITUATIONS", "State", "Round", "better", "state_of", "met_situations", "measure_adaptively"]
 
 DEFAULTS = {"sigma": 1.0, "k_low": 4.0, "k_high": 8.0, "min_points": 12}
 MAX_ROUNDS = 4
@@ -202,8 +210,27 @@ class Round:
     situations: list = field(default_factory=list)
 
     def score(self):
+        """(aligned, minus the CAD edges in view left unmeasured): larger is better."""
         measured = -len(self.state.missing) if self.registration is not None else -10**6
-        return (self.registration is not None, measured, -self.state.weighted_rms if np.isfinite(self.state.weighted_rms) else -np.inf)
+        return (self.registration is not None, measured)
+
+
+def better(new, best):
+    """Whether round ``new`` replaces round ``best`` (module notes).
+
+    Parameters
+    ----------
+    new, best : Round
+
+    Returns
+    -------
+    bool
+        True when ``new`` scores higher (:meth:`Round.score`), or scores as
+        high and the situations it meets are a strict subset of ``best``'s.
+    """
+    if new.score() != best.score():
+        return new.score() > best.score()
+    return {s.name for s, _ in new.situations} < {s.name for s, _ in best.situations}
 
 
 def state_of(params, stereo, registration, visibility, error=None):
@@ -287,7 +314,7 @@ def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, pr
         r = Round(dict(params), state_of(params, stereo, reg, vis, error), stereo, reg, vis)
         r.situations = met_situations(r.state, graph)
         rounds.append(r)
-        kept = best is None or r.score() > best.score()
+        kept = best is None or better(r, best)
         if kept:
             best = r
         entry = {"round": n + 1, "params": dict(params),

@@ -67,6 +67,45 @@ def test_actions_are_tried_in_order_and_the_better_round_is_kept():
     assert advice == []
 
 
+def test_a_rerun_that_only_fits_the_pose_better_does_not_replace_the_defaults():
+    # Both rounds miss line-2; the re-runs' registrations fit better (a different feature left
+    # out of the pose fit, say), which says nothing of how well the edges were measured.
+    vis = {"line-1": SEEN, "line-2": SEEN}
+
+    def run(params):
+        wrms = 1.0 if params == DEFAULTS else 0.8
+        return _stereo(), _registration(["line-1"], wrms), vis
+
+    best, log, advice = measure_adaptively(run)
+    assert len(log) == 4 and best.params == DEFAULTS
+    assert [e["kept"] for e in log] == [True, False, False, False]
+    assert [a["situation"] for a in advice] == ["expected edges missing"]
+
+
+def test_a_rerun_that_mends_a_situation_and_measures_as_much_is_kept():
+    vis = {"line-1": SEEN}
+
+    def run(params):
+        ratio = 2.0 if params["sigma"] == 1.0 else 1.1
+        return _stereo(noise_ratio=ratio), _registration(["line-1"], 1.2 if ratio > 1.5 else 1.3), vis
+
+    best, log, advice = measure_adaptively(run)
+    assert best.params["sigma"] == 1.5 and [e["kept"] for e in log] == [True, True]
+    assert advice == []
+
+
+def test_a_rerun_that_mends_one_situation_but_meets_another_is_not_kept():
+    vis = {"line-1": SEEN}
+
+    def run(params):
+        if params["sigma"] == 1.0:
+            return _stereo(noise_ratio=2.0), _registration(["line-1"]), vis
+        return _stereo(strength=1.0), _registration(["line-1"]), vis  # mended, but its edges now faint
+
+    best, log, advice = measure_adaptively(run)
+    assert best.params == DEFAULTS and [e["kept"] for e in log] == [True, False]
+
+
 def test_a_persisting_situation_gives_its_advice():
     def run(params):
         return _stereo(noise_ratio=2.0), _registration(["line-1"]), {"line-1": SEEN}
