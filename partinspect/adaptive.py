@@ -18,7 +18,18 @@ filter's scale (px); ``k_low``, ``k_high``, the hysteresis thresholds in
 units of the gradient noise; ``min_points``, the fewest edge points a
 feature needs to be matched.
 
-A round is better than another when it aligns the CAD model where the
+A re-run for missing edges (a situation that ``recovers``) seldom measures
+everything the round before it did: lower thresholds or a wider filter
+find a faint edge and lose or split another (at four times the nominal
+noise, the bracket's wall hole found with the filter at 1.5 px, two lines
+lost). So what it adds is taken, not the whole round: the features it
+measured that the best round left missing join the best round's, the
+pose is fitted again to all of them, and that merged result is the
+candidate. Other situations' re-runs (a wider filter for inconsistent
+residuals or low contrast) are meant to measure everything anew and are
+candidates whole.
+
+A candidate is better than the best round when it aligns the CAD model where the
 other does not, then when it measures more of the CAD edges that the
 cameras see at the registered pose, then, measuring as many, when it mends
 a situation the other meets and meets no new one (:func:`better`). Between
@@ -48,7 +59,7 @@ import numpy as np
 
 from partinspect.errors import InputError
 
-__all__ = ["DEFAULTS", "MAX_ROUNDS", "Situation", "SITUATIONS", "State", "Round", "better", "state_of", "met_situations", "measure_adaptively"]
+__all__ = ["DEFAULTS", "MAX_ROUNDS", "Situation", "SITUATIONS", "State", "Round", "better", "measured_ids", "state_of", "met_situations", "measure_adaptively"]
 
 DEFAULTS = {"sigma": 1.0, "k_low": 4.0, "k_high": 8.0, "min_points": 12}
 MAX_ROUNDS = 4
@@ -109,6 +120,11 @@ class Situation:
         parameters of the best round so far.
     advice : str
         The acquisition change to make when it persists.
+    recovers : bool
+        Its actions re-run the chain for what the best round lacks: the
+        features a re-run measures that the best round left missing are
+        added to the best round's (``merge`` of :func:`measure_adaptively`),
+        whose other features stay as they were measured.
     """
 
     name: str
@@ -116,6 +132,7 @@ class Situation:
     condition: object
     actions: tuple
     advice: str
+    recovers: bool = False
 
 
 def _registration_failed(s):
@@ -178,6 +195,7 @@ SITUATIONS = (
         ({"k_low": 3.0, "k_high": 6.0}, {"min_points": 8}, {"sigma": 1.5}),
         "these edges show too little contrast or too few points: change the lighting so their two faces differ, "
         "or turn the part so they are seen more squarely (inspect plan names a better pose)",
+        recovers=True,
     ),
     Situation(
         "residuals inconsistent with the noise", "fits", _residuals_inconsistent,
@@ -233,6 +251,11 @@ def better(new, best):
     return {s.name for s, _ in new.situations} < {s.name for s, _ in best.situations}
 
 
+def measured_ids(registration):
+    """The CAD feature ids a registration assigned measured features to (a set)."""
+    return set(registration.assignment["circle"].values()) | set(registration.assignment["line"].values())
+
+
 def state_of(params, stereo, registration, visibility, error=None):
     """The :class:`State` of one round."""
     from partinspect.vision.edges import gradient_noise_std
@@ -249,7 +272,7 @@ def state_of(params, stereo, registration, visibility, error=None):
     missing = ()
     wrms, dof = float("nan"), 0
     if registration is not None:
-        measured = set(registration.assignment["circle"].values()) | set(registration.assignment["line"].values())
+        measured = measured_ids(registration)
         noise = max(float(stereo.left.noise), float(stereo.right.noise))
         missing = tuple(fid for fid, v in visibility.items() if v.shows_edge(noise) and fid not in measured)
         wrms, dof = float(registration.weighted_rms), int(registration.dof)
@@ -267,7 +290,7 @@ def met_situations(state, graph=SITUATIONS):
     return out
 
 
-def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, progress=None):
+def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, progress=None, merge=None):
     """Run the chain, and re-run it with adjusted parameters while a situation holds.
 
     Parameters
@@ -279,13 +302,21 @@ def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, pr
     graph : sequence of Situation
     max_rounds : int
     progress : callable, optional
+    merge : callable, optional
+        ``merge(best, new, ids) -> (stereo, registration, visibility)``:
+        ``best``'s result with the features of round ``new`` measured as
+        the CAD ids ``ids`` added, the pose fitted again (module notes);
+        may raise :class:`~partinspect.errors.InputError`. Without it a
+        re-run for missing edges is a candidate whole.
 
     Returns
     -------
     best : Round
-        The best round (see the module notes).
+        The best round (see the module notes); a merged one has the
+        parameters of the re-run that added to it.
     log : list of dict
-        Every round: its parameters, the situations met, the action taken
+        Every round: its parameters, the situations met, the action taken,
+        the features it added to the best round's (``added``, when merged)
         and whether it was kept.
     advice : list of dict
         Situations that still hold in the best round, with their advice.
@@ -300,7 +331,7 @@ def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, pr
     params = dict(DEFAULTS)
     rounds, log, first_error = [], [], None
     best = None
-    action_taken = None
+    action_taken, recovering = None, False
     for n in range(max_rounds):
         try:
             stereo, reg, vis = run_round(params)
@@ -313,6 +344,17 @@ def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, pr
                 raise
         r = Round(dict(params), state_of(params, stereo, reg, vis, error), stereo, reg, vis)
         r.situations = met_situations(r.state, graph)
+        added = []
+        if recovering and merge is not None and reg is not None and best.registration is not None:
+            added = [fid for fid in best.state.missing if fid in measured_ids(reg)]
+            if added:
+                try:
+                    stereo, reg, vis = merge(best, r, added)
+                except InputError:
+                    added = []
+                else:
+                    r = Round(dict(params), state_of(params, stereo, reg, vis), stereo, reg, vis)
+                    r.situations = met_situations(r.state, graph)
         rounds.append(r)
         kept = best is None or better(r, best)
         if kept:
@@ -321,6 +363,8 @@ def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, pr
                  "situations": [{"name": s.name, "step": s.step, "detail": why} for s, why in r.situations],
                  "missing": list(r.state.missing),
                  "kept": kept}
+        if added:
+            entry["added"] = list(added)
         if action_taken is not None:
             entry["after"] = action_taken
         log.append(entry)
@@ -335,6 +379,7 @@ def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, pr
             break
         sit, change = nxt
         params = {**best.params, **change}
+        recovering = sit.recovers
         action_taken = {"situation": sit.name, "change": dict(change)}
         say(f"adaptive: {sit.name}; re-running with {', '.join(f'{k}={v:g}' for k, v in change.items())}")
     if best.registration is None:

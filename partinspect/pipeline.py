@@ -205,7 +205,13 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         progress("checking which edges the cameras see")
         return stereo, registration, visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
 
-    best, adaptive_log, advice = measure_adaptively(run_round, progress=progress)
+    def merge(base, new, ids):
+        stereo = merged_stereo(base.stereo, new.stereo, new.registration, ids)
+        progress(f"registering {len(stereo.features)} features, {len(ids)} of them from the re-run")
+        registration = _register(stereo, inv, resolved, images, hint)
+        return stereo, registration, visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
+
+    best, adaptive_log, advice = measure_adaptively(run_round, progress=progress, merge=merge)
     stereo, registration, seen = best.stereo, best.registration, best.visibility
     uncertainty_info = {"method": "first-order propagation (JCGM 100)", "coverage_factor": 2.0}
     if uncertainty == "montecarlo":
@@ -277,6 +283,29 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     out_dir = prepare_output_dir(out)
     write_reports(out_dir, report, figure_data(left, right, calib, inv, stereo, registration, features))
     return InspectionResult(verdict, report, out_dir)
+
+
+def merged_stereo(base, new, registration, ids):
+    """``base`` (a StereoResult) with the features of ``new`` that ``registration`` assigned to ``ids`` added.
+
+    The added 3D features' image features are appended to ``base``'s of
+    each image (their indices renumbered); each carries its own edge data
+    and filter scale (:class:`~partinspect.vision.stereo.EdgeFeature`), so
+    the result is measured, drawn and Monte Carlo sampled as one. Edges,
+    segments, matching and failures stay ``base``'s: what the report says
+    of unmatched image features is said of the base round's.
+    """
+    from dataclasses import replace
+
+    picks = []
+    for kind, is_kind in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
+        measured = [f for f in new.features if is_kind(f)]
+        picks += [measured[i] for i, cid in sorted(registration.assignment[kind].items()) if cid in ids]
+    nl, nr = len(base.left.features), len(base.right.features)
+    left = replace(base.left, features=list(base.left.features) + [new.left.features[f.left] for f in picks])
+    right = replace(base.right, features=list(base.right.features) + [new.right.features[f.right] for f in picks])
+    added = tuple(replace(f, left=nl + j, right=nr + j) for j, f in enumerate(picks))
+    return replace(base, left=left, right=right, features=tuple(base.features) + added)
 
 
 def _edges_found(inv):

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from partinspect.adaptive import DEFAULTS, SITUATIONS, measure_adaptively, met_situations, state_of
+from partinspect.adaptive import DEFAULTS, SITUATIONS, measure_adaptively, measured_ids, met_situations, state_of
 from partinspect.cad.visibility import FeatureVisibility
 from partinspect.errors import InputError
 
@@ -104,6 +104,39 @@ def test_a_rerun_that_mends_one_situation_but_meets_another_is_not_kept():
 
     best, log, advice = measure_adaptively(run)
     assert best.params == DEFAULTS and [e["kept"] for e in log] == [True, False]
+
+
+def _trading_rounds():
+    """A first round missing line-3; the re-run with lower thresholds finds it but loses line-2."""
+    vis = {"line-1": SEEN, "line-2": SEEN, "line-3": SEEN}
+    calls = []
+
+    def run(params):
+        calls.append(dict(params))
+        found = ["line-1", "line-2"] if params == DEFAULTS else ["line-1", "line-3"]
+        return _stereo(), _registration(found), vis
+
+    def merge(best, new, ids):
+        merged = [fid for fid in ("line-1", "line-2", "line-3") if fid in measured_ids(best.registration) or fid in ids]
+        return _stereo(), _registration(merged), vis
+
+    return run, merge, calls
+
+
+def test_a_rerun_for_missing_edges_adds_what_it_found_to_the_best_round():
+    run, merge, calls = _trading_rounds()
+    best, log, advice = measure_adaptively(run, merge=merge)
+    assert len(calls) == 2  # nothing missing after the merge: no further action
+    assert measured_ids(best.registration) == {"line-1", "line-2", "line-3"} and best.state.missing == ()
+    assert log[1]["kept"] and log[1]["added"] == ["line-3"] and log[1]["missing"] == []
+    assert advice == []
+
+
+def test_without_a_merge_a_rerun_that_trades_one_edge_for_another_is_not_kept():
+    run, _, calls = _trading_rounds()
+    best, log, advice = measure_adaptively(run)
+    assert best.params == DEFAULTS and not any(e["kept"] for e in log[1:]) and "added" not in log[1]
+    assert [a["situation"] for a in advice] == ["expected edges missing"]
 
 
 def test_a_persisting_situation_gives_its_advice():

@@ -168,3 +168,32 @@ def test_pose_hint_gives_the_searched_pose_and_a_wrong_hint_is_refused(deviated,
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "align" in err, err
     assert not (tmp_path / "w").exists()
+
+
+def test_a_feature_merged_from_another_adaptive_round_keeps_its_own_edge_data():
+    """A re-run's feature joins the first round's result (adaptive processing) with its own edge
+    normals and filter scale, so its Monte Carlo draws the noise it was measured with."""
+    from types import SimpleNamespace
+
+    from partinspect.pipeline import merged_stereo
+    from partinspect.vision.montecarlo import monte_carlo
+    from partinspect.vision.stereo import measure_stereo
+    from tests.vision import stereo_scenes as S
+    from tests.vision.test_montecarlo import _ratio
+
+    rig, _, L, R = S.render("plate", 2.0, 0)
+    base, new = measure_stereo(L, R, rig), measure_stereo(L, R, rig, sigma=1.5)
+    circles = [f for f in new.features if f.kind != "line"]
+    i = max(range(len(circles)), key=lambda k: len(circles[k].correspondences))
+    reg = SimpleNamespace(assignment={"circle": {i: "circle-x"}, "line": {}})
+    merged = merged_stereo(base, new, reg, {"circle-x"})
+
+    assert len(merged.features) == len(base.features) + 1 and merged.features[:-1] == base.features
+    f = merged.features[-1]
+    fl, fr = merged.left.features[f.left], merged.right.features[f.right]
+    assert fl is new.left.features[circles[i].left] and fr is new.right.features[circles[i].right]
+    assert fl.corr_length == 1.5 and base.left.features[0].corr_length == 1.0
+    assert merged.left.edges is base.left.edges  # the base round's edges, indexed by its own features only
+    (m,) = monte_carlo(merged, rig, [len(merged.features) - 1], draws=150, seed=1, calibration=False)
+    ratio = _ratio(m, merged)[[0, 1, 2, 6]]
+    assert np.all(np.abs(ratio - 1) < 0.15), ratio

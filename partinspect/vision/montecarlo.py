@@ -133,17 +133,19 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
     list of MonteCarloFeature
     """
     rng = np.random.default_rng(seed)
-    corr_length = result.left.edges.sigma
     cal_params = calibration_parameters(calib) if calibration else []
     out = []
     for k in range(len(result.features)) if features is None else features:
         f3 = result.features[k]
         fl, fr = result.left.features[f3.left], result.right.features[f3.right]
+        # A feature carries the filter scale it was found with (the adaptive
+        # rounds may have found it with another than its neighbours).
+        corr_length = getattr(fl, "corr_length", None) or result.left.edges.sigma
         kind = "line" if f3.kind == "line" else "arc"
         ref = f3.params
         noises, corrections = [], []
         for f, edges in ((fl, result.left.edges), (fr, result.right.edges)):
-            normal = edges.normal[f.index]
+            normal = f.edge_normal if getattr(f, "edge_normal", None) is not None else edges.normal[f.index]
             s = np.sqrt(np.einsum("ni,nij,nj->n", normal, f.cov_uv, normal))
             z = correlated_normal_errors(f.uv, corr_length, draws, rng) if image_noise else np.zeros((draws, len(f.uv)))
             noises.append((z * s)[:, :, None] * normal[None])

@@ -331,6 +331,15 @@ class EdgeFeature(ImageFeature):
 
     Attributes
     ----------
+    edge_normal : ndarray, shape (N, 2) or None
+        ``EdgePoints.normal`` of each point (distorted px), and
+    corr_length : float or None
+        the edge filter's scale its points were found with, px (the
+        correlation length of their noise along the edge): what a Monte
+        Carlo of the feature draws with, kept on the feature so that one
+        measured in another adaptive round than its neighbours
+        (:mod:`partinspect.adaptive`) carries its own.
+
     Arcs only (None for lines), averaged along the edge over
     ``BACKGROUND_SMOOTHING`` px:
 
@@ -345,6 +354,8 @@ class EdgeFeature(ImageFeature):
         image noise, px.
     """
 
+    edge_normal: np.ndarray | None = None
+    corr_length: float | None = None
     background_offset: np.ndarray | None = None
     background_bound: np.ndarray | None = None
     background_std: np.ndarray | None = None
@@ -469,9 +480,10 @@ def coupled_noise(xy, sigma, background_std, corr_length, length=BACKGROUND_SMOO
 
 def _with_edge_data(feature, edges):
     base = {f.name: getattr(feature, f.name) for f in fields(ImageFeature)}
+    i = feature.index
+    base.update(edge_normal=edges.normal[i], corr_length=float(edges.sigma))
     if edges.background_shift is None or feature.kind != "arc":
         return EdgeFeature(**base)
-    i = feature.index
     std = background_shift_std(edges, i)
     values = np.c_[edges.background_shift[i, None] * edges.normal[i], edges.background_bound[i]]
     mean, mean_std = smoothed_background(edges.xy[i], values, std, edges.sigma)

@@ -273,13 +273,16 @@ def test_adaptive_rounds_and_advice_are_shown_escaped():
              "situations": [{"name": "expected edges missing", "step": "matching", "detail": "<script>x</script> line-5"}]},
             {"round": 2, "params": {"sigma": 1.5}, "kept": False, "situations": [],
              "after": {"situation": "expected edges missing", "change": {"sigma": 1.5}}},
+            {"round": 3, "params": {"sigma": 1.5, "min_points": 8}, "kept": True, "situations": [],
+             "added": ["circle-3<i>"], "after": {"situation": "expected edges missing", "change": {"min_points": 8}}},
         ],
         "advice": [{"situation": "expected edges missing", "step": "matching", "detail": "line-5 missing",
                     "advice": "turn the part"}],
     }
     html = render_html(report)
-    assert 'id="adaptive"' in html and "2 rounds" in html and "turn the part" in html
+    assert 'id="adaptive"' in html and "3 rounds" in html and "turn the part" in html
     assert "<script>x</script>" not in html and "&lt;script&gt;x&lt;/script&gt;" in html
+    assert "added: circle-3&lt;i&gt;" in html  # what a re-run added to the kept features
 
 
 def test_features_left_out_of_the_alignment_are_named_escaped_and_valid():
