@@ -830,8 +830,10 @@ def as_fitted(f, view, corr_length):
     circularity read 0.198 mm for a true 0, 10 u off; with the worst point
     left out 0.056 mm, 3.5 u. The weights stay the image noise's, so the
     fit's covariance stays the random part the point errors' model
-    (:mod:`partinspect.vision.pointerrors`) draws; on the sample parts no
-    point is left out and nothing changes.
+    (:mod:`partinspect.vision.pointerrors`) draws. On the sample parts'
+    half-size renders (``bench_plan``, 50 draws) no point is left out; on
+    the full-size plate example the 12 mm hole's circularity moves from
+    0.0064 to 0.0062 mm (U 0.011 mm).
     """
     if f.kind != "arc":
         return f
