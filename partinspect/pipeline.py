@@ -458,8 +458,29 @@ def _image_feature_reasons(stereo):
     return out
 
 
-def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons):
-    """Why a CAD feature has no measurement: out of view, or what became of its edge in the images."""
+COVERED_FRACTION = 0.5
+"""An image feature that runs along at least this fraction of a CAD edge's
+image (within 2 px) but mostly elsewhere found that edge as part of a
+longer one: collinear edges of the part (a step's two lips, a slot's two
+sides in line) merge into one line in the images."""
+
+
+def _image_owners(stereo, registration):
+    """(side, image feature index) -> the CAD id its 3D feature was registered as."""
+    owners = {}
+    for kind, is_kind in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
+        measured = [f for f in stereo.features if is_kind(f)]
+        for i, cid in registration.assignment[kind].items():
+            owners[("left", measured[i].left)] = owners[("right", measured[i].right)] = cid
+    return owners
+
+
+def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owners=None):
+    """Why a CAD feature has no measurement: out of view, or what became of its edge in the images.
+
+    ``owners``: :func:`_image_owners`, to name the edge a longer image
+    feature that also covers this one was measured as.
+    """
     if not vis.in_view:
         return "not visible: " + vis.reason()
     noise = max(float(stereo.left.noise), float(stereo.right.noise))
@@ -482,7 +503,23 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons):
         near = [i for i, f in enumerate(feats) if len(f.uv) and np.median(tree.query(f.uv)[0]) < 2.0]
         reasons = [unmatched_reasons[(side, i)] for i in near if (side, i) in unmatched_reasons]
         if not near:
-            found.append(f"no edge found along it in the {side} image")
+            ok = np.isfinite(uv).all(axis=1)
+            lo, hi = (uv[ok].min(axis=0) - 2.0, uv[ok].max(axis=0) + 2.0) if ok.any() else (np.inf, -np.inf)
+            longer = [i for i, f in enumerate(feats) if len(f.uv) and np.all(f.uv.max(axis=0) >= lo)
+                      and np.all(f.uv.min(axis=0) <= hi)
+                      and np.mean(cKDTree(f.uv).query(uv[ok])[0] < 2.0) >= COVERED_FRACTION]
+            if longer:
+                i = longer[0]
+                owner = (owners or {}).get((side, i))
+                if owner:
+                    fate = f"measured as {owner}"
+                elif (side, i) in unmatched_reasons:
+                    fate = f"not matched: {unmatched_reasons[(side, i)]}"
+                else:
+                    fate = "which matched no single CAD edge"
+                found.append(f"{side} image: found as part of a longer edge that runs on past it, {fate}")
+            else:
+                found.append(f"no edge found along it in the {side} image")
         elif reasons:
             found.append(f"{side} image: {reasons[0]}")
     return "; ".join(found) if found else "seen in both images but not matched to the CAD model"
@@ -499,6 +536,7 @@ def feature_entries(inv, stereo, registration, seen, decisions, calib):
             if rank[d.decision] >= rank.get(worst.get(fid), -1):
                 worst[fid] = d.decision
     reasons = _image_feature_reasons(stereo)
+    owners = _image_owners(stereo, registration)
     out = []
     for f in inv.features:
         entry = {"id": f.id, "kind": f.kind, "nominal": nominal_geometry(f), "visibility": {
@@ -506,7 +544,8 @@ def feature_entries(inv, stereo, registration, seen, decisions, calib):
         p = parts.get(f.id)
         if p is None:
             entry.update(measured=None, status="not measured",
-                         reason=_unmeasured_reason(f, seen[f.id], calib, registration.part_to_camera, stereo, reasons))
+                         reason=_unmeasured_reason(f, seen[f.id], calib, registration.part_to_camera, stereo, reasons,
+                                                       owners))
         else:
             f3 = index[p.kind][p.index]
             if p.kind == "circle":

@@ -197,3 +197,37 @@ def test_a_feature_merged_from_another_adaptive_round_keeps_its_own_edge_data():
     (m,) = monte_carlo(merged, rig, [len(merged.features) - 1], draws=150, seed=1, calibration=False)
     ratio = _ratio(m, merged)[[0, 1, 2, 6]]
     assert np.all(np.abs(ratio - 1) < 0.15), ratio
+
+
+def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
+    """Two collinear CAD edges (a step's two lips in line) merge into one line in the images; the one
+    not measured is not reported as 'no edge found' but as part of the longer edge, with its fate."""
+    from types import SimpleNamespace
+
+    from partinspect.cad.visibility import FeatureVisibility
+    from partinspect.pipeline import _unmeasured_reason
+    from partinspect.simulate.rig import default_rig
+    from partinspect.vision.calibration import project_points
+
+    rig = default_rig((1224, 1024))
+    pose = np.eye(4)
+    edge = SimpleNamespace(kind="line", start=(-10.0, 5.0, 400.0), end=(0.0, 5.0, 400.0))
+    longer = np.c_[np.linspace(-10.0, 25.0, 300), np.full(300, 5.0), np.full(300, 400.0)]
+    elsewhere = longer + [0.0, 20.0, 0.0]
+
+    def image(points):
+        return [SimpleNamespace(uv=project_points(points, K, D, R, T)) for K, D, R, T in
+                ((rig.K1, rig.D1, np.eye(3), np.zeros(3)), (rig.K2, rig.D2, rig.R, rig.T))]
+
+    def reason(points, owners, unmatched=None):
+        left, right = image(points)
+        stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]),
+                                 right=SimpleNamespace(noise=2.0, features=[right]))
+        vis = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (60.0, 55.0))
+        return _unmeasured_reason(edge, vis, rig, pose, stereo, unmatched or {}, owners)
+
+    owned = {("left", 0): "line-7", ("right", 0): "line-7"}
+    assert reason(longer, owned) == ("left image: found as part of a longer edge that runs on past it, measured as line-7; "
+                                     "right image: found as part of a longer edge that runs on past it, measured as line-7")
+    assert "not matched: two or more partners" in reason(longer, {}, {("left", 0): "two or more partners fit"})
+    assert reason(elsewhere, owned) == "no edge found along it in the left image; no edge found along it in the right image"
