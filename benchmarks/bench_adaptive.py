@@ -124,13 +124,13 @@ def run_part(name, seeds, size, base):
                 tv = true_value(c, truth)
                 lo, up = c.get("lower_limit"), c.get("upper_limit")
                 within = tv is not None and (lo is None or lo <= tv) and (up is None or tv <= up)
-                if tv is not None and ((c["decision"] == "fail" and within) or (c["decision"] == "pass" and not within)):
+                false = tv is not None and (c["decision"], within) in (("fail", True), ("pass", False))
+                if false:
                     print(f"  false {c['decision']}: {c['id']} measured {c['measured']:.4f} +- "
                           f"{c['expanded_uncertainty']:.4f}, true {tv:.4f}, limits {lo} / {up}", flush=True)
                 chars[c["id"]] = {"U": c["expanded_uncertainty"],
                                   "inside": None if tv is None else abs(c["measured"] - tv) <= c["expanded_uncertainty"],
-                                  "false": tv is not None and ((c["decision"] == "fail" and within)
-                                                               or (c["decision"] == "pass" and not within))}
+                                  "false": false}
             if variant == "nominal":
                 # Edges in view whose grey step is below the detection limit even here (the plate's
                 # line-11, 2 grey levels), which a nominal run may still measure from a few points

@@ -346,7 +346,8 @@ def measure_adaptively(run_round, *, graph=SITUATIONS, max_rounds=MAX_ROUNDS, pr
         r.situations = met_situations(r.state, graph)
         added = []
         if recovering and merge is not None and reg is not None and best.registration is not None:
-            added = [fid for fid in best.state.missing if fid in measured_ids(reg)]
+            found = measured_ids(reg)
+            added = [fid for fid in best.state.missing if fid in found]
             if added:
                 try:
                     stereo, reg, vis = merge(best, r, added)

@@ -297,10 +297,8 @@ def merged_stereo(base, new, registration, ids):
     """
     from dataclasses import replace
 
-    picks = []
-    for kind, is_kind in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
-        measured = [f for f in new.features if is_kind(f)]
-        picks += [measured[i] for i, cid in sorted(registration.assignment[kind].items()) if cid in ids]
+    picks = [registration.measured_feature(kind, i) for kind in ("circle", "line")
+             for i, cid in sorted(registration.assignment[kind].items()) if cid in ids]
     nl, nr = len(base.left.features), len(base.right.features)
     left = replace(base.left, features=list(base.left.features) + [new.left.features[f.left] for f in picks])
     right = replace(base.right, features=list(base.right.features) + [new.right.features[f.right] for f in picks])
@@ -468,10 +466,10 @@ sides in line) merge into one line in the images."""
 def _image_owners(stereo, registration):
     """(side, image feature index) -> the CAD id its 3D feature was registered as."""
     owners = {}
-    for kind, is_kind in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
-        measured = [f for f in stereo.features if is_kind(f)]
+    for kind in ("circle", "line"):
         for i, cid in registration.assignment[kind].items():
-            owners[("left", measured[i].left)] = owners[("right", measured[i].right)] = cid
+            f = registration.measured_feature(kind, i)
+            owners[("left", f.left)] = owners[("right", f.right)] = cid
     return owners
 
 

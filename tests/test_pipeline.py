@@ -185,7 +185,7 @@ def test_a_feature_merged_from_another_adaptive_round_keeps_its_own_edge_data():
     base, new = measure_stereo(L, R, rig), measure_stereo(L, R, rig, sigma=1.5)
     circles = [f for f in new.features if f.kind != "line"]
     i = max(range(len(circles)), key=lambda k: len(circles[k].correspondences))
-    reg = SimpleNamespace(assignment={"circle": {i: "circle-x"}, "line": {}})
+    reg = SimpleNamespace(assignment={"circle": {i: "circle-x"}, "line": {}}, measured_feature=lambda kind, k: circles[k])
     merged = merged_stereo(base, new, reg, {"circle-x"})
 
     assert len(merged.features) == len(base.features) + 1 and merged.features[:-1] == base.features

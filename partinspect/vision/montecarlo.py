@@ -140,12 +140,12 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
         fl, fr = result.left.features[f3.left], result.right.features[f3.right]
         # A feature carries the filter scale it was found with (the adaptive
         # rounds may have found it with another than its neighbours).
-        corr_length = getattr(fl, "corr_length", None) or result.left.edges.sigma
+        corr_length = fl.corr_length
         kind = "line" if f3.kind == "line" else "arc"
         ref = f3.params
         noises, corrections = [], []
-        for f, edges in ((fl, result.left.edges), (fr, result.right.edges)):
-            normal = f.edge_normal if getattr(f, "edge_normal", None) is not None else edges.normal[f.index]
+        for f in (fl, fr):
+            normal = f.edge_normal
             s = np.sqrt(np.einsum("ni,nij,nj->n", normal, f.cov_uv, normal))
             z = correlated_normal_errors(f.uv, corr_length, draws, rng) if image_noise else np.zeros((draws, len(f.uv)))
             noises.append((z * s)[:, :, None] * normal[None])
