@@ -190,6 +190,20 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     from partinspect.cad.visibility import visibility
     from partinspect.vision.stereo import measure_stereo
 
+    def settle(stereo, registration):
+        progress("checking which edges the cameras see")
+        seen = visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
+        more, found = guided_stereo(stereo, registration, seen, inv, calib)
+        if not found:
+            return stereo, registration, seen
+        progress(f"measuring {len(found)} edge(s) on their stretches of longer image lines")
+        try:
+            # The pose is known: no new search (it is the expensive part).
+            again = _register(more, inv, resolved, images, registration.part_to_camera)
+        except InputError:
+            return stereo, registration, seen
+        return more, again, visibility(shape, inv, calib, again.part_to_camera, images=(left, right))
+
     def run_round(params):
         stereo = measure_stereo(
             left, right, calib, sigma=params["sigma"], progress=progress,
@@ -202,14 +216,12 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         except InputError as e:
             e.stereo = stereo
             raise
-        progress("checking which edges the cameras see")
-        return stereo, registration, visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
+        return settle(stereo, registration)
 
     def merge(base, new, ids):
         stereo = merged_stereo(base.stereo, new.stereo, new.registration, ids)
         progress(f"registering {len(stereo.features)} features, {len(ids)} of them from the re-run")
-        registration = _register(stereo, inv, resolved, images, hint)
-        return stereo, registration, visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
+        return settle(stereo, _register(stereo, inv, resolved, images, hint))
 
     best, adaptive_log, advice = measure_adaptively(run_round, progress=progress, merge=merge)
     stereo, registration, seen = best.stereo, best.registration, best.visibility
@@ -304,6 +316,59 @@ def merged_stereo(base, new, registration, ids):
     right = replace(base.right, features=list(base.right.features) + [new.right.features[f.right] for f in picks])
     added = tuple(replace(f, left=nl + j, right=nr + j) for j, f in enumerate(picks))
     return replace(base, left=left, right=right, features=tuple(base.features) + added)
+
+
+def edge_images(feature, part_to_camera, calib):
+    """A CAD line's image in the left and the right camera under a pose.
+
+    Returns
+    -------
+    tuple of two ndarray, shape (M, 2)
+        Distorted pixels, sampled from ``feature.start`` to ``feature.end``
+        about half a pixel apart (NaN where a point is behind a camera).
+    """
+    from partinspect.vision.calibration import project_points
+
+    R, t = part_to_camera[:3, :3], part_to_camera[:3, 3]
+    ends = np.array([feature.start, feature.end], float) @ R.T + t
+    out = []
+    for K, D, Rc, tc in ((calib.K1, calib.D1, np.eye(3), np.zeros(3)), (calib.K2, calib.D2, calib.R, calib.T)):
+        uv = project_points(ends, K, D, Rc, tc)
+        length = float(np.hypot(*(uv[1] - uv[0]))) if np.isfinite(uv).all() else 0.0
+        s = np.linspace(0.0, 1.0, int(min(2 * length, 20000)) + 2)
+        out.append(project_points(ends[0] + s[:, None] * (ends[1] - ends[0]), K, D, Rc, tc))
+    return tuple(out)
+
+
+def guided_stereo(stereo, registration, seen, inv, calib):
+    """``stereo`` with the unmeasured line edges in view measured on their stretches of longer image lines.
+
+    Collinear edges of a part merge into one line in each image, whose 3D
+    line then matches no single CAD edge; under the registered pose each
+    edge's image picks its own stretch
+    (:func:`partinspect.vision.guided.guided_lines`). ``seen``: the
+    visibility of each CAD feature (:func:`partinspect.cad.visibility.visibility`),
+    or None to look for every unmeasured line edge (a hidden one finds
+    nothing: a stretch needs points along its image in both images, which
+    pin it to one 3D line, and the epipolar test refuses the one case where
+    they do not).
+
+    Returns
+    -------
+    stereo : StereoResult
+    found : dict of str to int
+        CAD id -> index of the 3D line measured for it (empty: ``stereo``
+        returned unchanged).
+    """
+    from partinspect.vision.guided import guided_lines
+
+    done = {cid for kind in ("circle", "line") for cid in registration.assignment[kind].values()}
+    todo = [f for f in inv.features if f.kind == "line" and f.id not in done and (seen is None or seen[f.id].in_view)]
+    if not todo:
+        return stereo, {}
+    expected = {f.id: edge_images(f, registration.part_to_camera, calib) for f in todo}
+    more, found, _ = guided_lines(stereo, calib, expected, set(_image_owners(stereo, registration)))
+    return more, found
 
 
 def _edges_found(inv):
@@ -554,6 +619,9 @@ def feature_entries(inv, stereo, registration, seen, decisions, calib):
                      "covariance": _mat(p.covariance)}
             m.update(n_points=int(len(f3.correspondences)), datum=bool(p.datum), measured_as=f3.kind)
             entry.update(measured=m, status=worst.get(f.id, "measured"))
+            if f3.guided is not None:
+                entry["reason"] = ("measured on its own stretch of a longer straight edge in the images (edges in "
+                                   "line with it merge into one there), the stretch its CAD edge's image covers")
         out.append(entry)
     return out
 

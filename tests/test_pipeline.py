@@ -231,3 +231,53 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
                                      "right image: found as part of a longer edge that runs on past it, measured as line-7")
     assert "not matched: two or more partners" in reason(longer, {}, {("left", 0): "two or more partners fit"})
     assert reason(elsewhere, owned) == "no edge found along it in the left image; no edge found along it in the right image"
+
+
+@pytest.fixture(scope="module")
+def slotted(tmp_path_factory):
+    """A block with a slot across its top: each long top edge is two collinear CAD edges, one line in the images."""
+    import cadquery as cq
+
+    from partinspect.simulate.folder import render_to_folder
+
+    d = tmp_path_factory.mktemp("slotted")
+    block = cq.Workplane("XY").box(70, 40, 12, centered=(True, True, False))
+    block = block.cut(cq.Workplane("XY").box(12, 50, 5, centered=(True, True, False)).translate((0, 0, 7)))
+    # Two holes of different sizes: the part must not look the same turned about its axis.
+    block = block.faces(">Z").workplane().pushPoints([(-22, 8)]).hole(8)
+    block = block.faces(">Z").workplane().pushPoints([(22, -6)]).hole(5)
+    cq.exporters.export(block, str(d / "part.step"))
+    render_to_folder(d / "part.step", d, image_size=(1224, 1024))
+    return d
+
+
+def test_collinear_edges_either_side_of_a_slot_are_each_measured(slotted, tmp_path):
+    """The four lips of the slot merge pairwise into two image lines that match no single CAD edge;
+    under the registered pose each is measured on its own stretch of them, lies on its nominal
+    line and within its ends, and says how it was measured."""
+    out = tmp_path / "out"
+    code = main([str(slotted / "part.step"), str(slotted / "images"), "-o", str(out), "-q"])
+    report = json.loads((out / "report.json").read_text())
+    assert code in (0, 3)
+    jsonschema.validate(report, SCHEMA)
+    truth = json.loads((slotted / "truth.json").read_text())
+
+    def lip(f):
+        if f["kind"] != "line":
+            return False
+        a, b = np.array(f["nominal"]["start"]), np.array(f["nominal"]["end"])
+        return a[2] == b[2] == 12 and a[1] == b[1] and abs(a[1]) == 20
+
+    lips = [f for f in report["features"] if lip(f)]
+    assert len(lips) == 4
+    for f in lips:
+        assert f["measured"] is not None and "own stretch of a longer straight edge" in f["reason"], f
+        a, b = np.array(f["nominal"]["start"]), np.array(f["nominal"]["end"])
+        d = (b - a) / np.linalg.norm(b - a)
+        for p in (np.array(f["measured"]["start"]), np.array(f["measured"]["end"])):
+            v = p - a
+            assert np.linalg.norm(v - (v @ d) * d) < 0.05  # on the nominal line
+            assert -0.05 < v @ d < np.linalg.norm(b - a) + 0.05  # not across the slot
+    seen = {f["id"] for f in truth["features"] if f["visible_both"]}
+    assert all(f["measured"] is not None for f in report["features"] if f["id"] in seen)
+    assert not any("runs on past it" in (f.get("reason") or "") for f in report["features"])

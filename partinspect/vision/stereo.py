@@ -241,6 +241,11 @@ class Feature3D:
         Draws of the errors of ``points`` with their correlations along the
         edge (:mod:`partinspect.vision.pointerrors`), for the form's Monte
         Carlo.
+    guided : str or None
+        The edge (a CAD id) this line was measured as by
+        :func:`partinspect.vision.guided.guided_lines`: a stretch of longer
+        image lines chosen by the edge's image under the registered pose,
+        not a pair the matching made. None for the matching's features.
     """
 
     kind: str
@@ -265,6 +270,7 @@ class Feature3D:
     correspondences: object
     param_cov_systematic: np.ndarray | None = None
     point_errors: object = None
+    guided: str | None = None
 
     @property
     def points(self):
@@ -964,28 +970,51 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     matching = match_features(L.features, R.features, geo, **(match_options or {}))
     say(f"3D fits of {len(matching.matches)} matched features")
     feats, failed = [], []
-    corr_length = L.edges.sigma
-    with_cal = bool(calibration_parameters(calib))
     for m in matching.matches:
-        fl, fr = L.features[m.left], R.features[m.right]
-        corr = correspond(fl, fr, geo)
-        if len(corr) < 6:
-            failed.append((m, f"only {len(corr)} corresponding points"))
-            continue
-        try:
-            views = feature_views(fl, fr, corr_length, calib)
-            fit = fit_feature(fl, fr, views, corr.points, geo)
-            if fl.kind == "arc":
-                delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
-                if p < MISMATCH_P:
-                    failed.append((m, f"the two images' arcs are not one circle: its fit's chi-square exceeds "
-                                      f"the two ellipses' by {delta:.0f} (p = {p:.1e})"))
-                    continue
-            corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            failed.append((m, f"3D fit failed: {exc}"))
-            continue
-        cal_cov = calibration_covariance(fit, fl.kind, fl, fr, corr_length, calib) if with_cal else \
-            np.zeros((6, 6) if fl.kind == "line" else (7, 7))
-        feats.append(_make_feature3d(m, fl, fr, fit, corr, cal_cov, geo, views[0]))
-    return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), with_cal)
+        f3, why = measure_pair_feature(m, L.features[m.left], R.features[m.right], calib, geo, L.edges.sigma)
+        if f3 is None:
+            failed.append((m, why))
+        else:
+            feats.append(f3)
+    return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), bool(calibration_parameters(calib)))
+
+
+def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
+    """The 3D feature of one matched pair of image features.
+
+    Parameters
+    ----------
+    match : Match
+        Its ``left`` and ``right`` are the indices the feature records.
+    fl, fr : EdgeFeature
+        The left and right image features.
+    calib : StereoCalibration
+    geo : EpipolarGeometry
+    corr_length : float
+        Correlation length of the edge points' noise along the edge, px
+        (the edge filter's scale).
+
+    Returns
+    -------
+    feature : Feature3D or None
+    reason : str or None
+        Why there is no feature: too few corresponding points, two arcs
+        that are not one circle, or a failed fit.
+    """
+    corr = correspond(fl, fr, geo)
+    if len(corr) < 6:
+        return None, f"only {len(corr)} corresponding points"
+    try:
+        views = feature_views(fl, fr, corr_length, calib)
+        fit = fit_feature(fl, fr, views, corr.points, geo)
+        if fl.kind == "arc":
+            delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
+            if p < MISMATCH_P:
+                return None, (f"the two images' arcs are not one circle: its fit's chi-square exceeds "
+                              f"the two ellipses' by {delta:.0f} (p = {p:.1e})")
+        corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        return None, f"3D fit failed: {exc}"
+    cal_cov = calibration_covariance(fit, fl.kind, fl, fr, corr_length, calib) if calibration_parameters(calib) \
+        else np.zeros((6, 6) if fl.kind == "line" else (7, 7))
+    return _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, views[0]), None

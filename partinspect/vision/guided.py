@@ -1,0 +1,230 @@
+"""Lines measured where the CAD model puts them: a CAD edge's stretch of a longer image line.
+
+Collinear edges of a part (the two lips of a slot in line, the edges of a
+step on either side of a gap) are one straight line in each image. The
+segmentation cannot see where one ends and the next begins, and the merge
+of collinear pieces (:func:`partinspect.vision.matching.image_features`)
+joins them across the gap, as it must join the pieces of one broken edge.
+Their 3D line then spans both CAD edges and the registration matches it to
+neither (a measured line's ends must lie on the CAD edge). Once the pose is
+known, the CAD edge's image tells which stretch of such a line is its own:
+the points within it, less a trim at each end where a third edge's
+smoothing reaches, are fitted as an image feature of their own in each
+image, and the pair is fitted in 3D as any matched pair is
+(:func:`partinspect.vision.stereo.measure_pair_feature`).
+
+The selection is by position along the edge only, never by residual, so it
+leaves the fit's statistics as they are: the points' errors across the
+edge are those of the same points in the longer line.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+
+from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, _fit_line, _line_angles, _line_with_covariance
+from partinspect.vision.stereo import measure_pair_feature
+
+MAX_DISTANCE = 2.0
+"""A point belongs to an expected edge when it lies within this many px of
+its image (the pose's error there is a few hundredths of a px on the sample
+parts; the same distance as the report uses to say an edge was found)."""
+MAX_ANGLE = np.deg2rad(3.0)
+"""An image line runs along an expected edge when their directions differ
+by less than this (the merge's tolerance for pieces of one line)."""
+
+
+def _arc_lengths(poly):
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poly, axis=0).T))])
+
+
+def stretch_along(uv, polyline, *, max_distance=MAX_DISTANCE, trim=0.0):
+    """Which points lie along an expected edge, and where along it.
+
+    Parameters
+    ----------
+    uv : ndarray, shape (N, 2)
+        Edge points, px (distorted).
+    polyline : ndarray, shape (M, 2)
+        The expected edge's image, densely sampled from one end to the other
+        (at most a pixel apart), same pixels as ``uv``.
+    max_distance : float
+        Largest distance of a point from the polyline, px.
+    trim : float
+        Arc length left out at each end of the polyline, px.
+
+    Returns
+    -------
+    inside : ndarray of bool, shape (N,)
+    s : ndarray, shape (N,)
+        Arc length of each point's nearest polyline sample from the first
+        end, px.
+    """
+    from scipy.spatial import cKDTree
+
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    poly = np.asarray(polyline, float)
+    ok = np.isfinite(poly).all(axis=1)
+    if ok.sum() < 2 or len(uv) == 0:
+        return np.zeros(len(uv), bool), np.zeros(len(uv))
+    poly = poly[ok]
+    length = _arc_lengths(poly)
+    d, j = cKDTree(poly).query(uv)
+    s = length[j]
+    return (d <= max_distance) & (s >= trim) & (s <= length[-1] - trim), s
+
+
+def line_stretch(feature, keep, corr_length):
+    """An image line feature restricted to some of its points and fitted again.
+
+    Parameters
+    ----------
+    feature : EdgeFeature
+        A line (:class:`partinspect.vision.stereo.EdgeFeature`).
+    keep : ndarray of int, shape (K,)
+        Positions of the kept points in the feature's point arrays, in the
+        order they are to have (along the edge).
+    corr_length : float
+        Correlation length of the points' noise along the edge, px.
+
+    Returns
+    -------
+    EdgeFeature
+        Same kind, segments, polarity and blur; its points, their ideal
+        coordinates and edge normals those at ``keep``; its fit (with
+        covariance) that of those points alone.
+    """
+    keep = np.asarray(keep, int)
+    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep]
+                                       for f in ("xy", "cov", "normal", "normal_std", "jacobian")})
+    fit = _line_with_covariance(_fit_line(ideal.xy, ideal.cov, corr_length, False), ideal.xy, corr_length)
+    extra = {} if feature.edge_normal is None else {"edge_normal": feature.edge_normal[keep]}
+    return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
+                   ideal=ideal, fit=fit, **extra)
+
+
+def _gather(features, candidates, polyline, trim, min_points):
+    """The points of ``features[candidates]`` along ``polyline``: (feature, positions) pieces, or None."""
+    a, b = polyline[0], polyline[-1]
+    d = (b - a) / max(np.hypot(*(b - a)), 1e-12)
+    picked = []
+    for i in candidates:
+        f = features[i]
+        if f.kind != "line" or abs(f.fit.direction @ d) < np.cos(MAX_ANGLE):
+            continue
+        inside, s = stretch_along(f.uv, polyline, trim=trim)
+        if inside.any():
+            picked.append((i, np.flatnonzero(inside), s[inside]))
+    if sum(len(k) for _, k, _ in picked) < min_points:
+        return None
+    return picked
+
+
+def guided_lines(stereo, calib, expected, owned, *, min_points=12):
+    """Measure expected line edges from the stretches of image lines that run along them.
+
+    Parameters
+    ----------
+    stereo : StereoResult
+    calib : StereoCalibration
+    expected : dict of str to (ndarray (M, 2), ndarray (M, 2))
+        Per edge to look for (a CAD id), its image in the left and the right
+        image as dense polylines (distorted px), from the registered pose.
+    owned : set of (str, int)
+        Image features ("left"/"right", index) already measured as another
+        edge: their points are not taken.
+    min_points : int
+        Points each image must give an edge (the matching's minimum).
+
+    Returns
+    -------
+    stereo : StereoResult
+        With, per edge found, the stretch's image feature appended to each
+        image's features and its 3D line to ``features``; the 3D lines whose
+        image features gave points are left out (their points now belong
+        to the edges whose stretches they are).
+    found : dict of str to int
+        Edge -> index of its 3D line in the returned ``features``.
+    failed : dict of str to str
+        Edges whose stretches were found in both images but not measured,
+        and why (too few correspondences, nearly along the epipolar lines).
+
+    Notes
+    -----
+    Each stretch leaves out ``3 sigma + 1`` px (sigma the edge filter's
+    scale) at either end of the edge's image, as the segmentation trims its
+    pieces' ends: the smoothing of the edges meeting there reaches that far.
+    """
+    L, R, geo = stereo.left, stereo.right, stereo.geometry
+    sigma = float(L.edges.sigma)
+    trim = 3.0 * sigma + 1.0
+    free = {side: [i for i, f in enumerate(res.features) if f.kind == "line" and (side, i) not in owned]
+            for side, res in (("left", L), ("right", R))}
+    lefts, rights, feats3, found, failed, donors = [], [], [], {}, {}, set()
+    for cid, (poly_l, poly_r) in expected.items():
+        pieces = []
+        for side, res, poly in (("left", L, poly_l), ("right", R, poly_r)):
+            poly = np.asarray(poly, float)
+            poly = poly[np.isfinite(poly).all(axis=1)]
+            if len(poly) < 2:
+                break
+            got = _gather(res.features, free[side], poly, trim, min_points)
+            if got is None:
+                break
+            pieces.append(got)
+        if len(pieces) < 2:
+            continue
+        made = []
+        for side, res, got in zip(("left", "right"), (L, R), pieces):
+            # One image line usually; two when the edge broke and its pieces
+            # were not merged. Taken in order along the edge.
+            base = res.features[got[0][0]]
+            order = np.argsort(np.concatenate([s for _, _, s in got]), kind="stable")
+            if len(got) == 1:
+                made.append(line_stretch(base, got[0][1][order], sigma))
+            else:
+                union = _concat([res.features[i] for i, _, _ in got], [k for _, k, _ in got])
+                made.append(line_stretch(union, order, sigma))
+        fl, fr = made
+        angle = min(_line_angles(geo, [fl], "left")[0], _line_angles(geo, [fr], "right")[0])
+        if angle < MIN_EPIPOLAR_ANGLE:
+            failed[cid] = (f"its stretch runs {np.degrees(angle):.1f} deg from the epipolar lines "
+                           f"(< {np.degrees(MIN_EPIPOLAR_ANGLE):.0f})")
+            continue
+        nl, nr = len(L.features) + len(lefts), len(R.features) + len(rights)
+        f3, why = measure_pair_feature(Match(nl, nr, float("nan"), float("nan"), float("nan"), float("inf")),
+                                       fl, fr, calib, geo, sigma)
+        if f3 is None:
+            failed[cid] = why
+            continue
+        lefts.append(fl)
+        rights.append(fr)
+        feats3.append(replace(f3, guided=cid))
+        found[cid] = len(feats3) - 1
+        donors.update(("left", i) for i, _, _ in pieces[0])
+        donors.update(("right", i) for i, _, _ in pieces[1])
+    if not feats3:
+        return stereo, {}, failed
+    kept = [f for f in stereo.features
+            if f.kind != "line" or (("left", f.left) not in donors and ("right", f.right) not in donors)]
+    found = {cid: len(kept) + k for cid, k in found.items()}
+    stereo = replace(stereo, left=replace(L, features=list(L.features) + lefts),
+                     right=replace(R, features=list(R.features) + rights),
+                     features=tuple(kept) + tuple(feats3))
+    return stereo, found, failed
+
+
+def _concat(features, positions):
+    """One line feature of the given points of several (their fits are recomputed by the caller)."""
+    first = features[0]
+    ideal = replace(first.ideal, **{f: np.concatenate([getattr(g.ideal, f)[k] for g, k in zip(features, positions)])
+                                    for f in ("xy", "cov", "normal", "normal_std", "jacobian")})
+    extra = {}
+    if first.edge_normal is not None:
+        extra["edge_normal"] = np.concatenate([g.edge_normal[k] for g, k in zip(features, positions)])
+    return replace(first, segments=tuple(s for g in features for s in g.segments),
+                   index=np.concatenate([g.index[k] for g, k in zip(features, positions)]),
+                   uv=np.concatenate([g.uv[k] for g, k in zip(features, positions)]),
+                   cov_uv=np.concatenate([g.cov_uv[k] for g, k in zip(features, positions)]),
+                   ideal=ideal, **extra)
+

@@ -1,0 +1,101 @@
+"""Lines measured on the stretch of a longer image line that a CAD edge's image covers."""
+
+import numpy as np
+import pytest
+
+from partinspect.vision.guided import guided_lines, line_stretch, stretch_along
+from tests.vision import stereo_scenes as S
+
+
+def test_stretch_along_takes_points_near_the_polyline_between_its_trimmed_ends():
+    poly = np.c_[np.linspace(0.0, 100.0, 201), np.zeros(201)]
+    x = np.linspace(-10.0, 110.0, 121)
+    uv = np.r_[np.c_[x, np.full_like(x, 1.5)], np.c_[x, np.full_like(x, 2.5)]]
+    inside, s = stretch_along(uv, poly, trim=4.0)
+    near = np.abs(uv[:, 1]) <= 2.0
+    assert np.array_equal(inside, near & (uv[:, 0] >= 4.0) & (uv[:, 0] <= 96.0))
+    assert np.allclose(s[inside], uv[inside, 0], atol=0.25)
+    # A polyline behind the camera (NaN) has no stretch.
+    assert not stretch_along(uv, np.full((5, 2), np.nan))[0].any()
+
+
+@pytest.fixture(scope="module")
+def plate_lines():
+    """The plate's longest measured 3D line and the measurement it came from."""
+    from partinspect.vision.stereo import measure_stereo
+
+    rig, pose, left, right = S.render("plate", 2.0, 0)
+    stereo = measure_stereo(left, right, rig)
+    lines = [k for k, f in enumerate(stereo.features) if f.kind == "line"]
+    k = max(lines, key=lambda i: len(stereo.features[i].correspondences))
+    return rig, stereo, k
+
+
+def _images(rig, a, b):
+    from partinspect.vision.calibration import project_points
+
+    s = np.linspace(0.0, 1.0, 2000)[:, None]
+    X = a + s * (b - a)
+    return (project_points(X, rig.K1, rig.D1, np.eye(3), np.zeros(3)),
+            project_points(X, rig.K2, rig.D2, rig.R, rig.T))
+
+
+def test_line_stretch_is_the_fit_of_the_kept_points_alone(plate_lines):
+    from partinspect.vision.fitting import fit_line
+
+    rig, stereo, k = plate_lines
+    f = stereo.left.features[stereo.features[k].left]
+    keep = np.arange(10, len(f) // 2)
+    part = line_stretch(f, keep, 1.0)
+    ref = fit_line(f.ideal.xy[keep], f.ideal.cov[keep], corr_length=1.0)
+    assert np.allclose(part.fit.params, ref.params) and np.allclose(part.fit.cov, ref.cov)
+    assert np.array_equal(part.index, f.index[keep]) and np.array_equal(part.edge_normal, f.edge_normal[keep])
+    assert part.fit.cov[0, 0] > f.fit.cov[0, 0]  # fewer points, less certain
+
+
+def test_two_collinear_edges_in_one_image_line_are_measured_each_on_its_own_stretch(plate_lines):
+    """A measured line taken as two collinear CAD edges with a gap between: each gets the points
+    of its stretch (less the trim at its ends), the whole line's 3D feature gives way to them, and
+    each lies on the whole line within their uncertainties."""
+    rig, stereo, k = plate_lines
+    whole = stereo.features[k]
+    a, b = whole.start, whole.end
+    first = (a, a + 0.4 * (b - a))
+    second = (a + 0.6 * (b - a), b)
+    expected = {"edge-a": _images(rig, *first), "edge-b": _images(rig, *second)}
+    more, found, failed = guided_lines(stereo, rig, expected, owned=set())
+
+    assert set(found) == {"edge-a", "edge-b"} and not failed
+    assert len(more.features) == len(stereo.features) + 1  # two in, the whole line out
+    assert not any(f.left == whole.left for f in more.features[:-2])
+    n = len(whole.correspondences)
+    d = (b - a) / np.linalg.norm(b - a)
+    for cid, (s0, s1) in (("edge-a", first), ("edge-b", second)):
+        f = more.features[found[cid]]
+        assert f.guided == cid and f.kind == "line"
+        # Its extent lies within its stretch, and covers most of it.
+        t = [(p - a) @ d for p in (f.start, f.end)]
+        lo, hi = sorted(((s0 - a) @ d, (s1 - a) @ d))
+        assert lo - 0.05 <= min(t) and max(t) <= hi + 0.05 and max(t) - min(t) > 0.8 * (hi - lo)
+        assert 0.3 * n < len(f.correspondences) < 0.45 * n
+        # On the whole line: the point's offset across it within 3 u of the two fits.
+        off = (f.point - whole.point) - ((f.point - whole.point) @ d) * d
+        cov = f.covariance + whole.covariance
+        assert off @ np.linalg.solve(cov + np.outer(d, d), off) < 9.0
+        assert np.degrees(np.arccos(min(1.0, abs(f.direction @ whole.direction)))) < 0.5
+    # Each image point is used once.
+    la, lb = (more.left.features[more.features[found[c]].left].index for c in ("edge-a", "edge-b"))
+    assert not np.intersect1d(la, lb).size
+
+
+def test_an_owned_image_line_or_a_stretch_off_every_line_gives_nothing(plate_lines):
+    rig, stereo, k = plate_lines
+    whole = stereo.features[k]
+    a, b = whole.start, whole.end
+    expected = {"edge-a": _images(rig, a, a + 0.5 * (b - a))}
+    owned = {("left", whole.left), ("right", whole.right)}
+    more, found, _ = guided_lines(stereo, rig, expected, owned)
+    assert more is stereo and not found
+    shifted = {"edge-a": _images(rig, a + [0.0, 0.0, 5.0], b + [0.0, 0.0, 5.0])}
+    more, found, _ = guided_lines(stereo, rig, shifted, set())
+    assert not found
