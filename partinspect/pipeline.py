@@ -366,8 +366,10 @@ def guided_stereo(stereo, registration, seen, inv, calib):
     todo = [f for f in inv.features if f.kind == "line" and f.id not in done and (seen is None or seen[f.id].in_view)]
     if not todo:
         return stereo, {}
-    expected = {f.id: edge_images(f, registration.part_to_camera, calib) for f in todo}
-    more, found, _ = guided_lines(stereo, calib, expected, set(_image_owners(stereo, registration)))
+    # Every line edge's image, hidden ones too: a point near two edges' images is either's.
+    others = {f.id: edge_images(f, registration.part_to_camera, calib) for f in inv.features if f.kind == "line"}
+    expected = {f.id: others[f.id] for f in todo}
+    more, found, _ = guided_lines(stereo, calib, expected, set(_image_owners(stereo, registration)), others=others)
     return more, found
 
 

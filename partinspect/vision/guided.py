@@ -22,6 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from partinspect.vision.contours import CLEARANCE
 from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, _fit_line, _line_angles, _line_with_covariance
 from partinspect.vision.stereo import measure_pair_feature
 
@@ -103,8 +104,12 @@ def line_stretch(feature, keep, corr_length):
                    ideal=ideal, fit=fit, **extra)
 
 
-def _gather(features, candidates, polyline, trim, min_points):
-    """The points of ``features[candidates]`` along ``polyline``: (feature, positions) pieces, or None."""
+def _gather(features, candidates, polyline, trim, min_points, crowd=None, cid=None, reach=MAX_DISTANCE):
+    """The points of ``features[candidates]`` along ``polyline``: (feature, positions) pieces, or None.
+
+    ``crowd``: a :class:`_Crowd`; points within ``reach`` of another
+    edge's image than ``cid``'s are not taken.
+    """
     a, b = polyline[0], polyline[-1]
     d = (b - a) / max(np.hypot(*(b - a)), 1e-12)
     picked = []
@@ -113,6 +118,8 @@ def _gather(features, candidates, polyline, trim, min_points):
         if f.kind != "line" or abs(f.fit.direction @ d) < np.cos(MAX_ANGLE):
             continue
         inside, s = stretch_along(f.uv, polyline, trim=trim)
+        if crowd is not None and inside.any():
+            inside[inside] = crowd.clear_of_others(f.uv[inside], cid, reach)
         if inside.any():
             picked.append((i, np.flatnonzero(inside), s[inside]))
     if sum(len(k) for _, k, _ in picked) < min_points:
@@ -120,7 +127,29 @@ def _gather(features, candidates, polyline, trim, min_points):
     return picked
 
 
-def guided_lines(stereo, calib, expected, owned, *, min_points=12):
+class _Crowd:
+    """The edges' images in one image, to tell which points lie near an edge other than a given one."""
+
+    def __init__(self, images, side):
+        from scipy.spatial import cKDTree
+
+        polys = [np.asarray(pair[side], float) for pair in images.values()]
+        polys = [p[np.isfinite(p).all(axis=1)] for p in polys]
+        self.ids = list(images)
+        self.owner = np.repeat(np.arange(len(polys)), [len(p) for p in polys])
+        pts = np.concatenate(polys + [np.zeros((0, 2))])
+        self.tree = cKDTree(pts) if len(pts) else None
+
+    def clear_of_others(self, uv, cid, reach):
+        """Mask of the points ``uv`` farther than ``reach`` px from every edge's image but ``cid``'s."""
+        if self.tree is None or len(uv) == 0:
+            return np.ones(len(uv), bool)
+        k = self.ids.index(cid)
+        near = self.tree.query_ball_point(uv, reach)
+        return np.array([not np.any(self.owner[n] != k) for n in near], bool)
+
+
+def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
     """Measure expected line edges from the stretches of image lines that run along them.
 
     Parameters
@@ -133,6 +162,12 @@ def guided_lines(stereo, calib, expected, owned, *, min_points=12):
     owned : set of (str, int)
         Image features ("left"/"right", index) already measured as another
         edge: their points are not taken.
+    others : dict of str to (ndarray (M, 2), ndarray (M, 2)), optional
+        The images of every other edge that may be seen (same form as
+        ``expected``): points within ``MAX_DISTANCE`` of another edge's
+        image are not taken, since they may be that edge's (two parallel
+        edges of a face seen edge-on lie on one image line; the chain
+        cannot tell them apart and the pose cannot either).
     min_points : int
         Points each image must give an edge (the matching's minimum).
 
@@ -160,15 +195,21 @@ def guided_lines(stereo, calib, expected, owned, *, min_points=12):
     trim = 3.0 * sigma + 1.0
     free = {side: [i for i, f in enumerate(res.features) if f.kind == "line" and (side, i) not in owned]
             for side, res in (("left", L), ("right", R))}
+    images = {**(others or {}), **expected}
+    crowds = [_Crowd(images, 0), _Crowd(images, 1)]
     lefts, rights, feats3, found, failed, donors = [], [], [], {}, {}, set()
     for cid, (poly_l, poly_r) in expected.items():
         pieces = []
-        for side, res, poly in (("left", L, poly_l), ("right", R, poly_r)):
+        for k, (side, res, poly) in enumerate((("left", L, poly_l), ("right", R, poly_r))):
             poly = np.asarray(poly, float)
             poly = poly[np.isfinite(poly).all(axis=1)]
             if len(poly) < 2:
                 break
-            got = _gather(res.features, free[side], poly, trim, min_points)
+            # As the segmentation keeps its points clear of other edges: their
+            # smoothing reaches CLEARANCE edge widths.
+            reach = max(MAX_DISTANCE, CLEARANCE * float(np.median(res.edges.width))) if len(res.edges.width) \
+                else MAX_DISTANCE
+            got = _gather(res.features, free[side], poly, trim, min_points, crowds[k], cid, reach)
             if got is None:
                 break
             pieces.append(got)
