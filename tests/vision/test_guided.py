@@ -99,3 +99,16 @@ def test_an_owned_image_line_or_a_stretch_off_every_line_gives_nothing(plate_lin
     shifted = {"edge-a": _images(rig, a + [0.0, 0.0, 5.0], b + [0.0, 0.0, 5.0])}
     more, found, _ = guided_lines(stereo, rig, shifted, set())
     assert not found
+
+
+def test_points_near_another_edges_image_are_not_taken(plate_lines):
+    """Two edges on one image line (a face seen edge-on): neither may take the points."""
+    rig, stereo, k = plate_lines
+    whole = stereo.features[k]
+    a, b = whole.start, whole.end
+    images = _images(rig, a, a + 0.5 * (b - a))
+    more, found, _ = guided_lines(stereo, rig, {"edge-a": images}, set(), others={"edge-b": images})
+    assert not found and more is stereo
+    far = _images(rig, a + [0.0, 30.0, 0.0], b + [0.0, 30.0, 0.0])
+    more, found, _ = guided_lines(stereo, rig, {"edge-a": images}, set(), others={"edge-b": far})
+    assert set(found) == {"edge-a"}
