@@ -348,10 +348,9 @@ def guided_stereo(stereo, registration, seen, inv, calib):
     edge's image picks its own stretch
     (:func:`partinspect.vision.guided.guided_lines`). ``seen``: the
     visibility of each CAD feature (:func:`partinspect.cad.visibility.visibility`),
-    or None to look for every unmeasured line edge (a hidden one finds
-    nothing: a stretch needs points along its image in both images, which
-    pin it to one 3D line, and the epipolar test refuses the one case where
-    they do not).
+    or None to look for every unmeasured line edge: a hidden one takes no
+    points where a seen edge's image runs near its own (every line edge's
+    image is given to ``guided_lines`` to keep them apart).
 
     Returns
     -------

@@ -166,16 +166,16 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
     from partinspect.tolerances.evaluate import evaluate_characteristic
     from partinspect.vision.stereo import measure_stereo
 
+    def registered(res, hint):
+        return register([f for f in res.features if f.kind != "line"], [f for f in res.features if f.kind == "line"],
+                        inventory, datums=datums, pose_hint=hint)
+
     res = measure_stereo(left, right, calib)
-    circles = [f for f in res.features if f.kind != "line"]
-    lines = [f for f in res.features if f.kind == "line"]
-    reg = register(circles, lines, inventory, datums=datums, pose_hint=pose_hint)
+    reg = registered(res, pose_hint)
     # As inspect does: edges in line with others, measured on their own stretches.
     more, found = guided_stereo(res, reg, None, inventory, calib)
     if found:
-        res = more
-        reg = register([f for f in res.features if f.kind != "line"], [f for f in res.features if f.kind == "line"],
-                       inventory, datums=datums, pose_hint=reg.part_to_camera)
+        res, reg = more, registered(more, reg.part_to_camera)
     parts = reg.features_in_part_frame()
     evs = [evaluate_characteristic(c, parts, reg, inventory, seed=seed) for c in characteristics]
     offsets = {c.id: _position_offset(c, parts, inventory) for c in characteristics if c.type == "position"}

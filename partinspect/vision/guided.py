@@ -22,8 +22,15 @@ from dataclasses import replace
 
 import numpy as np
 
-from partinspect.vision.contours import CLEARANCE
-from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, _fit_line, _line_angles, _line_with_covariance
+from partinspect.vision.contours import CLEARANCE, _arc_length
+from partinspect.vision.matching import (
+    _IDEAL_FIELDS,
+    MIN_EPIPOLAR_ANGLE,
+    Match,
+    _fit_line,
+    _line_angles,
+    _line_with_covariance,
+)
 from partinspect.vision.stereo import measure_pair_feature
 
 MAX_DISTANCE = 2.0
@@ -33,10 +40,6 @@ parts; the same distance as the report uses to say an edge was found)."""
 MAX_ANGLE = np.deg2rad(3.0)
 """An image line runs along an expected edge when their directions differ
 by less than this (the merge's tolerance for pieces of one line)."""
-
-
-def _arc_lengths(poly):
-    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poly, axis=0).T))])
 
 
 def stretch_along(uv, polyline, *, max_distance=MAX_DISTANCE, trim=0.0):
@@ -69,7 +72,7 @@ def stretch_along(uv, polyline, *, max_distance=MAX_DISTANCE, trim=0.0):
     if ok.sum() < 2 or len(uv) == 0:
         return np.zeros(len(uv), bool), np.zeros(len(uv))
     poly = poly[ok]
-    length = _arc_lengths(poly)
+    length = _arc_length(poly)
     d, j = cKDTree(poly).query(uv)
     s = length[j]
     return (d <= max_distance) & (s >= trim) & (s <= length[-1] - trim), s
@@ -96,8 +99,7 @@ def line_stretch(feature, keep, corr_length):
         covariance) that of those points alone.
     """
     keep = np.asarray(keep, int)
-    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep]
-                                       for f in ("xy", "cov", "normal", "normal_std", "jacobian")})
+    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in _IDEAL_FIELDS})
     fit = _line_with_covariance(_fit_line(ideal.xy, ideal.cov, corr_length, False), ideal.xy, corr_length)
     extra = {} if feature.edge_normal is None else {"edge_normal": feature.edge_normal[keep]}
     return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
@@ -163,11 +165,14 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
         Image features ("left"/"right", index) already measured as another
         edge: their points are not taken.
     others : dict of str to (ndarray (M, 2), ndarray (M, 2)), optional
-        The images of every other edge that may be seen (same form as
-        ``expected``): points within ``MAX_DISTANCE`` of another edge's
-        image are not taken, since they may be that edge's (two parallel
-        edges of a face seen edge-on lie on one image line; the chain
-        cannot tell them apart and the pose cannot either).
+        The images of every other edge, hidden ones too (same form as
+        ``expected``): points within ``CLEARANCE`` edge widths (at least
+        ``MAX_DISTANCE``) of another edge's image are not taken, as the
+        segmentation keeps its points clear of other edges: that edge's
+        smoothing reaches them, or they are its own (two parallel edges of
+        a face seen edge-on lie on one image line in one image; the other
+        image then pins a 3D line near either edge, and on a stress render
+        the hidden one was measured from the visible one's points).
     min_points : int
         Points each image must give an edge (the matching's minimum).
 
@@ -197,6 +202,8 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
             for side, res in (("left", L), ("right", R))}
     images = {**(others or {}), **expected}
     crowds = [_Crowd(images, 0), _Crowd(images, 1)]
+    reach = [max(MAX_DISTANCE, CLEARANCE * float(np.median(res.edges.width))) if len(res.edges.width)
+             else MAX_DISTANCE for res in (L, R)]
     lefts, rights, feats3, found, failed, donors = [], [], [], {}, {}, set()
     for cid, (poly_l, poly_r) in expected.items():
         pieces = []
@@ -205,28 +212,17 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
             poly = poly[np.isfinite(poly).all(axis=1)]
             if len(poly) < 2:
                 break
-            # As the segmentation keeps its points clear of other edges: their
-            # smoothing reaches CLEARANCE edge widths.
-            reach = max(MAX_DISTANCE, CLEARANCE * float(np.median(res.edges.width))) if len(res.edges.width) \
-                else MAX_DISTANCE
-            got = _gather(res.features, free[side], poly, trim, min_points, crowds[k], cid, reach)
+            got = _gather(res.features, free[side], poly, trim, min_points, crowds[k], cid, reach[k])
             if got is None:
                 break
             pieces.append(got)
         if len(pieces) < 2:
             continue
-        made = []
-        for side, res, got in zip(("left", "right"), (L, R), pieces):
-            # One image line usually; two when the edge broke and its pieces
-            # were not merged. Taken in order along the edge.
-            base = res.features[got[0][0]]
-            order = np.argsort(np.concatenate([s for _, _, s in got]), kind="stable")
-            if len(got) == 1:
-                made.append(line_stretch(base, got[0][1][order], sigma))
-            else:
-                union = _concat([res.features[i] for i, _, _ in got], [k for _, k, _ in got])
-                made.append(line_stretch(union, order, sigma))
-        fl, fr = made
+        # One image line usually; two when the edge broke and its pieces were
+        # not merged. Taken in order along the edge.
+        fl, fr = (line_stretch(_concat([res.features[i] for i, _, _ in got], [k for _, k, _ in got]),
+                               np.argsort(np.concatenate([s for _, _, s in got]), kind="stable"), sigma)
+                  for res, got in zip((L, R), pieces))
         angle = min(_line_angles(geo, [fl], "left")[0], _line_angles(geo, [fr], "right")[0])
         if angle < MIN_EPIPOLAR_ANGLE:
             failed[cid] = (f"its stretch runs {np.degrees(angle):.1f} deg from the epipolar lines "
@@ -256,10 +252,10 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
 
 
 def _concat(features, positions):
-    """One line feature of the given points of several (their fits are recomputed by the caller)."""
+    """One line feature of the points at ``positions`` of each of ``features`` (its fit the first's: refit it)."""
     first = features[0]
     ideal = replace(first.ideal, **{f: np.concatenate([getattr(g.ideal, f)[k] for g, k in zip(features, positions)])
-                                    for f in ("xy", "cov", "normal", "normal_std", "jacobian")})
+                                    for f in _IDEAL_FIELDS})
     extra = {}
     if first.edge_normal is not None:
         extra["edge_normal"] = np.concatenate([g.edge_normal[k] for g, k in zip(features, positions)])
