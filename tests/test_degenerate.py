@@ -10,6 +10,10 @@ ground truth), each inspected once by the whole run:
 - *border*: the plate at the usual 45 degree view but shifted left and
   nearer, so that some edges fall inside the left image only and others
   are cut by the image border.
+- *shallow*: the plate from 30 degrees, rolled so that three of its edges
+  along x run 8.8 to 9.5 degrees from the epipolar lines in the right
+  image: just outside the matcher's gate, so measurable, with a depth
+  uncertainty several times the other edges'.
 
 Which CAD edge is in which situation is computed from the render's truth
 (pose, calibration, visibility), not assumed.
@@ -113,6 +117,11 @@ def grazing(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def shallow(tmp_path_factory):
+    return _inspect(tmp_path_factory, "shallow", _pose(30.0, 212.0, 30.0))
+
+
+@pytest.fixture(scope="module")
 def border(tmp_path_factory):
     return _inspect(tmp_path_factory, "border", _pose(45.0, 212.0, 20.0, position=(-30.0, 0.0, 360.0)))
 
@@ -154,6 +163,25 @@ def test_lines_along_the_epipolar_lines_are_reported_degenerate(grazing):
     for fid, entry in run.features.items():
         if entry["kind"] == "line" and entry["measured"] is not None:
             assert min(run.epipolar_angles(fid)) > np.degrees(MIN_EPIPOLAR_ANGLE) - 1.0, fid
+
+
+def test_lines_just_outside_the_epipolar_gate_are_measured_honestly(shallow):
+    run = shallow
+    gate = np.degrees(MIN_EPIPOLAR_ANGLE)
+    near = [fid for fid, f in run.cad.items() if f["kind"] == "line"
+            and min(f["visibility"][s]["in_image"] * f["visibility"][s]["unoccluded"] for s in ("left", "right")) > 0.9
+            and gate + 0.3 < min(run.epipolar_angles(fid)) < 10.0]
+    # Correspondences once dropped every point of such a line (at a 10 deg
+    # crossing) after the matcher had kept it (8 deg): "matched, but only 0
+    # corresponding points".
+    assert {"line-5", "line-13"} <= set(near), {fid: run.epipolar_angles(fid) for fid in run.cad}
+    for fid in near:
+        m = run.features[fid]["measured"]
+        assert m is not None, (fid, run.features[fid]["reason"])
+        for c in run.characteristics(fid)[0]:
+            # Straight edges: their true straightness, 0, within measured +- U.
+            assert abs(c["measured"]) <= c["expanded_uncertainty"], c
+    assert not [f["reason"] for f in run.features.values() if "corresponding points" in (f.get("reason") or "")]
 
 
 def test_circles_seen_edge_on_are_not_measured(grazing):

@@ -64,6 +64,7 @@ import numpy as np
 
 from partinspect.planning.edge_model import (
     DetectorModel, detector_parameters, profile_width, stated_std_pattern)
+from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE
 
 __all__ = [
     "EPIPOLAR_MIN_ANGLE",
@@ -80,9 +81,10 @@ __all__ = [
     "predict_pose",
 ]
 
-EPIPOLAR_MIN_ANGLE = np.deg2rad(8.0)
+EPIPOLAR_MIN_ANGLE = MIN_EPIPOLAR_ANGLE
 """A line closer than this to the epipolar lines is not matched
-(:func:`partinspect.vision.matching.match_features`' ``min_angle``)."""
+(:func:`partinspect.vision.matching.match_features`' ``min_angle``, the
+same object, so that plan and chain cannot drift apart)."""
 EDGE_ON_ANGLE = np.deg2rad(80.0)
 """A circle seen more than this off its axis is taken as edge-on: its image
 is an ellipse of axis ratio below cos 80 = 0.17, which the segmentation

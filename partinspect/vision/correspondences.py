@@ -38,9 +38,22 @@ import numpy as np
 
 from partinspect.vision.edges import CURVATURE_SAMPLING_BIAS
 from partinspect.vision.fitting import _ellipse_geometry
+from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE
 from partinspect.vision.triangulation import triangulate
 
-__all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred"]
+__all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred", "ARC_MIN_CROSSING"]
+
+ARC_MIN_CROSSING = np.deg2rad(10.0)
+"""Arc points whose epipolar line crosses an ellipse at less than this are dropped, rad.
+
+Lines take the matcher's gate instead
+(:data:`partinspect.vision.matching.MIN_EPIPOLAR_ANGLE`): a line's
+crossing angle is nearly the same at all its points, so a stricter angle
+here would drop every point of a line the matcher kept. Lines 8 to 10 deg
+from the epipolar lines were matched and then reported as "matched, but
+only 0 corresponding points" (the plate's step edges on a stress-run
+render: 8.1 and 8.6 deg). An arc's crossing angle falls to zero where its
+epipolar line is tangent to it, and only the points near there go."""
 
 
 @dataclass(frozen=True)
@@ -244,7 +257,7 @@ def _near_points(y, pts, margin):
     return out
 
 
-def correspond(left, right, geo, *, xy=None, min_angle=np.deg2rad(10.0), step=1e-4, margin=2.0):
+def correspond(left, right, geo, *, xy=None, min_angle=None, step=1e-4, margin=2.0):
     """Triangulated correspondences along a matched pair of image features.
 
     Parameters
@@ -255,11 +268,13 @@ def correspond(left, right, geo, *, xy=None, min_angle=np.deg2rad(10.0), step=1e
     xy : ndarray, shape (N, 2), optional
         The left feature's points to use instead of ``left.ideal.xy`` (same
         order), e.g. corrected for the shading beside a rim, ideal px.
-    min_angle : float
+    min_angle : float, optional
         Points whose epipolar line crosses the right curve at less than
         this angle, rad, are dropped (their partner is ill-determined); on
         arcs also those whose epipolar line crosses the left fitted ellipse
-        at less than this angle at the point.
+        at less than this angle at the point. Default the matcher's
+        :data:`~partinspect.vision.matching.MIN_EPIPOLAR_ANGLE` for lines,
+        :data:`ARC_MIN_CROSSING` for arcs.
     step : float
         Relative step of the numerical Jacobians.
     margin : float
@@ -273,6 +288,8 @@ def correspond(left, right, geo, *, xy=None, min_angle=np.deg2rad(10.0), step=1e
     Correspondences
     """
     kind = left.kind
+    if min_angle is None:
+        min_angle = MIN_EPIPOLAR_ANGLE if kind == "line" else ARC_MIN_CROSSING
     x = left.ideal.xy if xy is None else np.asarray(xy, float)
     pr = np.asarray(right.fit.params, float)
     pl = np.asarray(left.fit.params, float)
