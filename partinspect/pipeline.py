@@ -539,6 +539,23 @@ def _image_owners(stereo, registration):
     return owners
 
 
+def _edge_points_along(measured, uv, lo, hi, reach=1.5):
+    """Whether the detector's edge points run along at least COVERED_FRACTION of an edge's image.
+
+    The edge was detected, but its points were left out of every line and
+    arc: a short edge between two corners loses its ends to them
+    (:func:`partinspect.vision.contours._crowded`) and what is left is too
+    few points for a fit.
+    """
+    from scipy.spatial import cKDTree
+
+    xy = measured.edges.xy
+    box = np.all((xy >= lo) & (xy <= hi), axis=1)
+    if len(uv) == 0 or box.sum() < 2:
+        return False
+    return bool(np.mean(cKDTree(xy[box]).query(uv)[0] < reach) >= COVERED_FRACTION)
+
+
 def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owners=None):
     """Why a CAD feature has no measurement: out of view, or what became of its edge in the images.
 
@@ -582,6 +599,11 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
                 else:
                     fate = "which matched no single CAD edge"
                 found.append(f"{side} image: found as part of a longer edge that runs on past it, {fate}")
+            elif _edge_points_along(stereo.left if side == "left" else stereo.right, uv[ok], lo, hi):
+                length = float(np.sum(np.linalg.norm(np.diff(uv[ok], axis=0), axis=1)))
+                why = ("too few of them clear of the edges meeting it at its ends for a line fit"
+                       if feature.kind == "line" else "the segmentation kept no arc of them")
+                found.append(f"{side} image: edge points found along it, but {why} (its image is {length:.0f} px long)")
             else:
                 found.append(f"no edge found along it in the {side} image")
         elif reasons:

@@ -219,10 +219,11 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
         return [SimpleNamespace(uv=project_points(points, K, D, R, T)) for K, D, R, T in
                 ((rig.K1, rig.D1, np.eye(3), np.zeros(3)), (rig.K2, rig.D2, rig.R, rig.T))]
 
-    def reason(points, owners, unmatched=None):
+    def reason(points, owners, unmatched=None, edge_points=None):
         left, right = image(points)
-        stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]),
-                                 right=SimpleNamespace(noise=2.0, features=[right]))
+        el, er = image(points if edge_points is None else edge_points)
+        stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left], edges=SimpleNamespace(xy=el.uv)),
+                                 right=SimpleNamespace(noise=2.0, features=[right], edges=SimpleNamespace(xy=er.uv)))
         vis = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (60.0, 55.0))
         return _unmeasured_reason(edge, vis, rig, pose, stereo, unmatched or {}, owners)
 
@@ -231,6 +232,10 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
                                      "right image: found as part of a longer edge that runs on past it, measured as line-7")
     assert "not matched: two or more partners" in reason(longer, {}, {("left", 0): "two or more partners fit"})
     assert reason(elsewhere, owned) == "no edge found along it in the left image; no edge found along it in the right image"
+    # Edge points along it that no line or arc took (a short edge between two corners loses its ends to them).
+    along = np.c_[np.linspace(-9.0, -1.0, 40), np.full(40, 5.0), np.full(40, 400.0)]
+    assert reason(elsewhere, owned, edge_points=np.vstack([elsewhere, along])).startswith(
+        "left image: edge points found along it, but too few of them clear of the edges meeting it at its ends")
 
 
 @pytest.fixture(scope="module")
