@@ -193,10 +193,14 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     def settle(stereo, registration):
         progress("checking which edges the cameras see")
         seen = visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
-        more, found = guided_stereo(stereo, registration, seen, inv, calib)
-        if not found:
+        cleared, ends = cleared_stereo(stereo, registration, seen, inv, calib)
+        more, found = guided_stereo(cleared, registration, seen, inv, calib)
+        if not found and not ends:
             return stereo, registration, seen
-        progress(f"measuring {len(found)} edge(s) on their stretches of longer image lines")
+        if ends:
+            progress(f"{len(ends)} line(s) fitted again clear of the edges at their ends")
+        if found:
+            progress(f"measuring {len(found)} edge(s) on their stretches of longer image lines")
         try:
             # The pose is known: no new search (it is the expensive part).
             again = _register(more, inv, resolved, images, registration.part_to_camera)
@@ -338,6 +342,64 @@ def edge_images(feature, part_to_camera, calib):
         s = np.linspace(0.0, 1.0, int(min(2 * length, 20000)) + 2)
         out.append(project_points(ends[0] + s[:, None] * (ends[1] - ends[0]), K, D, Rc, tc))
     return tuple(out)
+
+
+def curve_images(feature, part_to_camera, calib):
+    """A CAD edge's image (line, circle or arc) in the left and the right camera under a pose.
+
+    Returns
+    -------
+    tuple of two ndarray, shape (M, 2)
+        Distorted pixels, about half a pixel apart (NaN where a point is
+        behind a camera).
+    """
+    if feature.kind == "line":
+        return edge_images(feature, part_to_camera, calib)
+    from partinspect.simulate.truth import feature_geometry, sample_edge
+    from partinspect.vision.calibration import project_points
+
+    R, t = part_to_camera[:3, :3], part_to_camera[:3, 3]
+    g = feature_geometry(feature)
+    out = []
+    for K, D, Rc, tc in ((calib.K1, calib.D1, np.eye(3), np.zeros(3)), (calib.K2, calib.D2, calib.R, calib.T)):
+        coarse = project_points(sample_edge(feature.kind, g, 64)[0] @ R.T + t, K, D, Rc, tc)
+        ok = np.isfinite(coarse).all(axis=1)
+        length = float(np.sum(np.hypot(*np.diff(coarse[ok], axis=0).T))) if ok.sum() > 1 else 0.0
+        n = int(min(2 * length * 64 / 63, 20000)) + 2
+        out.append(project_points(sample_edge(feature.kind, g, n)[0] @ R.T + t, K, D, Rc, tc))
+    return tuple(out)
+
+
+def cleared_stereo(stereo, registration, seen, inv, calib):
+    """``stereo`` with its registered lines fitted again clear of the other edges' images at their ends.
+
+    Under the registered pose every CAD edge's image is known, faint ones
+    too, whose grey step displaces a line's end points without giving edge
+    points of its own (:func:`partinspect.vision.guided.clear_line_ends`).
+    ``seen``: the visibility of each CAD feature, to take in each image
+    only the edges it sees; None to take every edge (more points left out
+    near hidden edges' images, never fewer).
+
+    Returns
+    -------
+    stereo : StereoResult
+    cleared : dict of str to (int, int)
+        CAD id -> points left out in the left and the right image.
+    """
+    from partinspect.vision.guided import clear_line_ends
+
+    at = [k for k, f in enumerate(stereo.features) if f.kind == "line"]
+    lines = {at[i]: cid for i, cid in registration.assignment["line"].items()}
+    if not lines:
+        return stereo, {}
+    images = {}
+    for f in inv.features:
+        shown = (1.0, 1.0) if seen is None else seen[f.id].seen
+        if max(shown) <= 0:
+            continue
+        pair = curve_images(f, registration.part_to_camera, calib)
+        images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(pair, shown))
+    return clear_line_ends(stereo, calib, lines, images)
 
 
 def guided_stereo(stereo, registration, seen, inv, calib):

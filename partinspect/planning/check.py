@@ -162,7 +162,7 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
         image features the chain matched (how much of the edge it kept).
     """
     from partinspect.cad.registration import register
-    from partinspect.pipeline import guided_stereo
+    from partinspect.pipeline import cleared_stereo, guided_stereo
     from partinspect.tolerances.evaluate import evaluate_characteristic
     from partinspect.vision.stereo import measure_stereo
 
@@ -172,9 +172,12 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
 
     res = measure_stereo(left, right, calib)
     reg = registered(res, pose_hint)
-    # As inspect does: edges in line with others, measured on their own stretches.
-    more, found = guided_stereo(res, reg, None, inventory, calib)
-    if found:
+    # As inspect does: lines clear of the other edges at their ends (of every
+    # edge's image here, hidden ones too: this check has no visibility), and
+    # edges in line with others measured on their own stretches.
+    cleared, ends = cleared_stereo(res, reg, None, inventory, calib)
+    more, found = guided_stereo(cleared, reg, None, inventory, calib)
+    if found or ends:
         res, reg = more, registered(more, reg.part_to_camera)
     parts = reg.features_in_part_frame()
     evs = [evaluate_characteristic(c, parts, reg, inventory, seed=seed) for c in characteristics]

@@ -112,3 +112,37 @@ def test_points_near_another_edges_image_are_not_taken(plate_lines):
     far = _images(rig, a + [0.0, 30.0, 0.0], b + [0.0, 30.0, 0.0])
     more, found, _ = guided_lines(stereo, rig, {"edge-a": images}, set(), others={"edge-b": far})
     assert set(found) == {"edge-a"}
+
+
+def test_line_ends_near_another_edges_image_are_left_out_and_refitted(plate_lines):
+    """An edge's image running beside a measured line's first 30 % (2 px away: a faint edge the
+    segmentation saw no points of) takes that end run out of the line in that image; the line is
+    refitted from the rest. The same edge beside the middle of the line takes nothing."""
+    from partinspect.vision.guided import clear_line_ends
+
+    rig, stereo, k = plate_lines
+    whole = stereo.features[k]
+    fl = stereo.left.features[whole.left]
+    order = np.argsort(fl.ideal.xy @ fl.fit.direction)
+    uv = fl.uv[order]
+    n = np.array([-fl.fit.direction[1], fl.fit.direction[0]])
+    own = _images(rig, whole.start, whole.end)
+
+    def beside(lo, hi):
+        i0, i1 = int(lo * len(uv)), int(hi * len(uv))
+        return uv[i0:i1] + 2.0 * n, np.full((2, 2), np.nan)
+
+    out, cleared = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.0, 0.3)})
+    lost_l, lost_r = cleared["edge"]
+    assert lost_r == 0 and 0.25 * len(uv) < lost_l < 0.4 * len(uv)
+    g = out.left.features[whole.left]
+    assert len(g) == len(fl) - lost_l and out.right.features[whole.right] is stereo.right.features[whole.right]
+    # The points left out are the end beside the faint edge: the first ones along the line.
+    kept = np.isin(fl.index[order], g.index)
+    assert not kept[:lost_l].any() and kept[lost_l:].all()
+    new = out.features[k]
+    assert new.kind == "line" and len(new.correspondences) < len(whole.correspondences)
+    assert all(a is b for i, (a, b) in enumerate(zip(out.features, stereo.features)) if i != k)
+    # Beside the middle only: nothing is taken.
+    same, none = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.35, 0.65)})
+    assert none == {} and same is stereo
