@@ -220,8 +220,10 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
             continue
         # One image line usually; two when the edge broke and its pieces were
         # not merged. Taken in order along the edge.
+        # Image lines added from another adaptive round carry their own filter scale.
+        scale = L.features[pieces[0][0][0]].corr_length or sigma
         fl, fr = (line_stretch(_concat([res.features[i] for i, _, _ in got], [k for _, k, _ in got]),
-                               np.argsort(np.concatenate([s for _, _, s in got]), kind="stable"), sigma)
+                               np.argsort(np.concatenate([s for _, _, s in got]), kind="stable"), scale)
                   for res, got in zip((L, R), pieces))
         angle = min(_line_angles(geo, [fl], "left")[0], _line_angles(geo, [fr], "right")[0])
         if angle < MIN_EPIPOLAR_ANGLE:
@@ -230,7 +232,7 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
             continue
         nl, nr = len(L.features) + len(lefts), len(R.features) + len(rights)
         f3, why = measure_pair_feature(Match(nl, nr, float("nan"), float("nan"), float("nan"), float("inf")),
-                                       fl, fr, calib, geo, sigma)
+                                       fl, fr, calib, geo, scale)
         if f3 is None:
             failed[cid] = why
             continue
@@ -315,10 +317,12 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
             lost.append(int(bad.sum()))
         if not any(lost) or min(len(x) for x in kept) < min_points:
             continue
-        fl, fr = (res.features[i] if not n else line_stretch(res.features[i], keep, sigma)
+        # A feature added from another adaptive round carries its own filter scale.
+        scale = L.features[f3.left].corr_length or sigma
+        fl, fr = (res.features[i] if not n else line_stretch(res.features[i], keep, scale)
                   for res, i, keep, n in zip((L, R), (f3.left, f3.right), kept, lost))
         new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
-                                      fl, fr, calib, geo, sigma)
+                                      fl, fr, calib, geo, scale)
         if new is None:
             continue
         lefts[f3.left], rights[f3.right] = fl, fr

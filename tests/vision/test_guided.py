@@ -146,3 +146,33 @@ def test_line_ends_near_another_edges_image_are_left_out_and_refitted(plate_line
     # Beside the middle only: nothing is taken.
     same, none = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.35, 0.65)})
     assert none == {} and same is stereo
+
+
+def test_cleared_line_keeps_its_own_filter_scale(plate_lines):
+    """A line added from an adaptive round with a wider filter is refitted with that round's
+    correlation length, not the base round's."""
+    from dataclasses import replace
+
+    from partinspect.vision.fitting import fit_line
+    from partinspect.vision.guided import clear_line_ends
+
+    rig, stereo, k = plate_lines
+    whole = stereo.features[k]
+    lefts, rights = list(stereo.left.features), list(stereo.right.features)
+    lefts[whole.left] = replace(lefts[whole.left], corr_length=1.5)
+    rights[whole.right] = replace(rights[whole.right], corr_length=1.5)
+    wide = replace(stereo, left=replace(stereo.left, features=lefts), right=replace(stereo.right, features=rights))
+    fl = lefts[whole.left]
+    uv = fl.uv[np.argsort(fl.ideal.xy @ fl.fit.direction)]
+    n = np.array([-fl.fit.direction[1], fl.fit.direction[0]])
+    faint = (uv[: len(uv) // 4] + 2.0 * n, np.full((2, 2), np.nan))
+    out, cleared = clear_line_ends(wide, rig, {k: "edge"}, {"edge": _images(rig, whole.start, whole.end), "faint": faint})
+    g = out.left.features[whole.left]
+    assert cleared and g.corr_length == 1.5
+    ref = fit_line(g.ideal.xy, g.ideal.cov, corr_length=1.5)
+    assert np.allclose(g.fit.cov, ref.cov) and not np.allclose(g.fit.cov, fit_line(g.ideal.xy, g.ideal.cov, corr_length=1.0).cov)
+    # So is a stretch of it.
+    a, b = whole.start, whole.end
+    more, found, _ = guided_lines(wide, rig, {"edge-a": _images(rig, a, a + 0.4 * (b - a))}, owned=set())
+    h = more.left.features[more.features[found["edge-a"]].left]
+    assert h.corr_length == 1.5 and np.allclose(h.fit.cov, fit_line(h.ideal.xy, h.ideal.cov, corr_length=1.5).cov)
