@@ -20,8 +20,8 @@ with no pose given:
    centre with a parallel normal, a measured line when a CAD line runs
    parallel within ``MATCH_GATE`` of both its measured end points and the
    measured stretch lies on the CAD segment (a measured line may cover part
-   of an edge). CAD features all of whose plane faces turn away from the
-   camera cannot be seen and never count. The score is the number of
+   of an edge). CAD features all of whose faces are planes turned away
+   from the camera cannot be seen and never count. The score is the number of
    measured features explained.
 3. *Refinement.* Generalised least squares over the six pose parameters, in
    which each measured feature's covariance is its weight: the circle centre
@@ -537,7 +537,7 @@ class _Cad:
     centers: np.ndarray  # (K, 3)
     normals: np.ndarray
     radii: np.ndarray
-    round_faces: np.ndarray  # (K, F, 3) outward normals of plane faces, NaN-padded
+    round_faces: np.ndarray  # (K, F, 3) outward normals of plane faces, zeros for curved ones, NaN-padded
     line_ids: tuple
     starts: np.ndarray  # (L, 3)
     dirs: np.ndarray
@@ -546,6 +546,7 @@ class _Cad:
 
 
 def _face_normals(inventory, feature, width=2):
+    """Outward normals of a feature's adjacent faces: a plane's normal, zeros for a curved face, NaN padding."""
     out = np.full((width, 3), np.nan)
     k = 0
     for fid in feature.faces:
@@ -553,8 +554,9 @@ def _face_normals(inventory, feature, width=2):
             face = inventory[fid]
         except KeyError:
             continue
-        if getattr(face, "normal", None) is not None and k < width:
-            out[k] = face.normal
+        if k < width:
+            normal = getattr(face, "normal", None)
+            out[k] = 0.0 if normal is None else normal
             k += 1
     return out
 
@@ -579,11 +581,19 @@ def _cad_arrays(inventory):
 
 
 def _facing(face_normals, R, points_cam):
-    """(K,) True where a feature may be seen: some adjacent plane faces the camera, or none is a plane."""
+    """(K,) True where a feature may be seen: some adjacent plane faces the camera, or a face is curved.
+
+    An edge between a plane turned away and a curved face shows where the
+    curved face turns to the camera: the bottom end of the bracket's
+    through slot, seen through the slot against the background, is such an
+    arc; taken as hidden, it was measured (to 0.001 mm) and then matched to
+    nothing.
+    """
     n = face_normals @ R.T  # (K, F, 3)
-    has = ~np.isnan(n[..., 0])
+    known = ~np.isnan(n[..., 0])
+    plane = known & (np.abs(np.nan_to_num(n)).sum(axis=2) > 0)
     toward = np.einsum("kfi,ki->kf", np.nan_to_num(n), -points_cam) > 0
-    return ~has.any(1) | (toward & has).any(1)
+    return ~plane.any(1) | (known & ~plane).any(1) | (toward & plane).any(1)
 
 
 # ---------------------------------------------------------------------------
