@@ -196,7 +196,8 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         cleared, ends = cleared_stereo(stereo, registration, seen, inv, calib)
         more, found = guided_stereo(cleared, registration, seen, inv, calib)
         if not found and not ends:
-            return stereo, registration, seen
+            # ``more`` is ``stereo`` with the stretches found but not measured, if any.
+            return more, registration, seen
         if ends:
             progress(f"{len(ends)} line(s) fitted again clear of the edges at their ends")
         if found:
@@ -631,6 +632,9 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
         return (f"in view, but with too little grey-level step across it to be detected ({vis.contrast[0]:.0f} and "
                 f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): "
                 "its two faces look alike under this lighting")
+    stretch = dict(getattr(stereo, "guided_failed", ())).get(feature.id)
+    if stretch:
+        return f"its own stretch of a longer straight edge was found in both images, but not measured: {stretch}"
     from scipy.spatial import cKDTree
 
     from partinspect.simulate.truth import feature_geometry, sample_edge

@@ -211,7 +211,7 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
 
     rig = default_rig((1224, 1024))
     pose = np.eye(4)
-    edge = SimpleNamespace(kind="line", start=(-10.0, 5.0, 400.0), end=(0.0, 5.0, 400.0))
+    edge = SimpleNamespace(kind="line", id="line-9", start=(-10.0, 5.0, 400.0), end=(0.0, 5.0, 400.0))
     longer = np.c_[np.linspace(-10.0, 25.0, 300), np.full(300, 5.0), np.full(300, 400.0)]
     elsewhere = longer + [0.0, 20.0, 0.0]
 
@@ -236,6 +236,13 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
     along = np.c_[np.linspace(-9.0, -1.0, 40), np.full(40, 5.0), np.full(40, 400.0)]
     assert reason(elsewhere, owned, edge_points=np.vstack([elsewhere, along])).startswith(
         "left image: edge points found along it, but too few of them clear of the edges meeting it at its ends")
+    # Its own stretch found in both images but not measured: that is what it says.
+    left, right = image(longer)
+    stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]), right=SimpleNamespace(noise=2.0, features=[right]),
+                             guided_failed=(("line-3", "x"), ("line-9", "y")))
+    vis = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (60.0, 55.0))
+    assert _unmeasured_reason(edge, vis, rig, pose, stereo, {}, owned) == (
+        "its own stretch of a longer straight edge was found in both images, but not measured: y")
 
 
 @pytest.fixture(scope="module")

@@ -182,7 +182,8 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
         With, per edge found, the stretch's image feature appended to each
         image's features and its 3D line to ``features``; the 3D lines whose
         image features gave points are left out (their points now belong
-        to the edges whose stretches they are).
+        to the edges whose stretches they are); ``guided_failed`` holds
+        ``failed``'s items.
     found : dict of str to int
         Edge -> index of its 3D line in the returned ``features``.
     failed : dict of str to str
@@ -243,13 +244,13 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
         donors.update(("left", i) for i, _, _ in pieces[0])
         donors.update(("right", i) for i, _, _ in pieces[1])
     if not feats3:
-        return stereo, {}, failed
+        return (replace(stereo, guided_failed=tuple(failed.items())) if failed else stereo), {}, failed
     kept = [f for f in stereo.features
             if f.kind != "line" or (("left", f.left) not in donors and ("right", f.right) not in donors)]
     found = {cid: len(kept) + k for cid, k in found.items()}
     stereo = replace(stereo, left=replace(L, features=list(L.features) + lefts),
                      right=replace(R, features=list(R.features) + rights),
-                     features=tuple(kept) + tuple(feats3))
+                     features=tuple(kept) + tuple(feats3), guided_failed=tuple(failed.items()))
     return stereo, found, failed
 
 

@@ -320,6 +320,10 @@ class StereoResult:
         Matched pairs whose 3D fit failed, with the reason.
     calibration_included : bool
         Whether the calibration's standard uncertainties were propagated.
+    guided_failed : tuple of (str, str)
+        CAD edges whose own stretches of longer image lines were found in
+        both images but not measured, with the reason
+        (:func:`partinspect.vision.guided.guided_lines`).
     """
 
     left: ImageResult
@@ -329,6 +333,7 @@ class StereoResult:
     features: tuple
     failed: tuple
     calibration_included: bool
+    guided_failed: tuple = ()
 
 
 @dataclass(frozen=True)

@@ -176,3 +176,17 @@ def test_cleared_line_keeps_its_own_filter_scale(plate_lines):
     more, found, _ = guided_lines(wide, rig, {"edge-a": _images(rig, a, a + 0.4 * (b - a))}, owned=set())
     h = more.left.features[more.features[found["edge-a"]].left]
     assert h.corr_length == 1.5 and np.allclose(h.fit.cov, fit_line(h.ideal.xy, h.ideal.cov, corr_length=1.5).cov)
+
+
+def test_a_stretch_found_but_not_measured_keeps_its_reason(plate_lines):
+    """Stretches found in both images that do not correspond (here: the left image's from one end
+    of the line, the right image's from the other) give no 3D line; the edge and why are kept on
+    the result for the report."""
+    rig, stereo, k = plate_lines
+    whole = stereo.features[k]
+    a, b = whole.start, whole.end
+    left, _ = _images(rig, a, a + 0.35 * (b - a))
+    _, right = _images(rig, a + 0.65 * (b - a), b)
+    more, found, failed = guided_lines(stereo, rig, {"edge-x": (left, right)}, owned=set())
+    assert not found and "corresponding points" in failed["edge-x"]
+    assert dict(more.guided_failed) == failed and more.features is stereo.features
