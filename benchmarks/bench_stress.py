@@ -285,7 +285,7 @@ def _reason_counts(rep):
     keys = ["not visible", "nearly parallel to the epipolar lines", "nearly edge-on", "too few edge points",
             "no edge found", "no feature of the other image", "disagree in polarity", "matched, but",
             "two or more partners", "only features of another kind", "matched better", "not matched to the CAD",
-            "too little grey-level step"]
+            "too little grey-level step", "edge points found along it", "its own stretch", "part of a longer edge"]
     out = {}
     for f in rep["features"]:
         if f["measured"] is None:

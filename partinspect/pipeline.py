@@ -632,9 +632,6 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
         return (f"in view, but with too little grey-level step across it to be detected ({vis.contrast[0]:.0f} and "
                 f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): "
                 "its two faces look alike under this lighting")
-    stretch = dict(getattr(stereo, "guided_failed", ())).get(feature.id)
-    if stretch:
-        return f"its own stretch of a longer straight edge was found in both images, but not measured: {stretch}"
     from scipy.spatial import cKDTree
 
     from partinspect.simulate.truth import feature_geometry, sample_edge
@@ -674,6 +671,12 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
                 found.append(f"no edge found along it in the {side} image")
         elif reasons:
             found.append(f"{side} image: {reasons[0]}")
+    # Its own stretch of a longer image line found but not measured says more
+    # than "found as part of a longer edge"; a reason the matching gave an
+    # image feature of its own (along the epipolar lines, say) says more still.
+    stretch = dict(getattr(stereo, "guided_failed", ())).get(feature.id)
+    if stretch and all("found as part of a longer edge" in f for f in found):
+        return f"its own stretch of a longer straight edge was found in both images, but not measured: {stretch}"
     return "; ".join(found) if found else "seen in both images but not matched to the CAD model"
 
 

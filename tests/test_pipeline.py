@@ -236,13 +236,22 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
     along = np.c_[np.linspace(-9.0, -1.0, 40), np.full(40, 5.0), np.full(40, 400.0)]
     assert reason(elsewhere, owned, edge_points=np.vstack([elsewhere, along])).startswith(
         "left image: edge points found along it, but too few of them clear of the edges meeting it at its ends")
-    # Its own stretch found in both images but not measured: that is what it says.
-    left, right = image(longer)
-    stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]), right=SimpleNamespace(noise=2.0, features=[right]),
-                             guided_failed=(("line-3", "x"), ("line-9", "y")))
+    # Its own stretch found in both images but not measured: that is what it says, rather
+    # than "found as part of a longer edge"; a reason of its own image features comes first.
     vis = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (60.0, 55.0))
-    assert _unmeasured_reason(edge, vis, rig, pose, stereo, {}, owned) == (
-        "its own stretch of a longer straight edge was found in both images, but not measured: y")
+
+    def with_stretch(points, unmatched):
+        left, right = image(points)
+        stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]),
+                                 right=SimpleNamespace(noise=2.0, features=[right]),
+                                 guided_failed=(("line-3", "x"), ("line-9", "its stretch runs 2.0 deg from ...")))
+        return _unmeasured_reason(edge, vis, rig, pose, stereo, unmatched, {})
+
+    assert with_stretch(longer, {}) == ("its own stretch of a longer straight edge was found in both images, "
+                                        "but not measured: its stretch runs 2.0 deg from ...")
+    own = np.c_[np.linspace(-10.0, 0.0, 100), np.full(100, 5.0), np.full(100, 400.0)]
+    assert with_stretch(own, {("left", 0): "line nearly parallel", ("right", 0): "line nearly parallel"}) == (
+        "left image: line nearly parallel; right image: line nearly parallel")
 
 
 @pytest.fixture(scope="module")
