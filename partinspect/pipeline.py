@@ -193,13 +193,15 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     def settle(stereo, registration):
         progress("checking which edges the cameras see")
         seen = visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
-        cleared, ends = cleared_stereo(stereo, registration, seen, inv, calib)
+        cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib)
         more, found = guided_stereo(cleared, registration, seen, inv, calib)
-        if not found and not ends:
+        if not found and not ends and not withdrawn:
             # ``more`` is ``stereo`` with the stretches found but not measured, if any.
             return more, registration, seen
         if ends:
             progress(f"{len(ends)} line(s) fitted again clear of the edges at their ends")
+        if withdrawn:
+            progress(f"{len(withdrawn)} line(s) taken out: another edge's image paired with theirs")
         if found:
             progress(f"measuring {len(found)} edge(s) on their stretches of longer image lines")
         try:
@@ -381,18 +383,32 @@ def cleared_stereo(stereo, registration, seen, inv, calib):
     only the edges it sees; None to take every edge (more points left out
     near hidden edges' images, never fewer).
 
+    A line that disagrees with the pose the other features give (a
+    registration outlier) and all of whose points in one image lie on
+    another edge's image is taken out, with the reason: that image's
+    feature is the other edge's, paired with this one's in the other
+    image (a face seen nearly edge-on puts two edges on one image line;
+    on a stress render two such lines read chi-square 1366 and 11279
+    against the pose, and their straightness was that of a line between
+    two edges).
+
     Returns
     -------
     stereo : StereoResult
+        ``withdrawn`` holds the lines taken out and why.
     cleared : dict of str to (int, int)
         CAD id -> points left out in the left and the right image.
+    withdrawn : dict of str to str
+        CAD id -> why its line was taken out.
     """
+    from dataclasses import replace
+
     from partinspect.vision.guided import clear_line_ends
 
     at = [k for k, f in enumerate(stereo.features) if f.kind == "line"]
     lines = {at[i]: cid for i, cid in registration.assignment["line"].items()}
     if not lines:
-        return stereo, {}
+        return stereo, {}, {}
     images = {}
     for f in inv.features:
         shown = (1.0, 1.0) if seen is None else seen[f.id].seen
@@ -400,7 +416,20 @@ def cleared_stereo(stereo, registration, seen, inv, calib):
             continue
         pair = curve_images(f, registration.part_to_camera, calib)
         images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(pair, shown))
-    return clear_line_ends(stereo, calib, lines, images)
+    stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)
+    withdrawn = {}
+    for cid, (side, other) in covered.items():
+        if cid in registration.outliers and other is not None:
+            c2, n = registration.outliers[cid]
+            withdrawn[cid] = (f"its points in the {side} image all lie on the image of {other}, and its 3D line "
+                              f"disagreed with the pose the other features give (chi-square {c2:.0f} over {n} "
+                              f"residuals): {other}'s image paired with its own in the other image")
+    if not withdrawn:
+        return stereo, cleared, {}
+    gone = {k for k, cid in lines.items() if cid in withdrawn}
+    stereo = replace(stereo, features=tuple(f for k, f in enumerate(stereo.features) if k not in gone),
+                     withdrawn=tuple(withdrawn.items()))
+    return stereo, cleared, withdrawn
 
 
 def guided_stereo(stereo, registration, seen, inv, calib):
@@ -674,6 +703,9 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
     # Its own stretch of a longer image line found but not measured says more
     # than "found as part of a longer edge"; a reason the matching gave an
     # image feature of its own (along the epipolar lines, say) says more still.
+    withdrawn = dict(getattr(stereo, "withdrawn", ())).get(feature.id)
+    if withdrawn:
+        return f"measured, then taken out: {withdrawn}"
     stretch = dict(getattr(stereo, "guided_failed", ())).get(feature.id)
     if stretch and all("found as part of a longer edge" in f for f in found):
         return f"its own stretch of a longer straight edge was found in both images, but not measured: {stretch}"

@@ -10,6 +10,9 @@ ground truth), each inspected once by the whole run:
 - *border*: the plate at the usual 45 degree view but shifted left and
   nearer, so that some edges fall inside the left image only and others
   are cut by the image border.
+- *edge-on face* (1224 x 1024 px): a stress-run pose of the plate in
+  which its 10 mm end faces are seen nearly edge-on, so that in one image
+  two of their edges lie on one image line.
 - *shallow*: the plate from 30 degrees, rolled so that three of its edges
   along x run 8.8 to 9.5 degrees from the epipolar lines in the right
   image: just outside the matcher's gate, so measurable, with a depth
@@ -312,3 +315,47 @@ def test_matching_names_an_edge_on_circle_in_both_images():
     why = {(u.side, u.feature): u for u in m.unmatched}
     assert why[("left", 0)].reason == "edge_on" and "axis ratio 0.1" in why[("left", 0)].detail
     assert why[("right", 0)].reason == "edge_on" and "counterpart in the left image" in why[("right", 0)].detail
+
+
+@pytest.fixture(scope="module")
+def edge_on_face(tmp_path_factory):
+    from partinspect.cad.step import load_step
+    from partinspect.pipeline import run_inspection
+    from partinspect.simulate.folder import render_to_folder
+    from partinspect.simulate.pose import bounds_of, view_rotation
+    from partinspect.simulate.rig import default_rig, fixation_point
+
+    step = Path(__file__).resolve().parents[1] / "examples" / "plate" / "part.step"
+    size = (1224, 1024)
+    P = np.eye(4)
+    P[:3, :3] = view_rotation(*np.deg2rad([51.848, 97.123, -41.312]))
+    P[:3, 3] = fixation_point(default_rig(size)) + [-7.736, 5.012, 24.765] - P[:3, :3] @ bounds_of(load_step(step)).mean(axis=0)
+    folder = tmp_path_factory.mktemp("edge_on_face")
+    render_to_folder(step, folder / "render", pose=P, noise=2.69, seed=1, image_size=size, distortion=True)
+    result = run_inspection(step, folder / "render" / "images", folder / "inspection")
+    return Run(folder / "render", result.report)
+
+
+def test_a_line_paired_with_another_edges_image_is_taken_out_and_says_why(edge_on_face):
+    """Two edges of a face seen nearly edge-on lie on one line in the left image; a CAD edge's
+    3D line made of that image line and its own right-image line disagreed with the pose
+    (chi-square 1366 on the stress render) and its straightness was reported as measured. Now
+    it is taken out, named, and the edge it was confused with is the one whose image truly
+    lies along it."""
+    from partinspect.cad.registration import pose_error
+
+    run = edge_on_face
+    taken = {fid: f["reason"] for fid, f in run.features.items()
+             if f["measured"] is None and f["reason"].startswith("measured, then taken out")}
+    assert taken, {fid: f.get("reason") for fid, f in run.features.items() if f["measured"] is None}
+    for fid, reason in taken.items():
+        assert_never_decided(run, fid)
+        other = reason.split("all lie on the image of ")[1].split(",")[0]
+        side = 0 if "in the left image" in reason else 1
+        # In that image the two CAD edges' images run within a few pixels of each other.
+        mine, theirs = run.image_points(fid)[side], run.image_points(other)[side]
+        gap = np.min(np.linalg.norm(mine[:, None] - theirs[None], axis=2), axis=1)
+        assert np.median(gap) < 4.0, (fid, other, np.median(gap))
+    reg = run.report["registration"]
+    e = pose_error(np.asarray(reg["part_to_camera"]), run.P)
+    assert e @ np.linalg.solve(np.asarray(reg["pose_covariance"]), e) < 12.59

@@ -249,6 +249,11 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
 
     assert with_stretch(longer, {}) == ("its own stretch of a longer straight edge was found in both images, "
                                         "but not measured: its stretch runs 2.0 deg from ...")
+    left, right = image(longer)
+    taken = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]), right=SimpleNamespace(noise=2.0, features=[right]),
+                            withdrawn=(("line-9", "its points in the left image all lie on the image of line-3"),))
+    assert _unmeasured_reason(edge, vis, rig, pose, taken, {}, {}) == (
+        "measured, then taken out: its points in the left image all lie on the image of line-3")
     own = np.c_[np.linspace(-10.0, 0.0, 100), np.full(100, 5.0), np.full(100, 400.0)]
     assert with_stretch(own, {("left", 0): "line nearly parallel", ("right", 0): "line nearly parallel"}) == (
         "left image: line nearly parallel; right image: line nearly parallel")

@@ -175,9 +175,9 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
     # As inspect does: lines clear of the other edges at their ends (of every
     # edge's image here, hidden ones too: this check has no visibility), and
     # edges in line with others measured on their own stretches.
-    cleared, ends = cleared_stereo(res, reg, None, inventory, calib)
+    cleared, ends, withdrawn = cleared_stereo(res, reg, None, inventory, calib)
     more, found = guided_stereo(cleared, reg, None, inventory, calib)
-    if found or ends:
+    if found or ends or withdrawn:
         res, reg = more, registered(more, reg.part_to_camera)
     parts = reg.features_in_part_frame()
     evs = [evaluate_characteristic(c, parts, reg, inventory, seed=seed) for c in characteristics]

@@ -150,6 +150,18 @@ class _Crowd:
         near = self.tree.query_ball_point(uv, reach)
         return np.array([not np.any(self.owner[n] != k) for n in near], bool)
 
+    def nearest_other(self, uv, cid):
+        """The edge other than ``cid`` whose image lies nearest to most of the points ``uv`` (None: no other)."""
+        k = self.ids.index(cid)
+        _, j = self.tree.query(uv, k=min(16, len(self.owner)))
+        own = self.owner[np.reshape(j, (len(uv), -1))]
+        other = own != k
+        rows = other.any(axis=1)
+        if not rows.any():
+            return None
+        first = own[rows, other[rows].argmax(axis=1)]
+        return self.ids[int(np.bincount(first).argmax())]
+
 
 def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
     """Measure expected line edges from the stretches of image lines that run along them.
@@ -289,6 +301,11 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
         indices, and their 3D lines); everything else as it was.
     cleared : dict of str to (int, int)
         Edge -> points left out in the left and the right image.
+    covered : dict of str to (str, str)
+        Edges all of whose points in one image lie near another edge's
+        image -> (that image, "left" or "right"; the other edge): the line
+        may be that edge's image paired with this one's in the other image.
+        Such a line is left as it was.
 
     Notes
     -----
@@ -303,7 +320,7 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
     crowds = [_Crowd(images, 0), _Crowd(images, 1)]
     reach = [CLEARANCE * float(np.median(res.edges.width)) if len(res.edges.width) else 0.0 for res in (L, R)]
     lefts, rights, feats = list(L.features), list(R.features), list(stereo.features)
-    cleared = {}
+    cleared, covered = {}, {}
     for k, cid in lines.items():
         f3 = stereo.features[k]
         if f3.kind != "line" or cid not in images:
@@ -316,6 +333,8 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
             bad = _end_runs(near) if near.any() else near
             kept.append(order[~bad])
             lost.append(int(bad.sum()))
+            if len(f.uv) and near.all() and cid not in covered:
+                covered[cid] = (("left", "right")[side], crowds[side].nearest_other(f.uv, cid))
         if not any(lost) or min(len(x) for x in kept) < min_points:
             continue
         # A feature added from another adaptive round carries its own filter scale.
@@ -330,9 +349,9 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
         feats[k] = replace(new, guided=f3.guided)
         cleared[cid] = tuple(lost)
     if not cleared:
-        return stereo, {}
+        return stereo, {}, covered
     return replace(stereo, left=replace(L, features=lefts), right=replace(R, features=rights),
-                   features=tuple(feats)), cleared
+                   features=tuple(feats)), cleared, covered
 
 
 def _concat(features, positions):

@@ -324,6 +324,9 @@ class StereoResult:
         CAD edges whose own stretches of longer image lines were found in
         both images but not measured, with the reason
         (:func:`partinspect.vision.guided.guided_lines`).
+    withdrawn : tuple of (str, str)
+        CAD edges whose 3D line was taken out after registration, with the
+        reason (:func:`partinspect.pipeline.cleared_stereo`).
     """
 
     left: ImageResult
@@ -334,6 +337,7 @@ class StereoResult:
     failed: tuple
     calibration_included: bool
     guided_failed: tuple = ()
+    withdrawn: tuple = ()
 
 
 @dataclass(frozen=True)

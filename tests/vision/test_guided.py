@@ -132,7 +132,8 @@ def test_line_ends_near_another_edges_image_are_left_out_and_refitted(plate_line
         i0, i1 = int(lo * len(uv)), int(hi * len(uv))
         return uv[i0:i1] + 2.0 * n, np.full((2, 2), np.nan)
 
-    out, cleared = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.0, 0.3)})
+    out, cleared, covered = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.0, 0.3)})
+    assert covered == {}
     lost_l, lost_r = cleared["edge"]
     assert lost_r == 0 and 0.25 * len(uv) < lost_l < 0.4 * len(uv)
     g = out.left.features[whole.left]
@@ -144,8 +145,11 @@ def test_line_ends_near_another_edges_image_are_left_out_and_refitted(plate_line
     assert new.kind == "line" and len(new.correspondences) < len(whole.correspondences)
     assert all(a is b for i, (a, b) in enumerate(zip(out.features, stereo.features)) if i != k)
     # Beside the middle only: nothing is taken.
-    same, none = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.35, 0.65)})
-    assert none == {} and same is stereo
+    same, none, covered = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.35, 0.65)})
+    assert none == {} and covered == {} and same is stereo
+    # Beside all of it, in the left image: left as it was, and named as covered by that edge.
+    same, none, covered = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.0, 1.0)})
+    assert none == {} and same is stereo and covered == {"edge": ("left", "faint")}
 
 
 def test_cleared_line_keeps_its_own_filter_scale(plate_lines):
@@ -166,7 +170,7 @@ def test_cleared_line_keeps_its_own_filter_scale(plate_lines):
     uv = fl.uv[np.argsort(fl.ideal.xy @ fl.fit.direction)]
     n = np.array([-fl.fit.direction[1], fl.fit.direction[0]])
     faint = (uv[: len(uv) // 4] + 2.0 * n, np.full((2, 2), np.nan))
-    out, cleared = clear_line_ends(wide, rig, {k: "edge"}, {"edge": _images(rig, whole.start, whole.end), "faint": faint})
+    out, cleared, _ = clear_line_ends(wide, rig, {k: "edge"}, {"edge": _images(rig, whole.start, whole.end), "faint": faint})
     g = out.left.features[whole.left]
     assert cleared and g.corr_length == 1.5
     ref = fit_line(g.ideal.xy, g.ideal.cov, corr_length=1.5)
