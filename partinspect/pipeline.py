@@ -193,8 +193,9 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     def settle(stereo, registration):
         progress("checking which edges the cameras see")
         seen = visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
-        cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib)
-        more, found = guided_stereo(cleared, registration, seen, inv, calib)
+        polylines = edge_polylines(inv, registration.part_to_camera, calib)
+        cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib, polylines)
+        more, found = guided_stereo(cleared, registration, seen, inv, calib, polylines)
         if not found and not ends and not withdrawn:
             # ``more`` is ``stereo`` with the stretches found but not measured, if any.
             return more, registration, seen
@@ -373,7 +374,12 @@ def curve_images(feature, part_to_camera, calib):
     return tuple(out)
 
 
-def cleared_stereo(stereo, registration, seen, inv, calib):
+def edge_polylines(inv, part_to_camera, calib):
+    """Every CAD edge's image in both cameras under a pose: id -> :func:`curve_images`."""
+    return {f.id: curve_images(f, part_to_camera, calib) for f in inv.features}
+
+
+def cleared_stereo(stereo, registration, seen, inv, calib, polylines=None):
     """``stereo`` with its registered lines fitted again clear of the other edges' images at their ends.
 
     Under the registered pose every CAD edge's image is known, faint ones
@@ -381,7 +387,8 @@ def cleared_stereo(stereo, registration, seen, inv, calib):
     points of its own (:func:`partinspect.vision.guided.clear_line_ends`).
     ``seen``: the visibility of each CAD feature, to take in each image
     only the edges it sees; None to take every edge (more points left out
-    near hidden edges' images, never fewer).
+    near hidden edges' images, never fewer). ``polylines``:
+    :func:`edge_polylines` at the registered pose, if already made.
 
     A line that disagrees with the pose the other features give (a
     registration outlier) and all of whose points in one image lie on
@@ -409,13 +416,12 @@ def cleared_stereo(stereo, registration, seen, inv, calib):
     lines = {at[i]: cid for i, cid in registration.assignment["line"].items()}
     if not lines:
         return stereo, {}, {}
+    polylines = polylines or edge_polylines(inv, registration.part_to_camera, calib)
     images = {}
     for f in inv.features:
         shown = (1.0, 1.0) if seen is None else seen[f.id].seen
-        if max(shown) <= 0:
-            continue
-        pair = curve_images(f, registration.part_to_camera, calib)
-        images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(pair, shown))
+        if max(shown) > 0:
+            images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(polylines[f.id], shown))
     stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)
     withdrawn = {}
     for cid, (side, other) in covered.items():
@@ -432,7 +438,7 @@ def cleared_stereo(stereo, registration, seen, inv, calib):
     return stereo, cleared, withdrawn
 
 
-def guided_stereo(stereo, registration, seen, inv, calib):
+def guided_stereo(stereo, registration, seen, inv, calib, polylines=None):
     """``stereo`` with the unmeasured line edges in view measured on their stretches of longer image lines.
 
     Collinear edges of a part merge into one line in each image, whose 3D
@@ -442,7 +448,8 @@ def guided_stereo(stereo, registration, seen, inv, calib):
     visibility of each CAD feature (:func:`partinspect.cad.visibility.visibility`),
     or None to look for every unmeasured line edge: a hidden one takes no
     points where a seen edge's image runs near its own (every line edge's
-    image is given to ``guided_lines`` to keep them apart).
+    image is given to ``guided_lines`` to keep them apart). ``polylines``:
+    :func:`edge_polylines` at the registered pose, if already made.
 
     Returns
     -------
@@ -458,7 +465,8 @@ def guided_stereo(stereo, registration, seen, inv, calib):
     if not todo:
         return stereo, {}
     # Every line edge's image, hidden ones too: a point near two edges' images is either's.
-    others = {f.id: edge_images(f, registration.part_to_camera, calib) for f in inv.features if f.kind == "line"}
+    polylines = polylines or edge_polylines(inv, registration.part_to_camera, calib)
+    others = {f.id: polylines[f.id] for f in inv.features if f.kind == "line"}
     expected = {f.id: others[f.id] for f in todo}
     more, found, _ = guided_lines(stereo, calib, expected, set(_image_owners(stereo, registration)), others=others)
     return more, found
@@ -661,6 +669,9 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
         return (f"in view, but with too little grey-level step across it to be detected ({vis.contrast[0]:.0f} and "
                 f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): "
                 "its two faces look alike under this lighting")
+    withdrawn = dict(getattr(stereo, "withdrawn", ())).get(feature.id)
+    if withdrawn:
+        return f"measured, then taken out: {withdrawn}"
     from scipy.spatial import cKDTree
 
     from partinspect.simulate.truth import feature_geometry, sample_edge
@@ -668,7 +679,7 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
 
     pts, _ = sample_edge(feature.kind, feature_geometry(feature))
     R, t = pose[:3, :3], pose[:3, 3]
-    found = []
+    found, longer_sides = [], 0
     for side, K, D, Rc, tc in (("left", calib.K1, calib.D1, np.eye(3), np.zeros(3)), ("right", calib.K2, calib.D2, calib.R, calib.T)):
         uv = project_points(pts @ R.T + t, K, D, Rc, tc)
         tree = cKDTree(uv[np.isfinite(uv).all(axis=1)])
@@ -691,6 +702,7 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
                 else:
                     fate = "which matched no single CAD edge"
                 found.append(f"{side} image: found as part of a longer edge that runs on past it, {fate}")
+                longer_sides += 1
             elif _edge_points_along(stereo.left if side == "left" else stereo.right, uv[ok], lo, hi):
                 length = float(np.sum(np.linalg.norm(np.diff(uv[ok], axis=0), axis=1)))
                 why = ("too few of them clear of the edges meeting it at its ends for a line fit"
@@ -703,11 +715,8 @@ def _unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, own
     # Its own stretch of a longer image line found but not measured says more
     # than "found as part of a longer edge"; a reason the matching gave an
     # image feature of its own (along the epipolar lines, say) says more still.
-    withdrawn = dict(getattr(stereo, "withdrawn", ())).get(feature.id)
-    if withdrawn:
-        return f"measured, then taken out: {withdrawn}"
     stretch = dict(getattr(stereo, "guided_failed", ())).get(feature.id)
-    if stretch and all("found as part of a longer edge" in f for f in found):
+    if stretch and longer_sides == len(found):
         return f"its own stretch of a longer straight edge was found in both images, but not measured: {stretch}"
     return "; ".join(found) if found else "seen in both images but not matched to the CAD model"
 

@@ -837,11 +837,8 @@ def _off_line(edges, piece, fit, fitted, k=OFF_LINE_Z):
         Edge point indices.
     """
     rest = piece[~np.isin(piece, fitted)]
-    if len(rest) == 0:
-        return rest
-    n = np.asarray(fit.params[:2], float)
-    n = n / np.hypot(*n)
-    sd = np.sqrt(np.einsum("i,nij,j->n", n, edges.cov[rest], n))
+    # (A, B) of the line's Hesse normal form is its unit normal.
+    sd = _normal_std(edges.cov[rest], np.asarray(fit.params[:2], float))
     return rest[np.abs(_model_residuals("line", fit, edges.xy[rest])) > k * sd]
 
 

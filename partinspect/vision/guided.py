@@ -330,7 +330,7 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
             f = res.features[f3.left if side == 0 else f3.right]
             order = np.argsort(f.ideal.xy @ f.fit.direction, kind="stable")
             near = ~crowds[side].clear_of_others(f.uv[order], cid, reach[side])
-            bad = _end_runs(near) if near.any() else near
+            bad = _end_runs(near)
             kept.append(order[~bad])
             lost.append(int(bad.sum()))
             if len(f.uv) and near.all() and cid not in covered:
