@@ -15,7 +15,9 @@ right features are then paired:
   rises in the same sense along the epipolar lines, or for arcs on the same
   side of the ellipse; not compared for an arc merged from pieces of
   opposite polarity); for arcs, the same 3D radius once each ellipse's
-  size is scaled by its depth (centres triangulated); for lines, similar
+  size is scaled by its depth (centres triangulated), to within what the
+  two ellipse fits leave uncertain (a short arc's size is known to a few
+  per cent only); for lines, similar
   angles to the epipolar lines and a triangulated middle in front of both
   cameras;
 - a one-to-one assignment (Hungarian algorithm) minimises the summed cost,
@@ -104,6 +106,26 @@ MIN_AXIS_RATIO = 0.2
 """Arcs whose fitted ellipse has a minor/major axis ratio below this (in
 either image) are "edge-on": the circle is seen more than arccos 0.2 = 78.5
 degrees off its axis. See the module notes for the evidence."""
+RADIUS_COVERAGE = 2.0
+"""Coverage factor on the standard uncertainty of ``log(r_left / r_right)``
+that two arcs' ellipse fits leave: the ratio's tolerance in the matching
+cost is ``radius_tolerance`` widened in quadrature by this many standard
+uncertainties (:func:`_radius_scale`). A short arc's semi-major axis is
+uncertain by several per cent: the plate's 12 mm hole's bottom rim, a
+quarter of it seen through the hole (bench_plan's default pose), 5-8 % in
+the left image and 2 % in the right, and its two views' radii disagreed by
+more than the fixed 10 % in 12 of 50 noise draws, which left it unmatched
+("features in its band disagree in ... size")."""
+RADIUS_WIDENING_MAX = 2.0
+"""The widened tolerance never exceeds this many times ``radius_tolerance``
+(a 20 % disagreement costs 1): the radius is the only shape an arc is
+matched by besides its band, and an arc too short to tell its radius
+within that would be paired on its band alone, where arcs of neighbouring
+holes overlap. Such arcs are left unmatched as before, with the reason.
+(The 25-point sliver of a rim at the right image's border in the
+degenerate-geometry tests, its ellipse's semi-major axis uncertain by
+16 %, 18 % off the left image's radius, is one: matched, its circularity
+over that sliver read 2.4 of its u.)"""
 
 REASONS = {
     "too_short": "too few edge points to be measured",
@@ -930,6 +952,24 @@ def arc_circle(geo, fl, fr):
     return X, (rl, rr), (zl, zr)
 
 
+def _radius_scale(fl, fr, tolerance):
+    """Scale of ``|log(r_left / r_right)|`` in the cost of a pair of arcs.
+
+    ``tolerance`` and ``RADIUS_COVERAGE`` times the standard uncertainty of
+    the log-ratio in quadrature, at most ``RADIUS_WIDENING_MAX`` times
+    ``tolerance``. The ratio's uncertainty is that of the two
+    semi-major axes (independent images; JCGM 100, 5.1.2), read from each
+    ellipse fit's covariance; the centre's depth scales both radii alike
+    and drops out of their ratio. A fit without a covariance adds nothing.
+    """
+    var = 0.0
+    for f in (fl, fr):
+        cov = getattr(f.fit, "cov", None)
+        if cov is not None and f.fit.params[2] > 0:
+            var += float(cov[2, 2]) / float(f.fit.params[2]) ** 2
+    return float(min(np.hypot(tolerance, RADIUS_COVERAGE * np.sqrt(var)), RADIUS_WIDENING_MAX * tolerance))
+
+
 def _line_middle_depth(geo, fl, fr, lo, hi):
     """Depths (left, right) of the triangulated point of the two lines at band offset (lo + hi) / 2."""
     t = 0.5 * (lo + hi)
@@ -976,7 +1016,9 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
         pair to be a candidate.
     radius_tolerance : float
         Arcs: scale of ``|log(r_left / r_right)|`` in the cost, the 3D radii
-        seen by each view (a 10 % disagreement costs 1).
+        seen by each view (a 10 % disagreement costs 1), for exactly
+        determined ellipses; widened by what the two fits leave uncertain
+        (:data:`RADIUS_COVERAGE`, :func:`_radius_scale`).
     angle_tolerance : float
         Lines: scale of the difference of the signed angles to the epipolar
         lines in the cost, rad.
@@ -1057,7 +1099,7 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
                 _, (rl, rr), (zl, zr) = arc_circle(geo, fl, fr)
                 if not (zmin < zl < zmax and zmin < zr < zmax) or rl <= 0 or rr <= 0:
                     continue
-                s = abs(np.log(rl / rr)) / radius_tolerance
+                s = abs(np.log(rl / rr)) / _radius_scale(fl, fr, radius_tolerance)
             else:
                 zl, zr = _line_middle_depth(geo, fl, fr, max(lo_i, lo_j), min(hi_i, hi_j))
                 if not (zmin < zl < zmax and zmin < zr < zmax):

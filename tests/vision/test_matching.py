@@ -89,6 +89,34 @@ def test_kind_mismatch_and_polarity_are_reported(scene):
     assert not m.matches and m.unmatched[0].reason == "shape_mismatch"
 
 
+def test_radii_of_short_arcs_are_judged_against_what_their_fits_leave_uncertain():
+    # The same hole's rim, its radius 12 % larger in the right image: whole
+    # rims disagree beyond doubt, quarter rims (whose ellipses leave the
+    # semi-major axis uncertain by about 6 % at this noise) do not; a
+    # gross disagreement stays one, and so does 18 % on a rim so short that
+    # its radius tells nothing (the widening stops at 20 %).
+    geo = epipolar_geometry(RIG)
+    centre, normal = [15, 5, 395], [0.2, -0.5, -0.8]
+
+    def pair(r_right, n):
+        return ([feature("arc", circle(centre, normal, 5.0, 240)[:n], P1)],
+                [feature("arc", circle(centre, normal, r_right, 240)[:n], P2)])
+
+    def rejected(m):
+        return not m.matches and {u.reason for u in m.unmatched} == {"shape_mismatch"}
+
+    assert rejected(match_features(*pair(5.6, 240), geo))
+    left, right = pair(5.6, 60)
+    assert 0.04 < np.sqrt(left[0].fit.cov[2, 2]) / left[0].fit.params[2] < 0.08
+    short = match_features(left, right, geo)
+    assert [(x.left, x.right) for x in short.matches] == [(0, 0)]
+    assert short.matches[0].shape_cost < 1.0
+    assert rejected(match_features(*pair(8.0, 60), geo))
+    left, right = pair(5.9, 40)
+    assert np.sqrt(left[0].fit.cov[2, 2]) / left[0].fit.params[2] > 0.2
+    assert rejected(match_features(left, right, geo))
+
+
 def test_every_feature_is_matched_or_explained(scene):
     left, right = scene
     m = match_features(left, right, epipolar_geometry(RIG))
