@@ -113,9 +113,10 @@ cost is ``radius_tolerance`` widened in quadrature by this many standard
 uncertainties (:func:`_radius_scale`). A short arc's semi-major axis is
 uncertain by several per cent: the plate's 12 mm hole's bottom rim, a
 quarter of it seen through the hole (bench_plan's default pose), 5-8 % in
-the left image and 2 % in the right, and its two views' radii disagreed by
-more than the fixed 10 % in 12 of 50 noise draws, which left it unmatched
-("features in its band disagree in ... size")."""
+the left image and 2 % in the right. It went unmatched in 12 of 50 noise
+draws (the four looked at: "features in its band disagree in ... size",
+the two views' radii 7.5-12 % apart, which with their bands' partial
+overlap cost more than ``max_cost``); in 4 of 50 with this widening."""
 RADIUS_WIDENING_MAX = 2.0
 """The widened tolerance never exceeds this many times ``radius_tolerance``
 (a 20 % disagreement costs 1): the radius is the only shape an arc is
