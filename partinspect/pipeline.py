@@ -193,9 +193,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     def settle(stereo, registration):
         progress("checking which edges the cameras see")
         seen = visibility(shape, inv, calib, registration.part_to_camera, images=(left, right))
-        polylines = edge_polylines(inv, registration.part_to_camera, calib)
-        cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib, polylines)
-        more, found = guided_stereo(cleared, registration, seen, inv, calib, polylines)
+        more, found, ends, withdrawn = posed_stereo(stereo, registration, seen, inv, calib)
         if not found and not ends and not withdrawn:
             # ``more`` is ``stereo`` with the stretches found but not measured, if any.
             return more, registration, seen
@@ -377,6 +375,26 @@ def curve_images(feature, part_to_camera, calib):
 def edge_polylines(inv, part_to_camera, calib):
     """Every CAD edge's image in both cameras under a pose: id -> :func:`curve_images`."""
     return {f.id: curve_images(f, part_to_camera, calib) for f in inv.features}
+
+
+def posed_stereo(stereo, registration, seen, inv, calib):
+    """What the registered pose adds to ``stereo``: :func:`cleared_stereo`, then :func:`guided_stereo`.
+
+    Every CAD edge's image is projected once (:func:`edge_polylines`) for
+    both. ``seen`` as theirs.
+
+    Returns
+    -------
+    stereo : StereoResult
+    found : dict of str to int
+        Of :func:`guided_stereo`.
+    cleared, withdrawn : dict
+        Of :func:`cleared_stereo`.
+    """
+    polylines = edge_polylines(inv, registration.part_to_camera, calib)
+    cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib, polylines)
+    more, found = guided_stereo(cleared, registration, seen, inv, calib, polylines)
+    return more, found, ends, withdrawn
 
 
 def cleared_stereo(stereo, registration, seen, inv, calib, polylines=None):

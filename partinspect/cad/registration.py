@@ -827,20 +827,21 @@ _SCORE_BATCH = 150_000
 elements in its largest arrays (B x m x K x 3 for the circles, B x n x L
 for the lines' directions). Small
 batches stay in the CPU's cache: on NIST ftc_09 (23 measured circles and
-15 lines against 126 and 162 CAD ones) 3000 poses took 0.56 s in batches
-of 16, 0.68 s of 32 and 0.81 s of 256, and 0.91 s one at a time."""
+15 lines against 126 and 162 CAD ones) 3000 poses took 0.60 s in batches
+of 16, 0.70 s of 32 and 0.77 s of 256, and 0.91-0.98 s one at a time."""
 
 
-def _scores(meas, cad, hyps, gate=MATCH_GATE):
+def _scores(meas, cad, hyps, gate=MATCH_GATE, batch=None):
     """Matched features and cost of each hypothesis (R, t): what :func:`_match` gives, many poses at once.
 
     The candidates of a batch of poses are one array operation: the
     search scores tens of thousands of poses on a part with hundreds of
     edges (51720 in one inspection of a NIST ftc_09 render, 27 s of its
-    42 s one pose at a time).
+    42 s one pose at a time). ``batch``: poses per batch (default: by
+    ``_SCORE_BATCH``).
     """
     per_pose = max(1, len(meas.lengths) * len(cad.lengths), 3 * len(meas.radii) * len(cad.radii))
-    step = max(1, _SCORE_BATCH // per_pose)
+    step = batch or max(1, _SCORE_BATCH // per_pose)
     out = []
     for a in range(0, len(hyps), step):
         R = np.array([h[0] for h in hyps[a:a + step]], float)

@@ -162,7 +162,7 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
         image features the chain matched (how much of the edge it kept).
     """
     from partinspect.cad.registration import register
-    from partinspect.pipeline import cleared_stereo, edge_polylines, guided_stereo
+    from partinspect.pipeline import posed_stereo
     from partinspect.tolerances.evaluate import evaluate_characteristic
     from partinspect.vision.stereo import measure_stereo
 
@@ -175,9 +175,7 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
     # As inspect does: lines clear of the other edges at their ends (of every
     # edge's image here, hidden ones too: this check has no visibility), and
     # edges in line with others measured on their own stretches.
-    polylines = edge_polylines(inventory, reg.part_to_camera, calib)
-    cleared, ends, withdrawn = cleared_stereo(res, reg, None, inventory, calib, polylines)
-    more, found = guided_stereo(cleared, reg, None, inventory, calib, polylines)
+    more, found, ends, withdrawn = posed_stereo(res, reg, None, inventory, calib)
     if found or ends or withdrawn:
         res, reg = more, registered(more, reg.part_to_camera)
     parts = reg.features_in_part_frame()

@@ -54,7 +54,7 @@ def test_recovers_pose_and_assignment(scene):
     assert set(reg.datums) == set(ids)
 
 
-def test_poses_scored_together_score_as_one_at_a_time(scene, monkeypatch):
+def test_poses_scored_together_score_as_one_at_a_time(scene):
     # The search scores its hypotheses in batches; each pose's matches and
     # cost are those of matching it alone, whichever batch it falls in.
     from partinspect.cad import registration as reg_mod
@@ -68,9 +68,7 @@ def test_poses_scored_together_score_as_one_at_a_time(scene, monkeypatch):
     for R, t in hyps:
         circ, lin, cost = reg_mod._match(meas, cad, R, t)
         one.append((len(circ) + len(lin), cost))
-    per_pose = max(len(meas.lengths) * len(cad.lengths), 3 * len(meas.radii) * len(cad.radii))
-    monkeypatch.setattr(reg_mod, "_SCORE_BATCH", 7 * per_pose)  # batches of 7, the last one short
-    batched = reg_mod._scores(meas, cad, hyps)
+    batched = reg_mod._scores(meas, cad, hyps, batch=7)
     assert [n for n, _ in batched] == [n for n, _ in one]
     assert np.allclose([c for _, c in batched], [c for _, c in one], rtol=1e-12, atol=0)
     # The true pose is among the best scored, with every feature matched.
