@@ -782,10 +782,9 @@ def _curve_3d(f, n=96):
     """Points along a measured Feature3D (rig frame, mm) for drawing."""
     if f.kind == "line":
         return f.start + np.linspace(0.0, 1.0, n)[:, None] * (f.end - f.start)
-    from partinspect.cad.features import reference_direction
+    from partinspect.frames import orthonormal_frame
 
-    e1 = reference_direction(f.normal)
-    e2 = np.cross(f.normal, e1)
+    e1, e2, _ = orthonormal_frame(f.normal)
     a = np.linspace(f.angle_start, f.angle_end, n)
     return f.center + f.radius * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
 

@@ -67,6 +67,8 @@ from typing import Mapping
 
 import numpy as np
 
+from partinspect.frames import orthonormal_frame
+
 __all__ = [
     "AmbiguousFeatureError",
     "FaceInfo",
@@ -77,7 +79,6 @@ __all__ = [
     "inventory",
     "nearest_feature",
     "occ_edges",
-    "reference_direction",
 ]
 
 LENGTH_TOL = 1e-6  # mm: positions, lengths and radii equal within this are equal
@@ -246,7 +247,7 @@ class Feature:
         """
         if self.kind == "line":
             raise AttributeError(f"{self.id} is a line, it has no circle frame")
-        return _circle_frame(self.normal)
+        return orthonormal_frame(self.normal)
 
     def to_dict(self):
         d = {"id": self.id, "kind": self.kind, "length": float(self.length), "faces": list(self.faces)}
@@ -350,28 +351,6 @@ def canonical_direction(v):
         if abs(c) > 1e-9:
             return v if c > 0 else -v
     return v
-
-
-def reference_direction(normal):
-    """The x axis of a circle's own frame, from its normal alone.
-
-    Parameters
-    ----------
-    normal : array_like, shape (3,)
-        Unit normal of the circle's plane.
-
-    Returns
-    -------
-    ndarray, shape (3,)
-        The world x axis projected into the plane and normalised; the world
-        y axis instead when ``|normal[0]| > 0.9``, where the projection of x
-        would be short and ill-conditioned.
-    """
-    n = np.asarray(normal, dtype=float)
-    n = n / np.linalg.norm(n)
-    e = np.array([1.0, 0.0, 0.0]) if abs(n[0]) <= 0.9 else np.array([0.0, 1.0, 0.0])
-    x = e - (e @ n) * n
-    return x / np.linalg.norm(x)
 
 
 def inventory(shape):
@@ -681,7 +660,7 @@ def _circle_record(curve, edge, record):
     # the sense of travel is read from points, which also covers mirrored
     # locations where the stored frame is left-handed.
     span = min(t1 - t0, 2 * math.pi)
-    x, y = _circle_frame(n)[:2]
+    x, y = orthonormal_frame(n)[:2]
     p0 = _xyz(curve.Value(t0)) - c
     p1 = _xyz(curve.Value(t0 + min(0.5 * span, 0.5 * math.pi))) - c
     ccw = np.cross(p0, p1) @ n > 0
@@ -722,7 +701,7 @@ def _circle_features(edges):
                 merged["length"] = 2 * math.pi * r
                 circles.append(merged)
             else:
-                frame = _circle_frame(n)
+                frame = orthonormal_frame(n)
                 merged.update(
                     angle_start=lo,
                     angle_end=hi,
@@ -842,7 +821,7 @@ def _distance(f, p):
         d = f.end - f.start
         t = np.clip((p - f.start) @ d / (d @ d), 0.0, 1.0)
         return float(np.linalg.norm(p - (f.start + t * d)))
-    x, y, n = _circle_frame(f.normal)
+    x, y, n = orthonormal_frame(f.normal)
     v = p - f.center
     h = v @ n
     u, w = v @ x, v @ y
@@ -859,12 +838,6 @@ def _distance(f, p):
 
 
 # --- small helpers ---------------------------------------------------------
-
-
-def _circle_frame(normal):
-    n = np.asarray(normal, dtype=float)
-    x = reference_direction(n)
-    return np.array([x, np.cross(n, x), n])
 
 
 def _on_circle(c, r, frame, angle):

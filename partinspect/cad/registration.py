@@ -88,6 +88,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from partinspect.errors import InputError
+from partinspect.frames import plane_basis
 
 __all__ = [
     "RegistrationError",
@@ -427,14 +428,6 @@ def _skew_many(v):
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
     out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
     return out
-
-
-def _basis(d):
-    """(3, 2) orthonormal basis of the plane normal to unit ``d``."""
-    a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = np.cross(d, a)
-    e1 /= np.linalg.norm(e1)
-    return np.stack([e1, np.cross(d, e1)], 1)
 
 
 def _unit(v):
@@ -867,7 +860,7 @@ class _Problem:
             rec = circles[i]
             S, L = _whitener(rec.covariance)
             n = _unit(rec.normal)
-            E = _basis(n)
+            E = plane_basis(n)
             Sn, Ln = _whitener(E.T @ axis_cov(rec) @ E)
             cc.append(cad.centers[k])
             cn.append(cad.normals[k])
@@ -886,7 +879,7 @@ class _Problem:
         for j, l in sorted(line_match.items()):
             rec = lines[j]
             d = _unit(rec.direction)
-            E = _basis(d)
+            E = plane_basis(d)
             C4 = np.zeros((4, 4))
             C4[:2, :2] = E.T @ np.asarray(rec.covariance, float) @ E
             C4[2:, 2:] = E.T @ axis_cov(rec) @ E

@@ -336,7 +336,7 @@ class PosePrediction:
 
 def _edge_function(kind, geometry):
     """(t0, t1, X(t), T(t)) of an edge: points and unit tangents, part frame."""
-    from partinspect.cad.features import reference_direction
+    from partinspect.frames import reference_direction
 
     if kind == "line":
         a, b = np.asarray(geometry["start"], float), np.asarray(geometry["end"], float)

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from partinspect.frames import plane_basis
+
 __all__ = [
     "MeasuredCircle",
     "MeasuredLine",
@@ -117,13 +119,6 @@ def _sqrt_psd(C):
     return V * np.sqrt(np.clip(w, 0, None))
 
 
-def _tangent_basis(d):
-    a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = np.cross(d, a)
-    e1 /= np.linalg.norm(e1)
-    return np.stack([e1, np.cross(d, e1)], 1)
-
-
 def measure_features(
     inventory,
     part_to_camera,
@@ -182,7 +177,7 @@ def measure_features(
             if n @ c > 0:
                 n = -n  # oriented towards the camera, as the fitter reports it
             C = ray_covariance(c, lateral, depth)
-            E = _tangent_basis(n)
+            E = plane_basis(n)
             s_n = depth / f.radius
             Ncov = s_n**2 * E @ E.T
             cm = c + _sqrt_psd(C) @ rng.standard_normal(3)
@@ -221,7 +216,7 @@ def measure_features(
                 s = (np.arange(n_points) + 0.5) / n_points
                 P = a_v + s[:, None] * (b_v - a_v)
                 if amp:
-                    side = _tangent_basis(d)[:, 0]
+                    side = plane_basis(d)[:, 0]
                     P = P + amp * np.sin(np.pi * s)[:, None] * side
                 pts, pcs = _noisy_points(P @ R.T + t, point_lateral, point_depth, rng)
             lines.append(MeasuredLine(pm, dm, C, Dc, start, end, pts, pcs))

@@ -102,11 +102,9 @@ def feature_geometry(feature):
 
 
 def _circle_axes(normal):
-    from partinspect.cad.features import reference_direction
+    from partinspect.frames import orthonormal_frame
 
-    n = np.asarray(normal, float)
-    x = reference_direction(n)
-    return x, np.cross(n, x)
+    return tuple(orthonormal_frame(normal)[:2])
 
 
 def sample_edge(kind, geometry, n=None):

@@ -350,7 +350,7 @@ def circle_profile(center, normal, radius, cov, nominal, rng, n=N_MC, n_angles=7
 
 def geometry_reference(normal):
     """A circle's in-plane x axis from its normal alone (as the CAD inventory defines it)."""
-    from partinspect.cad.features import reference_direction
+    from partinspect.frames import reference_direction
 
     return reference_direction(normal)
 

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtrc
 
+from partinspect.frames import plane_basis
 from partinspect.vision.fitting import _trR2, fit_ellipse, information_matrices
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
@@ -159,14 +160,6 @@ class Circle3D:
     chi2: float
     dof: int
     param_cov_systematic: np.ndarray | None = None
-
-
-def _basis(d):
-    """Two unit vectors completing unit ``d`` to an orthonormal frame."""
-    a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = _cross3(d, a)
-    e1 /= np.linalg.norm(e1)
-    return e1, _cross3(d, e1)
 
 
 def _cross3(a, b):
@@ -322,7 +315,7 @@ def fit_line_3d(views, point0, direction0):
     """
     d0 = np.asarray(direction0, float) / np.linalg.norm(direction0)
     c0 = np.asarray(point0, float)
-    e1, e2 = _basis(d0)
+    e1, e2 = plane_basis(d0).T
     theta, J, r = _gauss_newton(_line_residuals(views, c0, d0, e1, e2), np.zeros(4))
     cov_random, cov_sys = _covariance(views, J)
     cov = cov_random + cov_sys
@@ -360,7 +353,7 @@ def circle_image_conic(center, normal, radius, P):
         ``C[2, 2]`` is 1 when that is possible.
     """
     n = np.asarray(normal, float) / np.linalg.norm(normal)
-    u, v = _basis(n)
+    u, v = plane_basis(n).T
     H = P @ np.array([[*u, 0], [*v, 0], [*center, 1]]).T  # plane coords (x, y, 1) -> image
     Hinv = np.linalg.inv(H)
     C = Hinv.T @ np.diag([1.0, 1.0, -radius * radius]) @ Hinv
@@ -408,7 +401,7 @@ def fit_circle_3d(views, center0, normal0, radius0):
         a circle's normal sign is not observable.
     """
     n0 = np.asarray(normal0, float) / np.linalg.norm(normal0)
-    e1, e2 = _basis(n0)
+    e1, e2 = plane_basis(n0).T
     theta0 = np.r_[np.asarray(center0, float), 0.0, 0.0, float(radius0)]
     theta, J, r = _gauss_newton(_circle_residuals(views, n0, e1, e2), theta0)
     cov_random, cov_sys = _covariance(views, J)

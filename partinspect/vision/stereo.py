@@ -104,7 +104,8 @@ from partinspect.vision.edges import (BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FA
                                       edge_points)
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
-from partinspect.vision.fit3d import (View, _basis, _circle_residuals, _line_residuals, circle_consistency,
+from partinspect.frames import orthonormal_frame, plane_basis
+from partinspect.vision.fit3d import (View, _circle_residuals, _line_residuals, circle_consistency,
                                       fit_circle_3d, fit_line_3d)
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.matching import (MAX_OUTLIER_FRACTION, ImageFeature, arc_circle, chauvenet_z, epipolar_geometry,
@@ -211,7 +212,7 @@ class Feature3D:
         Circles and arcs: angular extent of the edge points of either image
         (back-projected onto the fitted circle's plane), rad,
         counter-clockwise about ``normal`` from
-        ``partinspect.cad.features.reference_direction(normal)``; 0 and 2 pi
+        ``partinspect.frames.reference_direction(normal)``; 0 and 2 pi
         for a circle.
     covariance : ndarray, shape (3, 3)
         Covariance of ``center`` (circles) or ``point`` (lines), mm^2,
@@ -647,10 +648,7 @@ def fit_feature(fl, fr, views, points, geo):
 
 
 def _angular_extent(points, center, normal):
-    from partinspect.cad.features import reference_direction
-
-    x = reference_direction(normal)
-    y = np.cross(normal, x)
+    x, y, _ = orthonormal_frame(normal)
     q = points - center
     ang = np.sort(np.mod(np.arctan2(q @ y, q @ x), 2 * np.pi))
     gaps = np.diff(np.r_[ang, ang[0] + 2 * np.pi])
@@ -707,14 +705,14 @@ def _minimal_residuals(fit, kind, views):
     """Residual function of the fit3d parametrisation centred on the solution, and its map to params."""
     if kind == "line":
         d0 = fit.direction
-        e1, e2 = _basis(d0)
+        e1, e2 = plane_basis(d0).T
         res = _line_residuals(views, fit.point, d0, e1, e2)
         theta0 = np.zeros(4)
         M = np.zeros((6, 4))
         M[:3, 0], M[:3, 1], M[3:, 2], M[3:, 3] = e1, e2, e1, e2
     else:
         n0 = fit.normal
-        e1, e2 = _basis(n0)
+        e1, e2 = plane_basis(n0).T
         res = _circle_residuals(views, n0, e1, e2)
         theta0 = np.r_[fit.center, 0.0, 0.0, fit.radius]
         M = np.zeros((7, 6))
@@ -785,7 +783,7 @@ def _image_param_cov(fit, kind):
         C[:3, :3] = fit.covariance
         C[3:, 3:] = fit.direction_cov
         d0 = fit.direction
-        e1, e2 = _basis(d0)
+        e1, e2 = plane_basis(d0).T
         # Cross terms from the 4x4 minimal covariance (same basis as fit3d's to first order).
         E = np.stack([e1, e2], 1)
         C[:3, 3:] = E @ fit.param_cov[:2, 2:] @ E.T

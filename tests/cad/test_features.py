@@ -11,8 +11,8 @@ from partinspect.cad.features import (
     inventory,
     nearest_feature,
     occ_edges,
-    reference_direction,
 )
+from partinspect.frames import reference_direction
 from partinspect.cad.step import load_step, save_step
 
 from .conftest import nist_files

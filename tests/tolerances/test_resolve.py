@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from partinspect.cad.features import Feature, Inventory, reference_direction
+from partinspect.cad.features import Feature, Inventory
+from partinspect.frames import reference_direction
 from partinspect.errors import InputError
 from partinspect.tolerances.geometry import feature_distance, line_angle
 from partinspect.tolerances.resolve import (

@@ -6,7 +6,8 @@ import pytest
 
 from partinspect.vision import _kernels, noise
 from partinspect.vision.correspondences import intersect_ellipse, intersect_line
-from partinspect.vision.fit3d import _basis, circle_image_conic
+from partinspect.frames import plane_basis
+from partinspect.vision.fit3d import circle_image_conic
 from partinspect.vision.fitting import (
     _ellipse_with_covariance,
     _EllipseJob,
@@ -113,7 +114,7 @@ def test_compiled_circle_residuals_match_the_conics_one_by_one():
     rng = np.random.default_rng(4)
     P = np.c_[np.diag([7000.0, 7000.0, 1.0]), [10.0, -5.0, 1.0]]
     n0 = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
-    e1, e2 = _basis(n0)
+    e1, e2 = plane_basis(n0).T
     thetas = np.c_[rng.normal(0, 20, (12, 3)) + [0, 0, 400], rng.normal(0, 0.3, (12, 2)), rng.uniform(2, 10, 12)]
     thetas[0, 3:5] = [8.0, 0.5]  # a normal near the first helper axis: the other one is used
     xy = rng.normal(0, 150, (40, 2))

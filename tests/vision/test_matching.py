@@ -270,13 +270,13 @@ def test_rendered_rim_of_mixed_contrast_comes_out_whole(seed):
     covered 220 degrees of the rim in these draws; now 335-340."""
     from scipy.spatial import cKDTree
 
-    from partinspect.vision.fit3d import _basis
+    from partinspect.frames import plane_basis
     from partinspect.vision.stereo import measure_images
 
     rig, _, left, _ = S.render("plate", 2.0, seed)
     t = next(t for t in S.truth_in_rig("plate") if t["id"] == "circle-8")
     ang = np.linspace(0, 2 * np.pi, 3600, endpoint=False)
-    e1, e2 = _basis(t["normal"])
+    e1, e2 = plane_basis(t["normal"]).T
     rim = project(P1, t["center"] + t["radius"] * (np.outer(np.cos(ang), e1) + np.outer(np.sin(ang), e2)))
     tree = cKDTree(rim)
     covered = []
