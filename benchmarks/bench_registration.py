@@ -198,7 +198,7 @@ def main():
     if args.draws:
         for part in ("plate", "bracket"):
             run(part, args.draws, args.seed, args.datums)
-    nist = Path(__file__).resolve().parents[2] / "shared" / "data" / "step" / "nist_ftc_09_asme1_ap242-e1.stp"
+    nist = Path(__file__).resolve().parents[1] / "tests" / "data" / "step" / "nist_ftc_09_asme1_ap242-e1.stp"
     if nist.exists():
         scoring_speed(nist)
     if args.characteristics:

@@ -63,7 +63,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-STEP_DIR = ROOT.parent / "shared" / "data" / "step"
+STEP_DIR = ROOT / "tests" / "data" / "step"
 
 COVERAGE_CLAIM = math.erf(2.0 / math.sqrt(2.0))  # k = 2, normal: 95.45 %
 POSE_95 = 12.591587243743977  # chi-square(6) 95 % quantile

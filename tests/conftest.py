@@ -5,7 +5,9 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+# The real external data (NIST STEP files, OpenCV's stereo chessboards),
+# with their sources and licences in tests/data/SOURCES.md.
+TEST_DATA = REPO / "tests" / "data"
 
 # The tests compare the forked and the in-process paths and must take the
 # forked one whatever else the machine is doing: the load rule
@@ -21,7 +23,5 @@ def repo():
 
 
 @pytest.fixture(scope="session")
-def shared_data():
-    if not SHARED_DATA.is_dir():
-        pytest.skip(f"external test data not found at {SHARED_DATA} (see README: ../shared beside the clone)")
-    return SHARED_DATA
+def test_data():
+    return TEST_DATA

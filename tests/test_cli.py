@@ -52,25 +52,25 @@ def test_missing_step_file(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-def test_missing_images_folder_named(tmp_path, shared_data, capsys):
-    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+def test_missing_images_folder_named(tmp_path, test_data, capsys):
+    step = test_data / "step" / "nist_ftc_11_asme1_rb.stp"
     code = main([str(step), str(tmp_path / "no images"), "-o", str(tmp_path / "out"), "-q"])
     err = capsys.readouterr().err
     assert code == 2
     assert str(tmp_path / "no images") in err and err.count("\n") == 1
 
 
-def test_output_folder_not_writable(tmp_path, shared_data, capsys):
+def test_output_folder_not_writable(tmp_path, test_data, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+    step = test_data / "step" / "nist_ftc_11_asme1_rb.stp"
     code = main([str(step), str(tmp_path), "-o", str(blocker), "-q"])
     assert code == 2
     assert "output path exists and is not a folder" in capsys.readouterr().err
 
 
-def test_missing_tolerance_file(tmp_path, shared_data, capsys):
-    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+def test_missing_tolerance_file(tmp_path, test_data, capsys):
+    step = test_data / "step" / "nist_ftc_11_asme1_rb.stp"
     code = main([str(step), str(tmp_path), "--tolerances", str(tmp_path / "t.yaml"), "-q"])
     assert code == 2
     assert capsys.readouterr().err == f"inspect: error: {tmp_path / 't.yaml'}: tolerance file not found\n"
@@ -96,11 +96,11 @@ def test_features_table_and_json(repo, capsys):
     assert radii == [2, 2, 3, 3, 4, 4, 5, 5, 6, 6]
 
 
-def test_render_then_inspect_an_unseen_step_file(tmp_path, shared_data, capsys):
+def test_render_then_inspect_an_unseen_step_file(tmp_path, test_data, capsys):
     """The issue's 'done when': render and inspect a real STEP file the project never saw."""
     import json
 
-    step = shared_data / "step" / "nist_ftc_11_asme1_rb.stp"
+    step = test_data / "step" / "nist_ftc_11_asme1_rb.stp"
     out = tmp_path / "render"
     assert main(["render", str(step), str(out), "--size", "612x512", "--noise", "1", "--seed", "4", "-q"]) == 0
     assert sorted(p.name for p in (out / "images").iterdir()) == ["calibration.yaml", "left.png", "right.png"]

@@ -186,9 +186,9 @@ def test_unreadable_files(tmp_path):
         read_calibration(tmp_path / "sub")
 
 
-def test_real_single_camera_file_is_rejected_clearly(shared_data):
+def test_real_single_camera_file_is_rejected_clearly(test_data):
     # OpenCV's sample left_intrinsics.yml is a single-camera file, not a stereo calibration.
-    path = shared_data / "opencv-stereo-chessboard" / "left_intrinsics.yml"
+    path = test_data / "opencv-stereo-chessboard" / "left_intrinsics.yml"
     with pytest.raises(InputError, match="missing entry 'image_width'|missing entry 'K1'"):
         read_calibration(path)
 

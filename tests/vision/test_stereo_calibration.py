@@ -15,8 +15,7 @@ from partinspect.vision import stereo_calibration as sc
 from partinspect.vision.calibration import read_calibration, write_calibration
 from partinspect.vision.stereo_calibration import Board, calibrate_stereo, find_pairs
 
-SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-OPENCV_SET = SHARED_DATA / "opencv-stereo-chessboard"
+OPENCV_SET = Path(__file__).resolve().parents[1] / "data" / "opencv-stereo-chessboard"
 NAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]
 PATTERN = (9, 6)
 
@@ -31,8 +30,6 @@ PUBLISHED_D = np.array([-0.281325576, 0.0291130406, 0.00121234330, -0.0001408253
 
 @pytest.fixture(scope="module")
 def opencv_set():
-    if not OPENCV_SET.is_dir():
-        pytest.skip(f"OpenCV stereo chessboard set not found at {OPENCV_SET} (../shared/data beside the clone)")
     return OPENCV_SET
 
 
