@@ -88,9 +88,10 @@ def run_part(name, seeds, size, base):
 
     from partinspect.errors import InputError
     from partinspect.pipeline import run_inspection
-    from partinspect.planning.check import render_radiance_pair
+    from partinspect.simulate.render import render_radiance_pair
     from partinspect.simulate.folder import BLUR_SIGMA
-    from partinspect.simulate.render import DEFAULT_SHADING, sensor
+    from partinspect.simulate.render import sensor
+    from partinspect.cad.raycast import DEFAULT_SHADING
     from partinspect.simulate.rig import default_rig
 
     t0 = time.perf_counter()

@@ -74,8 +74,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from partinspect.planning.check import (  # noqa: E402
-    chance_interval, monte_carlo_check, render_radiance_pair, spread_interval)
+from partinspect.planning.check import chance_interval, monte_carlo_check, spread_interval
+from partinspect.simulate.render import render_radiance_pair, sensor
 from partinspect.planning.edge_model import DetectorModel  # noqa: E402
 from partinspect.planning.predict import predict_pose  # noqa: E402
 from partinspect.simulate.rig import default_rig  # noqa: E402
@@ -140,8 +140,8 @@ def compare(name, size, draws, seed):
     rand = predict_pose(part.inv, part.scene, rig, pose, chars, datums=datums, model=DetectorModel(systematic=False))
     t = time.perf_counter()
     radiance = render_radiance_pair(part.scene, rig, pose)
-    chk = monte_carlo_check(part.scene, part.inv, rig, pose, chars, draws=draws, seed=seed, datums=datums,
-                            radiance=radiance)
+    chk = monte_carlo_check(part.scene, part.inv, rig, pose, chars, radiance, sensor, draws=draws, seed=seed,
+                            datums=datums)
     t_mc = time.perf_counter() - t
     rows = []
     parts = rand.registration.features_in_part_frame() if rand.registration is not None else None

@@ -43,7 +43,7 @@ from partinspect.cad.features import inventory
 from partinspect.cad.registration import pose_error, register
 from partinspect.cad.step import load_step
 from partinspect.simulate.measured import measure_features
-from partinspect.simulate.pose import default_pose
+from partinspect.poses import default_pose
 from partinspect.simulate.rig import default_rig
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

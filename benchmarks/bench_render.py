@@ -28,9 +28,10 @@ def worker(part, mode, runs, distortion):
     from partinspect.cad.features import inventory
     from partinspect.cad.mesh import tessellate
     from partinspect.cad.step import load_step
-    from partinspect.simulate.folder import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
-    from partinspect.simulate.pose import default_pose
-    from partinspect.simulate.render import build_scene, render_pair
+    from partinspect.cad.raycast import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
+    from partinspect.poses import default_pose
+    from partinspect.simulate.render import render_pair
+    from partinspect.cad.raycast import build_scene
     from partinspect.simulate.rig import default_rig
 
     t0 = time.perf_counter()

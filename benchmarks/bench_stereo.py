@@ -32,7 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from partinspect.simulate.render import DEFAULT_SHADING, camera_in_part, render_radiance, sensor  # noqa: E402
+from partinspect.simulate.render import render_radiance, sensor
+from partinspect.cad.raycast import DEFAULT_SHADING, camera_in_part
 from partinspect.vision import forked as forked_module  # noqa: E402
 from partinspect.vision.ideal import camera_matrices  # noqa: E402
 from partinspect.vision.stereo import measure_stereo  # noqa: E402

@@ -120,8 +120,8 @@ def plan(n, seed):
 
 
 def _pose(run, shape, inv, rig):
-    from partinspect.simulate.pose import bounds_of, view_rotation
-    from partinspect.simulate.rig import fixation_point
+    from partinspect.poses import bounds_of, view_rotation
+    from partinspect.poses import fixation_point
 
     R = view_rotation(*np.deg2rad([run["elevation"], run["azimuth"], run["roll"]]))
     b = bounds_of(shape)

@@ -198,9 +198,18 @@ def _run_plan(args):
     from partinspect.planning.report import plan_table, write_plan
 
     model = DetectorModel(noise=args.noise, blur=args.blur, contrast=args.contrast)
+    renderer = None
+    if args.check:
+        # The check's images come from the simulator: the planner itself
+        # does not depend on it.
+        from partinspect.planning.check import Renderer
+        from partinspect.simulate.render import render_radiance_pair, sensor
+
+        renderer = Renderer(render_radiance_pair, sensor)
     result = run_plan(args.part, args.rig, tolerances=args.tolerances, pose=args.pose, max_ratio=args.ratio,
                       model=model, search=not args.no_search, rotation=args.rotation, max_tilt=args.max_tilt,
-                      step=args.step, check=args.check, seed=args.seed, progress=_progress(args.quiet))
+                      step=args.step, check=args.check, seed=args.seed, renderer=renderer,
+                      progress=_progress(args.quiet))
     out = write_plan(args.output, result)
     if not args.quiet:
         try:

@@ -189,7 +189,7 @@ def plate_variants(repo, tmp_path_factory):
     import cv2
 
     from partinspect.cli import main
-    from partinspect.simulate.render import DEFAULT_SHADING
+    from partinspect.cad.raycast import DEFAULT_SHADING
 
     root = tmp_path_factory.mktemp("adaptive")
     clean = root / "clean"
@@ -268,7 +268,7 @@ def test_a_rerun_recovers_edges_at_four_times_the_noise_and_keeps_the_rest(tmp_p
     import cv2
 
     from partinspect.pipeline import run_inspection
-    from partinspect.planning.check import render_radiance_pair
+    from partinspect.simulate.render import render_radiance_pair
     from partinspect.simulate.folder import BLUR_SIGMA
     from partinspect.simulate.render import sensor
     from partinspect.simulate.rig import default_rig

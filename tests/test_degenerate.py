@@ -36,8 +36,9 @@ SIZE = (612, 512)
 
 def _pose(elevation, azimuth, roll, position=None):
     from partinspect.cad.step import load_step
-    from partinspect.simulate.pose import bounds_of, view_rotation
-    from partinspect.simulate.rig import default_rig, fixation_point
+    from partinspect.poses import bounds_of, view_rotation
+    from partinspect.simulate.rig import default_rig
+    from partinspect.poses import fixation_point
 
     R = view_rotation(*np.deg2rad([elevation, azimuth, roll]))
     bounds = bounds_of(load_step(Path(__file__).resolve().parents[1] / "examples" / "plate" / "part.step"))
@@ -322,8 +323,9 @@ def edge_on_face(tmp_path_factory):
     from partinspect.cad.step import load_step
     from partinspect.pipeline import run_inspection
     from partinspect.simulate.folder import render_to_folder
-    from partinspect.simulate.pose import bounds_of, view_rotation
-    from partinspect.simulate.rig import default_rig, fixation_point
+    from partinspect.poses import bounds_of, view_rotation
+    from partinspect.simulate.rig import default_rig
+    from partinspect.poses import fixation_point
 
     step = Path(__file__).resolve().parents[1] / "examples" / "plate" / "part.step"
     size = (1224, 1024)

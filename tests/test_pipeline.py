@@ -175,7 +175,7 @@ def test_a_feature_merged_from_another_adaptive_round_keeps_its_own_edge_data():
     normals and filter scale, so its Monte Carlo draws the noise it was measured with."""
     from types import SimpleNamespace
 
-    from partinspect.pipeline import merged_stereo
+    from partinspect.vision.posed import merged_stereo
     from partinspect.vision.montecarlo import monte_carlo
     from partinspect.vision.stereo import measure_stereo
     from tests.vision import stereo_scenes as S
@@ -205,7 +205,7 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
     from types import SimpleNamespace
 
     from partinspect.cad.visibility import FeatureVisibility
-    from partinspect.pipeline import _unmeasured_reason
+    from partinspect.diagnosis import unmeasured_reason
     from partinspect.simulate.rig import default_rig
     from partinspect.vision.calibration import project_points
 
@@ -225,7 +225,7 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
         stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left], edges=SimpleNamespace(xy=el.uv)),
                                  right=SimpleNamespace(noise=2.0, features=[right], edges=SimpleNamespace(xy=er.uv)))
         vis = FeatureVisibility((1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (60.0, 55.0))
-        return _unmeasured_reason(edge, vis, rig, pose, stereo, unmatched or {}, owners)
+        return unmeasured_reason(edge, vis, rig, pose, stereo, unmatched or {}, owners)
 
     owned = {("left", 0): "line-7", ("right", 0): "line-7"}
     assert reason(longer, owned) == ("left image: found as part of a longer edge that runs on past it, measured as line-7; "
@@ -245,14 +245,14 @@ def test_an_edge_found_only_inside_a_longer_collinear_one_says_so():
         stereo = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]),
                                  right=SimpleNamespace(noise=2.0, features=[right]),
                                  guided_failed=(("line-3", "x"), ("line-9", "its stretch runs 2.0 deg from ...")))
-        return _unmeasured_reason(edge, vis, rig, pose, stereo, unmatched, {})
+        return unmeasured_reason(edge, vis, rig, pose, stereo, unmatched, {})
 
     assert with_stretch(longer, {}) == ("its own stretch of a longer straight edge was found in both images, "
                                         "but not measured: its stretch runs 2.0 deg from ...")
     left, right = image(longer)
     taken = SimpleNamespace(left=SimpleNamespace(noise=2.0, features=[left]), right=SimpleNamespace(noise=2.0, features=[right]),
                             withdrawn=(("line-9", "its points in the left image all lie on the image of line-3"),))
-    assert _unmeasured_reason(edge, vis, rig, pose, taken, {}, {}) == (
+    assert unmeasured_reason(edge, vis, rig, pose, taken, {}, {}) == (
         "measured, then taken out: its points in the left image all lie on the image of line-3")
     own = np.c_[np.linspace(-10.0, 0.0, 100), np.full(100, 5.0), np.full(100, 400.0)]
     assert with_stretch(own, {("left", 0): "line nearly parallel", ("right", 0): "line nearly parallel"}) == (

@@ -128,8 +128,9 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=Non
         Keyed by feature id.
     """
     from partinspect.cad.mesh import tessellate
-    from partinspect.simulate.render import build_scene
-    from partinspect.simulate.truth import edge_visibility, feature_geometry, sample_edge
+    from partinspect.cad.raycast import build_scene
+    from partinspect.cad.sightlines import edge_visibility
+    from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 
     # A coarse mesh: occlusion is decided to a pixel or so, and the exact
     # renderer's 5 um chord error would cost a minute on a large part.

@@ -2,7 +2,7 @@
 
 The part is ray-cast once per camera (noiseless radiance, blurred by the
 optics); each draw then adds fresh sensor noise
-(:func:`partinspect.simulate.render.sensor`) and runs the whole measurement
+(:attr:`Renderer.sensor`, given by the caller) and runs the whole measurement
 chain as ``inspect`` does: :func:`partinspect.vision.stereo.measure_stereo`,
 :func:`partinspect.cad.registration.register` (with the true pose as hint,
 so a rare ambiguous draw does not stop the check), and
@@ -48,9 +48,27 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RenderedCheck", "CheckedCharacteristic", "PoseCheck", "render_radiance_pair", "measure_pair",
+__all__ = ["RenderedCheck", "CheckedCharacteristic", "PoseCheck", "Renderer", "measure_pair",
            "monte_carlo_check", "spread", "chance_interval", "form_interval", "spread_interval",
            "checked_uncertainty", "check_pose"]
+
+
+@dataclass(frozen=True)
+class Renderer:
+    """How a check makes its images (the caller's image formation model).
+
+    Attributes
+    ----------
+    radiance : callable
+        ``radiance(scene, calib, part_to_camera, blur_sigma=...)`` -> the
+        noiseless, blurred left and right images (float32 grey levels).
+    sensor : callable
+        ``sensor(image, noise, rng)`` -> one recorded image: noise of
+        standard deviation ``noise`` grey levels added and quantised.
+    """
+
+    radiance: object
+    sensor: object
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,26 +135,6 @@ def spread(values):
     return float(np.std(v, ddof=1)) if len(v) >= 3 else float("nan")
 
 
-def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shading=None, samples=None):
-    """The noiseless, blurred left and right images (float32 grey levels).
-
-    Each draw of a Monte Carlo check is ``sensor(image, noise, rng)`` of
-    these: the ray casting is done once.
-    """
-    from partinspect.simulate.render import DEFAULT_SHADING, SAMPLES, camera_in_part, render_radiance
-
-    shading = shading or DEFAULT_SHADING
-    samples = SAMPLES if samples is None else samples
-    light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
-    out = []
-    for index in (0, 1):
-        K, D, R, t = camera_in_part(calib, index, part_to_camera)
-        img, _ = render_radiance(scene, K, D, R, t, calib.image_size, light, shading=shading, samples=samples,
-                                 psf=blur_sigma)
-        out.append(img)
-    return tuple(out)
-
-
 def _position_offset(c, parts, inventory):
     fid = c.features[0]
     cands = [p for p in parts if p.cad_id == fid and p.kind == "circle"]
@@ -162,8 +160,9 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
         image features the chain matched (how much of the edge it kept).
     """
     from partinspect.cad.registration import register
-    from partinspect.pipeline import posed_stereo
+    from partinspect.cad.projection import edge_polylines
     from partinspect.tolerances.evaluate import evaluate_characteristic
+    from partinspect.vision.posed import posed_stereo
     from partinspect.vision.stereo import measure_stereo
 
     def registered(res, hint):
@@ -175,7 +174,8 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
     # As inspect does: lines clear of the other edges at their ends (of every
     # edge's image here, hidden ones too: this check has no visibility), and
     # edges in line with others measured on their own stretches.
-    more, found, ends, withdrawn = posed_stereo(res, reg, None, inventory, calib)
+    polylines = edge_polylines(inventory, reg.part_to_camera, calib)
+    more, found, ends, withdrawn = posed_stereo(res, reg, None, inventory, calib, polylines)
     if found or ends or withdrawn:
         res, reg = more, registered(more, reg.part_to_camera)
     parts = reg.features_in_part_frame()
@@ -190,8 +190,8 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
     return evs, offsets, reg, points
 
 
-def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, *, draws=50, noise=2.0, seed=0,
-                      datums=None, blur_sigma=0.6, radiance=None, progress=None):
+def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, radiance, sensor, *, draws=50,
+                      noise=2.0, seed=0, datums=None, progress=None):
     """Measure the characteristics on ``draws`` rendered noise draws.
 
     Parameters
@@ -207,11 +207,10 @@ def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, 
     seed : int
         Draw ``i`` uses ``numpy.random.default_rng([seed, i])``.
     datums : sequence of str, optional
-    blur_sigma : float
-        Optics blur, px.
-    radiance : tuple of ndarray, optional
-        The noiseless images, if already rendered
-        (:func:`render_radiance_pair`).
+    radiance : tuple of ndarray
+        The noiseless left and right images (:attr:`Renderer.radiance`).
+    sensor : callable
+        Makes each draw's recorded image (:attr:`Renderer.sensor`).
     progress : callable, optional
         ``progress(message)`` after each draw.
 
@@ -220,10 +219,7 @@ def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, 
     RenderedCheck
     """
     from partinspect.cad.registration import RegistrationError
-    from partinspect.simulate.render import sensor
 
-    if radiance is None:
-        radiance = render_radiance_pair(scene, calib, part_to_camera, blur_sigma=blur_sigma)
     ids = tuple(c.id for c in characteristics)
     values = {i: [] for i in ids}
     us = {i: [] for i in ids}
@@ -529,8 +525,8 @@ def _excess_kurtosis(chk, cid):
     return max([k for k in ks if np.isfinite(k)], default=0.0)
 
 
-def check_pose(inventory, scene, calib, prediction, characteristics, model, *, datums=None, draws=20, seed=0,
-               progress=None):
+def check_pose(inventory, scene, calib, prediction, characteristics, model, renderer, *, datums=None, draws=20,
+               seed=0, progress=None):
     """Check one pose's prediction on rendered noise draws (``inspect plan --check``).
 
     Parameters
@@ -545,6 +541,8 @@ def check_pose(inventory, scene, calib, prediction, characteristics, model, *, d
     model : DetectorModel
         The prediction's; its noise and blur make the renders. A fixed
         ``contrast`` cannot be rendered.
+    renderer : Renderer
+        Makes the draws' images.
     datums : sequence of str, optional
     draws : int
         At least 3.
@@ -571,9 +569,9 @@ def check_pose(inventory, scene, calib, prediction, characteristics, model, *, d
                               model=dataclasses.replace(model, systematic=False), datums=datums,
                               max_ratio=prediction.max_ratio)
     say("check: rendering the proposed pose")
-    radiance = render_radiance_pair(scene, calib, P, blur_sigma=model.blur)
-    chk = monte_carlo_check(scene, inventory, calib, P, characteristics, draws=draws, noise=model.noise, seed=seed,
-                            datums=datums, radiance=radiance,
+    radiance = renderer.radiance(scene, calib, P, blur_sigma=model.blur)
+    chk = monte_carlo_check(scene, inventory, calib, P, characteristics, radiance, renderer.sensor, draws=draws,
+                            noise=model.noise, seed=seed, datums=datums,
                             progress=lambda message: say(f"check: {message}"))
     scene_parts = noise_only.registration.features_in_part_frame() if noise_only.registration is not None else None
     out = []

@@ -106,7 +106,7 @@ class DetectorModel:
         Scale of the edge filter, px (the chain's default 1).
     contrast : float or None
         Grey-level step at every edge; None to take it from the shading of
-        the part's faces (the renderer's light, :mod:`partinspect.simulate.render`).
+        the part's faces (the light of :mod:`partinspect.cad.raycast`).
     end_trim : float or None
         Pixels lost at each end of a visible stretch of edge (the filter
         mixes the gradients of two edges meeting at a corner); None for

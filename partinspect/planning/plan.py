@@ -112,13 +112,13 @@ def _check_inputs(part, rig, tolerances, max_ratio, model, check=0):
     rig = Path(rig)
     if not rig.exists():
         raise InputError(rig, "calibration file not found")
-    from partinspect.pipeline import find_tolerances
+    from partinspect.tolerances.loading import find_tolerances
 
     return part, rig, find_tolerances(part, tolerances)
 
 
 def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, model=None, search=True,
-             rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, progress=None):
+             rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, renderer=None, progress=None):
     """Predict the uncertainty of every characteristic and search the fixture poses.
 
     Parameters
@@ -147,6 +147,8 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         draws (0: no check; else at least 3).
     seed : int
         Seed of the check's noise draws.
+    renderer : partinspect.planning.check.Renderer, optional
+        Makes the check's images; needed when ``check`` is not 0.
     progress : callable, optional
 
     Returns
@@ -160,6 +162,8 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     """
     say = progress or (lambda message: None)
     model = model or DetectorModel()
+    if check and renderer is None:
+        raise ValueError("a check needs a renderer to make its images")
     part, rig, tol_path = _check_inputs(part, rig, tolerances, max_ratio, model, check)
     for name, v in (("--rotation", rotation), ("--max-tilt", max_tilt)):
         if not (0 <= v <= 180 and math.isfinite(v)):
@@ -172,7 +176,7 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     calib = read_calibration(rig)
     if calib.image_size is None:
         raise InputError(rig, "the calibration gives no image size (image_width, image_height), which the plan needs")
-    from partinspect.simulate.pose import bounds_of, default_pose, parse_pose
+    from partinspect.poses import bounds_of, default_pose, parse_pose
 
     if pose is not None:
         parse_pose(pose, None, calib)  # a malformed --pose fails before the STEP file is loaded
@@ -203,8 +207,8 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     from partinspect.cad.mesh import tessellate
     from partinspect.planning.predict import predict_pose
     from partinspect.planning.search import FixturePose, search_poses
-    from partinspect.simulate.folder import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
-    from partinspect.simulate.render import build_scene
+    from partinspect.cad.raycast import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
+    from partinspect.cad.raycast import build_scene
 
     scene = build_scene(tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=inv))
 
@@ -223,6 +227,7 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         from partinspect.planning.check import check_pose
 
         best = result.best if result is not None else start_pred
-        checked = check_pose(inv, scene, calib, best, chars, model, datums=datums, draws=check, seed=seed, progress=say)
+        checked = check_pose(inv, scene, calib, best, chars, model, renderer, datums=datums, draws=check, seed=seed,
+                             progress=say)
     return PlanResult(part, rig, tol_path, calib, inv, chars, datums, model, max_ratio, center, start_pred, result,
                       checked)

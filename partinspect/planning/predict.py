@@ -128,7 +128,7 @@ class ViewSamples:
         Detector points the whole edge would give if fully visible.
     fractions : dict
         ``in_image``, ``unoccluded``, ``contrast`` and ``visible`` fractions
-        of those points (as :func:`partinspect.simulate.truth.edge_visibility`).
+        of those points (as :func:`partinspect.cad.sightlines.edge_visibility`).
     background_bound, background_std : ndarray, shape (N,) or None
         Curved edges: what :func:`partinspect.vision.edges.background_gradients`
         would report for the shading beside each point (``W^2 |g_b - g_d| / h``,
@@ -402,7 +402,7 @@ none did (5-6 points within 3 px); one at 0.34 kept 4."""
 def _junctions(vis, every, closed):
     """Where a third edge meets the edge between two visible samples.
 
-    The face seen on one side (:func:`partinspect.simulate.truth.edge_visibility`'s
+    The face seen on one side (:func:`partinspect.cad.sightlines.edge_visibility`'s
     ``side_label``) changes from one sample to the next, with a grey step of
     at least ``JUNCTION_STEP_FRACTION`` of the edge's contrast: as where a
     hole's bottom rim, seen through the hole, ends at its top rim. The
@@ -415,7 +415,7 @@ def _junctions(vis, every, closed):
     Parameters
     ----------
     vis : dict
-        :func:`~partinspect.simulate.truth.edge_visibility` of the samples, in order along the edge.
+        :func:`~partinspect.cad.sightlines.edge_visibility` of the samples, in order along the edge.
     every : ndarray of bool, shape (N,)
         Visible samples.
     closed : bool
@@ -442,7 +442,7 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
 
     Parameters
     ----------
-    scene : partinspect.simulate.render.RaycastScene
+    scene : partinspect.cad.raycast.RaycastScene
         The part (for occlusion and shading).
     calib : StereoCalibration
     index : int
@@ -450,7 +450,7 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     part_to_camera : ndarray, shape (4, 4)
     kind : {"line", "circle", "arc"}
     geometry : dict
-        :func:`partinspect.simulate.truth.feature_geometry` of the edge.
+        :func:`partinspect.cad.edge_sampling.feature_geometry` of the edge.
     model : DetectorModel
     shading : Shading, optional
         Default the renderer's.
@@ -476,8 +476,8 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     10 % (0.90 to 0.81), whose spread over the draws that kept the whole
     rim is already 1.1 times the prediction, so the 20 grey levels stay.
     """
-    from partinspect.simulate.render import DEFAULT_SHADING, camera_in_part, cast, pixel_rays, shade
-    from partinspect.simulate.truth import edge_visibility
+    from partinspect.cad.raycast import DEFAULT_SHADING, camera_in_part, cast, pixel_rays, shade
+    from partinspect.cad.sightlines import edge_visibility
     from partinspect.vision.calibration import project_points
 
     shading = shading or DEFAULT_SHADING
@@ -543,7 +543,7 @@ def background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, mo
     bound, std : ndarray, shape (N,)
         px.
     """
-    from partinspect.simulate.render import cast, pixel_rays, shade
+    from partinspect.cad.raycast import cast, pixel_rays, shade
     from partinspect.vision import edges as edges_mod
 
     light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
@@ -660,7 +660,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     -------
     FeaturePrediction
     """
-    from partinspect.simulate.truth import feature_geometry
+    from partinspect.cad.edge_sampling import feature_geometry
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
     from partinspect.vision.stereo import (
@@ -813,7 +813,7 @@ def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, mo
     ----------
     inventory : Inventory
     scene : RaycastScene
-        The part's mesh in the ray caster (:func:`partinspect.simulate.render.build_scene`).
+        The part's mesh in the ray caster (:func:`partinspect.cad.raycast.build_scene`).
     calib : StereoCalibration
         With ``image_size``.
     part_to_camera : ndarray, shape (4, 4)

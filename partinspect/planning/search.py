@@ -96,7 +96,7 @@ def pose_text(part_to_camera, center):
 
     Angles: extrinsic rotations about the camera's x, y, z (degrees), the
     position: the bounding-box centre in the left camera frame (mm); see
-    :func:`partinspect.simulate.pose.euler_pose`.
+    :func:`partinspect.poses.euler_pose`.
     """
     from scipy.spatial.transform import Rotation
 

@@ -125,7 +125,7 @@ def render_calibration_html(result, *, folder, calibration_file):
     calibration_file : str or Path
         The calibration.yaml written, as named in the report.
     """
-    from partinspect.reports.html import _environment
+    from partinspect.reports.html import environment
 
     calib, board = result.calibration, result.board
     used = result.used
@@ -139,7 +139,7 @@ def render_calibration_html(result, *, folder, calibration_file):
         for side in ("left", "right")
     }
     return (
-        _environment()
+        environment()
         .get_template("calibration.html.j2")
         .render(
             r=result,

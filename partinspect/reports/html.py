@@ -44,7 +44,8 @@ def _vec(v, digits=3):
     return "–" if v is None else "(" + ", ".join(f"{x:.{digits}f}" for x in v) + ")"
 
 
-def _environment():
+def environment():
+    """The report templates' jinja2 environment, autoescaping HTML (report contents are never trusted)."""
     import jinja2
 
     env = jinja2.Environment(
@@ -254,7 +255,7 @@ def render_html(report, figures=None):
     figs = [dataclasses.replace(f, body=Markup(f.body)) if f.body else f for f in figs]
     scene = next((f.scene for f in figs if f.scene), None)
     script, script_hash = _script()
-    return _environment().get_template("report.html.j2").render(
+    return environment().get_template("report.html.j2").render(
         r=report,
         summary=_summary(report),
         when=_when(report.get("created")),

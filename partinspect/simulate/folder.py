@@ -10,18 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from partinspect.simulate.render import DEFAULT_SHADING, SAMPLES
+from partinspect.simulate.render import SAMPLES
+from partinspect.cad.raycast import DEFAULT_SHADING, RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
 
-__all__ = ["RENDER_TOLERANCE", "RENDER_ANGULAR_TOLERANCE", "BLUR_SIGMA", "SAMPLES", "render_to_folder"]
+__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder"]
 
-RENDER_TOLERANCE = 0.005
-"""Chord error of the render mesh, mm (a tenth of a pixel's footprint)."""
-RENDER_ANGULAR_TOLERANCE = 0.01
-"""Angle between neighbouring facets of a curved face, radians. Finer than
-the mesh module's default: a circle of radius r is drawn as a polygon whose
-mean radius is about r * 8e-6 short (0.00005 mm for r = 6 mm) instead of
-r * 2e-4 at 0.05 rad, which would bias rendered diameters by several
-micrometres, comparable to what the measurement claims to resolve."""
 BLUR_SIGMA = 0.6
 """Optics point-spread function, pixels."""
 
@@ -36,7 +29,7 @@ def _parse_deviations(deviations):
 
 
 def _resolve_pose(pose, bounds, rig):
-    from partinspect.simulate.pose import default_pose, parse_pose
+    from partinspect.poses import default_pose, parse_pose
 
     if pose is None:
         return default_pose(bounds, rig)
@@ -80,8 +73,8 @@ def render_to_folder(
         ``images/right.png``, ``images/calibration.yaml`` and
         ``truth.json``.
     pose : None, str, Path or ndarray (4, 4)
-        None: :func:`~partinspect.simulate.pose.default_pose`. A string:
-        ``--pose`` text (see :func:`~partinspect.simulate.pose.parse_pose`).
+        None: :func:`~partinspect.poses.default_pose`. A string:
+        ``--pose`` text (see :func:`~partinspect.poses.parse_pose`).
         An array: part_to_camera. The bounding box used is the nominal
         part's, so a deviation never moves the part.
     noise : float
@@ -111,20 +104,43 @@ def render_to_folder(
     ValueError
         Bad pose text, negative noise.
     """
-    from partinspect.atomic import prepare_output_dir, write_bytes_atomic, write_text_atomic
-    from partinspect.cad.features import inventory
-    from partinspect.cad.mesh import tessellate
-    from partinspect.cad.step import load_step
-    from partinspect.simulate.pose import bounds_of
-    from partinspect.simulate.render import build_scene, render_pair
+    from partinspect.cad.raycast import build_scene
+    from partinspect.simulate.render import render_pair
     from partinspect.simulate.rig import default_rig
-    from partinspect.simulate.truth import make_truth, to_json
-    from partinspect.vision.calibration import write_calibration
+    from partinspect.simulate.truth import make_truth
 
     say = progress or (lambda message: None)
     if noise < 0:
         raise ValueError(f"noise must be >= 0 grey levels, got {noise}")
     step_path = Path(step_path)
+    inv, devs, shape, bounds = _load_part(step_path, deviations, say)
+    rig = default_rig(image_size, distortion=distortion)
+    part_to_camera = _resolve_pose(pose, bounds, rig)
+
+    say("tessellating")
+    from partinspect.cad.mesh import tessellate
+
+    mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
+    rs = build_scene(mesh)
+    (left, right), stats = render_pair(
+        rs, rig, part_to_camera, noise=noise, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say
+    )
+
+    say("computing the ground truth")
+    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(mesh.faces))
+    truth = make_truth(inv, devs, rs, rig, part_to_camera, settings)
+
+    say(f"writing {out_dir}")
+    _write(out_dir, left, right, rig, truth)
+    return truth
+
+
+def _load_part(step_path, deviations, say):
+    """The nominal part's inventory, the deviations, the solid to render and the nominal bounds."""
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+    from partinspect.poses import bounds_of
+
     say(f"loading {step_path}")
     nominal = load_step(step_path)
     inv = inventory(nominal)
@@ -135,18 +151,13 @@ def render_to_folder(
 
         say(f"applying {len(devs)} deviation(s)")
         shape = deviate(nominal, inv, devs)
-    rig = default_rig(image_size, distortion=distortion)
-    part_to_camera = _resolve_pose(pose, bounds_of(nominal), rig)
+    # The nominal part's box: a deviation never moves the part.
+    return inv, devs, shape, bounds_of(nominal)
 
-    say("tessellating")
-    mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
-    rs = build_scene(mesh)
-    (left, right), stats = render_pair(
-        rs, rig, part_to_camera, noise=noise, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say
-    )
 
-    say("computing the ground truth")
-    settings = {
+def _settings(step_path, rig, noise, seed, distortion, stats, triangles):
+    """truth.json's "settings": everything the render was made with."""
+    return {
         "part": step_path.name,
         "image_size": [int(v) for v in rig.image_size],
         "noise": float(noise),
@@ -173,12 +184,17 @@ def render_to_folder(
         "tessellation": {
             "tolerance": RENDER_TOLERANCE,
             "angular_tolerance": RENDER_ANGULAR_TOLERANCE,
-            "triangles": int(len(mesh.faces)),
+            "triangles": int(triangles),
         },
     }
-    truth = make_truth(inv, devs, rs, rig, part_to_camera, settings)
 
-    say(f"writing {out_dir}")
+
+def _write(out_dir, left, right, rig, truth):
+    """The images, the calibration and truth.json, each written atomically."""
+    from partinspect.atomic import prepare_output_dir, write_bytes_atomic, write_text_atomic
+    from partinspect.simulate.truth import to_json
+    from partinspect.vision.calibration import write_calibration
+
     out = prepare_output_dir(out_dir)
     images = prepare_output_dir(out / "images")
     write_bytes_atomic(images / "left.png", _png(left))
@@ -186,4 +202,3 @@ def render_to_folder(
     write_calibration(images / "calibration.yaml", rig)
     os.chmod(images / "calibration.yaml", 0o644)  # a temporary file's 0600 would survive the rename
     write_text_atomic(out / "truth.json", to_json(truth))
-    return truth

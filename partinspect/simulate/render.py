@@ -45,32 +45,30 @@ References
        Open3D's RaycastingScene).
 """
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from scipy import ndimage
 
-from partinspect.vision.calibration import undistort_points
+from partinspect.cad.raycast import (
+    DEFAULT_SHADING,
+    RAY_CHUNK,
+    RaycastScene,
+    build_scene,
+    camera_in_part,
+    cast,
+    pixel_rays,
+    shade,
+)
 
 __all__ = [
-    "Shading",
-    "DEFAULT_SHADING",
-    "RaycastScene",
-    "build_scene",
-    "camera_in_part",
-    "pixel_rays",
-    "cast",
-    "shade",
     "sample_pattern",
     "render_radiance",
     "optics",
     "sensor",
     "render_pair",
+    "render_radiance_pair",
 ]
 
-MISS = -1
-"""Label of a ray that hits nothing."""
 SAMPLES = 16
 """An edge pixel is integrated with ``SAMPLES x SAMPLES`` rays. With 8 (64
 rays) the coverage of a straight edge is resolved to 1/64 px along the pixel
@@ -82,279 +80,6 @@ draws and biased it upwards (bench_plan, 50 draws: plate line-3, -19 and
 -20 at 0.68-0.83 of their predicted spread). With 16, 0.002-0.007 px, and every
 plate straightness within 20 % of its prediction; a half-size pair takes
 2.5 times as long to render (4.4 -> 11.2 s)."""
-_CHUNK = 1 << 20  # rays per ray-caster call: ~100 MB of temporaries
-
-
-@dataclass(frozen=True)
-class Shading:
-    """Lambertian lighting of the simulated scene.
-
-    Attributes
-    ----------
-    light : tuple of float, shape (3,)
-        Direction *towards* the light in the rig (left camera) frame; need
-        not be unit length.
-    ambient : float
-        Grey of a surface facing away from the light, grey levels.
-    albedo : float
-        Grey added for a surface facing the light head-on, grey levels.
-    background : float
-        Grey where a ray hits nothing, grey levels.
-
-    Notes
-    -----
-    The default light sits near the cameras, a little to the right of and
-    above the optical axis, like a ring or bar light on the rig. For the
-    default pose it puts the part's +Z, -Y and -X faces at about 213, 163
-    and 117 grey levels (at least 46 apart) and faces turned away at the
-    ambient 65, 40 above the background of 25, so every silhouette shows.
-    """
-
-    light: tuple = (0.351, -0.084, -0.933)
-    ambient: float = 65.0
-    albedo: float = 185.0
-    background: float = 25.0
-
-    def direction(self):
-        l = np.asarray(self.light, dtype=float)
-        return l / np.linalg.norm(l)
-
-
-DEFAULT_SHADING = Shading()
-
-
-@dataclass(frozen=True, eq=False)
-class RaycastScene:
-    """A triangle mesh loaded into Open3D's ray caster, with what shading needs.
-
-    Attributes
-    ----------
-    scene : open3d.t.geometry.RaycastingScene
-    vertices : ndarray, shape (V, 3)
-        Part frame, mm.
-    triangles : ndarray, shape (F, 3)
-        Vertex indices.
-    labels : ndarray, shape (F,)
-        CAD face index of every triangle.
-    flat_normals : ndarray, shape (F, 3)
-        Unit normal of every triangle (winding order).
-    corner_normals : ndarray, shape (F, 3, 3)
-        Unit normal at each triangle corner, averaged over the triangles of
-        the same CAD face around that vertex: the smooth surface normal of a
-        curved face, the exact normal of a planar one.
-    center : ndarray, shape (3,)
-    radius : float
-        Bounding sphere of the mesh, part frame, mm.
-    """
-
-    scene: object
-    vertices: np.ndarray
-    triangles: np.ndarray
-    labels: np.ndarray
-    flat_normals: np.ndarray
-    corner_normals: np.ndarray
-    center: np.ndarray
-    radius: float
-
-
-def _corner_normals(vertices, triangles, labels):
-    cross = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]], vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
-    area2 = np.linalg.norm(cross, axis=1)
-    flat = cross / np.where(area2 > 0, area2, 1.0)[:, None]
-    # Group corners by (vertex, CAD face): normals are smoothed within a face,
-    # never across the sharp edge between two faces.
-    key = triangles.astype(np.int64) * (int(labels.max()) + 1) + labels[:, None]
-    _, group = np.unique(key.ravel(), return_inverse=True)
-    acc = np.zeros((group.max() + 1, 3))
-    # area-weighted: sum of the unnormalised cross products
-    np.add.at(acc, group, np.repeat(cross, 3, axis=0))
-    acc /= np.maximum(np.linalg.norm(acc, axis=1), 1e-300)[:, None]
-    return flat, acc[group].reshape(-1, 3, 3)
-
-
-def build_scene(mesh):
-    """Load a mesh into a ray-casting scene.
-
-    Parameters
-    ----------
-    mesh : trimesh.Trimesh
-        Part frame, mm, with ``mesh.face_attributes["cad_face"]`` giving the
-        CAD face of every triangle (as made by
-        :func:`partinspect.cad.mesh.tessellate`); without it every triangle
-        is its own face.
-
-    Returns
-    -------
-    RaycastScene
-    """
-    import open3d as o3d
-
-    vertices = np.asarray(mesh.vertices, dtype=float)
-    triangles = np.asarray(mesh.faces, dtype=np.int64)
-    attrs = getattr(mesh, "face_attributes", None) or {}
-    labels = np.asarray(attrs.get("cad_face", np.arange(len(triangles))), dtype=np.int64).ravel()
-    if labels.shape != (len(triangles),):
-        raise ValueError(f"cad_face has {labels.size} entries for {len(triangles)} triangles")
-    flat, corner = _corner_normals(vertices, triangles, labels)
-    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-    center = 0.5 * (lo + hi)
-    radius = float(np.linalg.norm(vertices - center, axis=1).max())
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32))
-    )
-    return RaycastScene(scene, vertices, triangles, labels, flat, corner, center, radius)
-
-
-def camera_in_part(calib, index, part_to_camera):
-    """Pose of camera ``index`` relative to the part.
-
-    Parameters
-    ----------
-    calib : StereoCalibration
-    index : int
-        0 left, 1 right.
-    part_to_camera : ndarray, shape (4, 4)
-        Part frame to left camera (rig) frame.
-
-    Returns
-    -------
-    K : ndarray, shape (3, 3)
-    D : ndarray
-    R : ndarray, shape (3, 3)
-    t : ndarray, shape (3,)
-        ``x_cam = R @ X_part + t``, mm.
-    """
-    K, D, Rc, tc = calib.camera(index)
-    P = np.asarray(part_to_camera, dtype=float)
-    return K, D, Rc @ P[:3, :3], Rc @ P[:3, 3] + tc
-
-
-def pixel_rays(uv, K, D, R, t):
-    """Viewing rays of distorted pixel positions, in the part frame.
-
-    Parameters
-    ----------
-    uv : ndarray, shape (N, 2)
-        Distorted pixel coordinates (OpenCV: centre of the top-left pixel at
-        (0, 0)).
-    K, D : camera matrix and distortion vector.
-    R, t : part-to-camera pose, ``x_cam = R @ X + t``.
-
-    Returns
-    -------
-    origin : ndarray, shape (3,)
-        Camera centre in the part frame, mm.
-    directions : ndarray, shape (N, 3)
-        Unit ray directions in the part frame.
-    """
-    xn = undistort_points(uv, K, D)
-    d = np.empty((len(xn), 3))
-    d[:, :2] = xn
-    d[:, 2] = 1.0
-    d /= np.linalg.norm(d, axis=1)[:, None]
-    return -R.T @ t, d @ R
-
-
-@dataclass(frozen=True)
-class Hits:
-    """What a batch of rays hit.
-
-    Attributes
-    ----------
-    label : ndarray of int64, shape (N,)
-        CAD face, or ``MISS`` (-1).
-    triangle : ndarray of int64, shape (N,)
-        Triangle index (meaningless where missed).
-    bary : ndarray of float32, shape (N, 2)
-        Barycentric ``(u, v)``: point = (1-u-v) p0 + u p1 + v p2.
-    distance : ndarray of float64, shape (N,)
-        Distance from the ray's origin, mm; inf where missed.
-    """
-
-    label: np.ndarray
-    triangle: np.ndarray
-    bary: np.ndarray
-    distance: np.ndarray
-
-
-def cast(rs, origin, directions):
-    """Cast rays from one origin and return what they hit.
-
-    Parameters
-    ----------
-    rs : RaycastScene
-    origin : ndarray, shape (3,)
-        Part frame, mm.
-    directions : ndarray, shape (N, 3)
-        Unit vectors, part frame.
-
-    Returns
-    -------
-    Hits
-    """
-    import open3d as o3d
-
-    origin = np.asarray(origin, dtype=float)
-    # Start the rays where they enter the bounding sphere (less a margin),
-    # computed in float64, so float32 ray origins stay near the part.
-    skip = max(0.0, float(np.linalg.norm(origin - rs.center)) - rs.radius - 1.0)
-    n = len(directions)
-    label = np.empty(n, np.int64)
-    tri = np.empty(n, np.int64)
-    bary = np.empty((n, 2), np.float32)
-    dist = np.empty(n, np.float64)
-    for a in range(0, n, _CHUNK):
-        d = directions[a : a + _CHUNK]
-        rays = np.empty((len(d), 6), np.float32)
-        rays[:, :3] = origin + skip * d
-        rays[:, 3:] = d
-        out = rs.scene.cast_rays(o3d.core.Tensor(rays))
-        prim = out["primitive_ids"].numpy().astype(np.int64)
-        hit = prim != rs.scene.INVALID_ID
-        prim[~hit] = 0
-        tri[a : a + len(d)] = prim
-        label[a : a + len(d)] = np.where(hit, rs.labels[prim], MISS)
-        bary[a : a + len(d)] = out["primitive_uvs"].numpy()
-        dist[a : a + len(d)] = np.where(hit, skip + out["t_hit"].numpy().astype(np.float64), np.inf)
-    return Hits(label, tri, bary, dist)
-
-
-def shade(rs, hits, directions, light, shading=DEFAULT_SHADING):
-    """Lambertian grey of every ray.
-
-    Parameters
-    ----------
-    rs : RaycastScene
-    hits : Hits
-    directions : ndarray, shape (N, 3)
-        The rays' directions, part frame (to orient normals towards the
-        viewer).
-    light : ndarray, shape (3,)
-        Unit direction towards the light, part frame.
-    shading : Shading
-
-    Returns
-    -------
-    grey : ndarray of float32, shape (N,)
-    """
-    hit = hits.label != MISS
-    grey = np.full(len(hits.label), shading.background, np.float32)
-    if not hit.any():
-        return grey
-    tri = hits.triangle[hit]
-    u = hits.bary[hit, 0:1].astype(float)
-    v = hits.bary[hit, 1:2].astype(float)
-    cn = rs.corner_normals[tri]
-    n = (1.0 - u - v) * cn[:, 0] + u * cn[:, 1] + v * cn[:, 2]
-    # A closed solid is seen from outside; flip by the geometric normal only,
-    # so a smooth normal near a silhouette keeps its side.
-    facing = np.einsum("ij,ij->i", rs.flat_normals[tri], directions[hit])
-    n *= np.where(facing > 0, -1.0, 1.0)[:, None] / np.linalg.norm(n, axis=1)[:, None]
-    grey[hit] = shading.ambient + shading.albedo * np.maximum(0.0, n @ light)
-    return grey
-
-
 def sample_pattern(n):
     """Sub-pixel sample offsets with ``n**2`` distinct x and distinct y values.
 
@@ -383,8 +108,8 @@ def _cast_grid(rs, K, D, R, t, us, vs, light, shading, want_grey):
     total = nu * len(vs)
     label = np.empty(total, np.int64)
     grey = np.empty(total, np.float32) if want_grey else None
-    for a in range(0, total, _CHUNK):
-        idx = np.arange(a, min(total, a + _CHUNK))
+    for a in range(0, total, RAY_CHUNK):
+        idx = np.arange(a, min(total, a + RAY_CHUNK))
         uv = np.stack([us[idx % nu], vs[idx // nu]], axis=1)
         origin, d = pixel_rays(uv, K, D, R, t)
         h = cast(rs, origin, d)
@@ -404,7 +129,7 @@ def _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail=Non
     """
     m = len(offsets)
     out = np.empty(len(rows), np.float32)
-    step = max(1, _CHUNK // m)
+    step = max(1, RAY_CHUNK // m)
     if detail is not None:
         image, psf = detail
         weights, kc, rad = _ray_weights(offsets, psf)
@@ -681,3 +406,21 @@ def render_pair(
         )
         images.append(sensor(radiance, noise, rng))
     return tuple(images), stats
+
+
+def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shading=None, samples=None):
+    """The noiseless, blurred left and right images (float32 grey levels).
+
+    Each draw of a Monte Carlo check is ``sensor(image, noise, rng)`` of
+    these: the ray casting is done once.
+    """
+    shading = shading or DEFAULT_SHADING
+    samples = SAMPLES if samples is None else samples
+    light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
+    out = []
+    for index in (0, 1):
+        K, D, R, t = camera_in_part(calib, index, part_to_camera)
+        img, _ = render_radiance(scene, K, D, R, t, calib.image_size, light, shading=shading, samples=samples,
+                                 psf=blur_sigma)
+        out.append(img)
+    return tuple(out)

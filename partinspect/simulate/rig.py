@@ -25,7 +25,6 @@ __all__ = [
     "BASELINE",
     "WORKING_DISTANCE",
     "default_rig",
-    "fixation_point",
 ]
 
 FULL_SIZE = (2448, 2048)
@@ -147,34 +146,3 @@ def default_rig(image_size=FULL_SIZE, distortion=False):
         T=T,
         std={},
     )
-
-
-def fixation_point(rig):
-    """The point the two optical axes converge on, in the rig (left camera) frame.
-
-    Parameters
-    ----------
-    rig : StereoCalibration
-
-    Returns
-    -------
-    point : ndarray, shape (3,)
-        Midpoint of the shortest segment between the two optical axes, mm.
-
-    Raises
-    ------
-    ValueError
-        If the optical axes are parallel (a rig that does not converge).
-    """
-    c1, a1 = np.zeros(3), np.array([0.0, 0.0, 1.0])
-    R, T = np.asarray(rig.R, float), np.asarray(rig.T, float)
-    c2, a2 = -R.T @ T, R.T @ a1
-    # Closest points c1 + s a1 and c2 + t a2 of two skew lines.
-    b = a1 @ a2
-    d = c1 - c2
-    denom = 1.0 - b * b
-    if denom < 1e-12:
-        raise ValueError("the optical axes are parallel: the rig has no fixation point")
-    s = (b * (a2 @ d) - (a1 @ d)) / denom
-    t = ((a2 @ d) - b * (a1 @ d)) / denom
-    return 0.5 * ((c1 + s * a1) + (c2 + t * a2))

@@ -6,19 +6,10 @@ deviations) and how well each camera sees it:
 
 - ``in_image``: fraction of points along the edge that project inside the
   image (pixel centres' span, ``0 <= u <= W - 1``, ``0 <= v <= H - 1``);
-- ``unoccluded``: fraction whose line of sight is free: a ray cast from the
-  camera centre towards the point hits nothing more than
-  ``OCCLUSION_TOLERANCE`` before it;
-- ``contrast``: fraction where the noiseless shading differs by at least
-  ``MIN_CONTRAST`` grey levels between the two sides of the projected edge
-  (``CONTRAST_OFFSET`` pixels along the image normal on either side), each
-  side showing one face from 0.25 px out to that distance (or faces
-  shaded alike: ``NEIGHBOUR_STEP_FRACTION``) and the face
-  changing across the edge: an edge between two faces that meet
-  tangentially shows none, nor does a stretch of edge whose image runs
-  within 1.5 px of another edge (as where a hole's bottom rim passes
-  behind its top rim); judged in the image only (a sample outside it
-  counts as without contrast);
+- ``unoccluded``: fraction whose line of sight is free;
+- ``contrast``: fraction whose image shows a clean grey step;
+
+(each as :func:`partinspect.cad.sightlines.edge_visibility` decides it);
 - ``visible``: fraction passing all three at once.
 
 ``visible_both`` is true when ``visible`` is at least ``VISIBLE_FRACTION``
@@ -34,19 +25,14 @@ import re
 
 import numpy as np
 
-from partinspect.simulate.render import DEFAULT_SHADING, camera_in_part, cast, pixel_rays, shade
-from partinspect.vision.calibration import project_points
+from partinspect.cad.edge_sampling import feature_geometry, sample_edge
+from partinspect.cad.raycast import DEFAULT_SHADING
+from partinspect.cad.sightlines import CONTRAST_OFFSET, MIN_CONTRAST, OCCLUSION_TOLERANCE, edge_visibility
+from partinspect.frames import orthonormal_frame
 
 __all__ = [
     "SCHEMA",
-    "MIN_CONTRAST",
-    "CONTRAST_OFFSET",
-    "NEIGHBOUR_STEP_FRACTION",
-    "OCCLUSION_TOLERANCE",
     "VISIBLE_FRACTION",
-    "feature_geometry",
-    "sample_edge",
-    "edge_visibility",
     "feature_visibility",
     "deviated_geometry",
     "make_truth",
@@ -54,168 +40,8 @@ __all__ = [
 ]
 
 SCHEMA = "truth/1"
-MIN_CONTRAST = 20.0
-"""Grey levels across an edge for it to count as showing."""
-CONTRAST_OFFSET = 1.5
-"""Pixels from the edge, on each side, where the contrast is taken."""
-NEIGHBOUR_STEP_FRACTION = 0.1
-"""A face boundary within ``CONTRAST_OFFSET`` of an edge, on one side, counts
-as a second edge when its grey step is at least this fraction of the edge's
-contrast. On the sample parts (default pose and light) such boundaries step
-by under 0.05 of the edge's contrast (a hole's wall and the face seen past
-it, shaded alike; the 2D chain finds the edge there) or by 0.27 and more."""
-OCCLUSION_TOLERANCE = 0.05
-"""mm: a surface this little in front of an edge point does not hide it
-(the tessellation's chord error, seen at grazing incidence, is below it)."""
 VISIBLE_FRACTION = 0.5
 """Fraction of an edge that must be visible in an image for ``visible_both``."""
-_SAMPLE_SPACING = 0.25  # mm between edge samples
-_MIN_SAMPLES, _MAX_SAMPLES = 24, 400
-
-
-def feature_geometry(feature):
-    """The geometry of an inventory feature as a dict of arrays.
-
-    Parameters
-    ----------
-    feature : partinspect.cad.features.Feature
-
-    Returns
-    -------
-    dict
-        Lines: ``start``, ``end``. Circles: ``center``, ``normal``,
-        ``radius``. Arcs: those of a circle plus ``start``, ``end``,
-        ``angle_start``, ``angle_end`` (radians, counter-clockwise about
-        ``normal`` from ``reference_direction(normal)``). Part frame, mm.
-    """
-    if feature.kind == "line":
-        return {"start": np.array(feature.start, float), "end": np.array(feature.end, float)}
-    g = {"center": np.array(feature.center, float), "normal": np.array(feature.normal, float), "radius": float(feature.radius)}
-    if feature.kind == "arc":
-        g.update(
-            start=np.array(feature.start, float),
-            end=np.array(feature.end, float),
-            angle_start=float(feature.angle_start),
-            angle_end=float(feature.angle_end),
-        )
-    return g
-
-
-def _circle_axes(normal):
-    from partinspect.frames import orthonormal_frame
-
-    return tuple(orthonormal_frame(normal)[:2])
-
-
-def sample_edge(kind, geometry, n=None):
-    """Points and unit tangents along an edge, away from its ends.
-
-    Parameters
-    ----------
-    kind : {"line", "circle", "arc"}
-    geometry : dict
-        As :func:`feature_geometry` returns.
-    n : int, optional
-        Number of samples; default one per 0.25 mm, between 24 and 400.
-        They sit at the middles of ``n`` equal pieces, so no sample falls on
-        an end point (a corner).
-
-    Returns
-    -------
-    points, tangents : ndarray, shape (n, 3)
-        Part frame, mm; unit tangents.
-    """
-    if kind == "line":
-        a, b = geometry["start"], geometry["end"]
-        extent = float(np.linalg.norm(b - a))
-    else:
-        c, r = geometry["center"], geometry["radius"]
-        t0, t1 = (0.0, 2 * math.pi) if kind == "circle" else (geometry["angle_start"], geometry["angle_end"])
-        extent = r * (t1 - t0)
-    if n is None:
-        n = int(np.clip(math.ceil(extent / _SAMPLE_SPACING), _MIN_SAMPLES, _MAX_SAMPLES))
-    s = (np.arange(n) + 0.5) / n
-    if kind == "line":
-        return a + s[:, None] * (b - a), np.repeat(((b - a) / extent)[None], n, axis=0)
-    x, y = _circle_axes(geometry["normal"])
-    t = t0 + s * (t1 - t0)
-    cos, sin = np.cos(t)[:, None], np.sin(t)[:, None]
-    return c + r * (cos * x + sin * y), -sin * x + cos * y
-
-
-def edge_visibility(rs, calib, index, part_to_camera, points, tangents, shading=DEFAULT_SHADING):
-    """Per-point visibility of edge samples in one camera.
-
-    Parameters
-    ----------
-    rs : partinspect.simulate.render.RaycastScene
-        The part as rendered (deviations applied).
-    calib : StereoCalibration
-    index : int
-        0 left, 1 right.
-    part_to_camera : ndarray, shape (4, 4)
-        Part frame to left camera frame.
-    points, tangents : ndarray, shape (N, 3)
-        Edge samples and unit tangents, part frame.
-    shading : Shading
-
-    Returns
-    -------
-    dict of ndarray of bool, shape (N,)
-        ``in_image``, ``unoccluded``, ``contrast`` (see the module notes),
-        and ``uv`` (N, 2): the samples' distorted pixel positions,
-        ``normal_uv`` (N, 2): unit normals of the projected edge, and
-        ``side_label`` (N, 2) int, ``side_grey`` (N, 2): the face seen and
-        its noiseless grey level ``CONTRAST_OFFSET`` px either side
-        (against, along the normal), -1 for the background, -2 and NaN for
-        samples outside the image.
-    """
-    K, D, R, t = camera_in_part(calib, index, part_to_camera)
-    w, h = calib.image_size
-    uv = project_points(points, K, D, R, t)
-    # Image direction of the edge by a central difference along its tangent.
-    step = 1e-3
-    du = project_points(points + step * tangents, K, D, R, t) - project_points(points - step * tangents, K, D, R, t)
-    du /= np.maximum(np.linalg.norm(du, axis=1), 1e-300)[:, None]
-    normal = np.stack([-du[:, 1], du[:, 0]], axis=1)
-    in_image = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-
-    origin = -R.T @ t
-    ray = points - origin
-    dist = np.linalg.norm(ray, axis=1)
-    hits = cast(rs, origin, ray / dist[:, None])
-    unoccluded = hits.distance >= dist - OCCLUSION_TOLERANCE
-
-    # Contrast: the shading CONTRAST_OFFSET px either side differs enough, and
-    # each side is one face out to that distance (no other edge within it),
-    # with a change of face across the edge itself.
-    light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
-    contrast = np.zeros(len(points), bool)
-    side_label = np.full((len(points), 2), -2)
-    side_grey = np.full((len(points), 2), np.nan)
-    # Only samples in the image: far outside it a strong distortion model can
-    # fold over, and its pixels cannot be mapped back to rays.
-    ok = in_image
-    if ok.any():
-        offsets = np.array([-CONTRAST_OFFSET, -0.25, 0.25, CONTRAST_OFFSET])
-        q = uv[ok, None, :] + offsets[None, :, None] * normal[ok, None, :]
-        o, d = pixel_rays(q.reshape(-1, 2), K, D, R, t)
-        hits = cast(rs, o, d)
-        g = shade(rs, hits, d, light, shading).astype(float).reshape(-1, 4)
-        lab = hits.label.reshape(-1, 4)
-        step = np.abs(g[:, 3] - g[:, 0])
-        # A face boundary on one side whose grey step is a small fraction
-        # of the edge's own shows no second edge (two faces shaded alike,
-        # as a hole's wall and the floor seen past it): it neither hides
-        # the edge nor disturbs its points.
-        quiet = NEIGHBOUR_STEP_FRACTION * step
-        one_face = [(lab[:, i] == lab[:, j]) | (np.abs(g[:, i] - g[:, j]) < quiet) for i, j in ((0, 1), (2, 3))]
-        clean = one_face[0] & one_face[1] & (lab[:, 1] != lab[:, 2])
-        contrast[ok] = clean & (step >= MIN_CONTRAST)
-        side_label[ok] = lab[:, [0, 3]]
-        side_grey[ok] = g[:, [0, 3]]
-    return {"in_image": in_image, "unoccluded": unoccluded, "contrast": contrast, "uv": uv, "normal_uv": normal,
-            "side_label": side_label, "side_grey": side_grey}
 
 
 def feature_visibility(rs, calib, part_to_camera, kind, geometry, shading=DEFAULT_SHADING):
@@ -275,7 +101,7 @@ def _shift_circle(g, center_delta=None, radius_delta=0.0):
         g["center"] = g["center"] + center_delta
     g["radius"] = g["radius"] + radius_delta
     if "angle_start" in g:
-        x, y = _circle_axes(g["normal"])
+        x, y = orthonormal_frame(g["normal"])[:2]
         for key, angle in (("start", g["angle_start"]), ("end", g["angle_end"])):
             g[key] = g["center"] + g["radius"] * (math.cos(angle) * x + math.sin(angle) * y)
     return g

@@ -31,7 +31,7 @@ from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
 from partinspect.vision.stereo import (calibration_parameters, correction_corr_length, coupled_noise, feature_views,
                                        perturbed_calibration)
 
-__all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors"]
+__all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors", "with_monte_carlo_covariances"]
 
 
 @dataclass(frozen=True)
@@ -189,3 +189,26 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
             ratio = np.sqrt(np.diag(cov) / np.diag(fo))
         out.append(MonteCarloFeature(int(k), f3.kind, len(samples), samples, samples.mean(axis=0), cov, fo, ratio))
     return out
+
+
+def with_monte_carlo_covariances(stereo, calib, draws):
+    """The stereo result with Monte Carlo covariances in place of the first-order ones.
+
+    Returns the new result and the ratios of Monte Carlo to first-order
+    standard uncertainties of the random inputs over all parameters (for
+    the report). The systematic (Type B) covariance of a feature is not
+    sampled and is added to the Monte Carlo covariance unchanged.
+    """
+    from dataclasses import replace
+
+    feats, ratios = list(stereo.features), []
+    for mc in monte_carlo(stereo, calib, draws=draws, seed=0):
+        f = feats[mc.feature]
+        C = 0.5 * (mc.cov_mc + mc.cov_mc.T)
+        # The draws cover the random inputs only; the Type B part (rim shading) is added as it was.
+        if getattr(f, "param_cov_systematic", None) is not None:
+            C = C + f.param_cov_systematic
+        extra = {"radius_std": float(np.sqrt(C[6, 6]))} if f.kind != "line" else {}
+        feats[mc.feature] = replace(f, param_cov=C, covariance=C[:3, :3], axis_cov=C[3:6, 3:6], **extra)
+        ratios.extend(r for r in mc.std_ratio if np.isfinite(r))
+    return replace(stereo, features=tuple(feats)), np.array(ratios)

@@ -327,7 +327,7 @@ class StereoResult:
         (:func:`partinspect.vision.guided.guided_lines`).
     withdrawn : tuple of (str, str)
         CAD edges whose 3D line was taken out after registration, with the
-        reason (:func:`partinspect.pipeline.cleared_stereo`).
+        reason (:func:`partinspect.vision.posed.cleared_stereo`).
     """
 
     left: ImageResult

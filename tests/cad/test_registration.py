@@ -11,7 +11,7 @@ from partinspect.cad.features import inventory
 from partinspect.cad.registration import Registration, RegistrationError, pose_error, register
 from partinspect.errors import InputError
 from partinspect.simulate.measured import facing_feature_ids, measure_features
-from partinspect.simulate.pose import default_pose
+from partinspect.poses import default_pose
 from partinspect.simulate.rig import default_rig
 
 from tests.cad.conftest import EXAMPLES
@@ -336,8 +336,8 @@ def test_an_arc_seen_through_a_slot_against_the_background_is_matched():
     it was measured (on a stress render, to 0.001 mm) and then matched to nothing."""
     from partinspect.cad.step import load_step
     from partinspect.cad.visibility import visibility
-    from partinspect.simulate.pose import bounds_of, view_rotation
-    from partinspect.simulate.rig import fixation_point
+    from partinspect.poses import bounds_of, view_rotation
+    from partinspect.poses import fixation_point
 
     shape = load_step(EXAMPLES / "bracket" / "part.step")
     inv = inventory(shape)

@@ -35,8 +35,8 @@ def spec_characteristics(plate):
 
 def view_pose(plate, rig, elevation, azimuth, roll):
     """The plate's bounding-box centre at the fixation point, seen from (elevation, azimuth, roll) degrees."""
-    from partinspect.simulate.pose import bounds_of, view_rotation
-    from partinspect.simulate.rig import fixation_point
+    from partinspect.poses import bounds_of, view_rotation
+    from partinspect.poses import fixation_point
 
     b = bounds_of(plate.shape)
     R = view_rotation(*np.deg2rad([elevation, azimuth, roll]))

@@ -12,7 +12,7 @@ from partinspect.planning.predict import predict_pose, tolerance_width
 @pytest.fixture(scope="module")
 def radiance(plate, rig):
     """The plate's noiseless left and right images, ray-cast once for the module."""
-    from partinspect.planning.check import render_radiance_pair
+    from partinspect.simulate.render import render_radiance_pair
 
     return render_radiance_pair(plate.scene, rig, plate.pose(rig))
 
@@ -62,6 +62,7 @@ def test_prediction_reproduces_the_chain_on_a_render(plate, rig, radiance, predi
 def test_prediction_against_a_few_rendered_noise_draws(plate, rig, radiance):
     """Monte Carlo on rendered images (few draws: a loose, pooled check; the benchmark has 50)."""
     from partinspect.planning.check import monte_carlo_check
+    from partinspect.simulate.render import sensor
     from partinspect.tolerances.resolve import general_characteristics, resolve_spec
     from partinspect.tolerances.spec import default_spec
 
@@ -72,7 +73,7 @@ def test_prediction_against_a_few_rendered_noise_draws(plate, rig, radiance):
              if c.type in ("straightness", "diameter")]
     # The spread over noise draws of one scene shows the image-noise part of u alone.
     pred = predict_pose(inv, plate.scene, rig, pose, chars, model=DetectorModel(systematic=False))
-    chk = monte_carlo_check(plate.scene, inv, rig, pose, chars, draws=3, seed=1, radiance=radiance)
+    chk = monte_carlo_check(plate.scene, inv, rig, pose, chars, radiance, sensor, draws=3, seed=1)
     assert chk.draws == 3
     r = [chk.spread(c.id) / c.u for c in pred.characteristics
          if math.isfinite(c.u) and chk.measured_fraction(c.id) == 1.0]
@@ -110,7 +111,8 @@ def test_partial_arcs_radius_u_as_the_chain_reports_it():
     the noise and the shading's displacement of the points) and reported
     0.0060-0.0063 mm for arc-2 against the predicted 0.0041. With the break
     where the side touches the arc they end where the prediction does."""
-    from partinspect.planning.check import measure_pair, render_radiance_pair
+    from partinspect.planning.check import measure_pair
+    from partinspect.simulate.render import render_radiance_pair
     from partinspect.planning.predict import predict_feature
     from partinspect.simulate.render import sensor
     from partinspect.simulate.rig import default_rig
@@ -165,8 +167,9 @@ def test_rim_ends_where_a_third_edge_meets_it(plate, rig, radiance):
     (its circularity predicted 0.49 of the spread over 50 noise draws, now
     0.66)."""
     from partinspect.planning.predict import sample_view
-    from partinspect.simulate.render import camera_in_part, sensor
-    from partinspect.simulate.truth import feature_geometry
+    from partinspect.simulate.render import sensor
+    from partinspect.cad.raycast import camera_in_part
+    from partinspect.cad.edge_sampling import feature_geometry
     from partinspect.vision.stereo import measure_images
 
     def gaps(uv, c):

@@ -63,7 +63,7 @@ def test_edge_on_holes_named_and_a_tilt_fixes_them(edge_on, plate, rig):
         c.id for c in best.characteristics if c.decidable}
     assert best.angles[0] == 0.0 and best.angles[1:] != (0.0, 0.0)
     # The proposal is given as --pose text that reproduces the pose.
-    from partinspect.simulate.pose import parse_pose
+    from partinspect.poses import parse_pose
 
     P = parse_pose(pose_text(best.part_to_camera, center), np.asarray(plate.mesh.bounds), rig)
     assert np.allclose(P, best.part_to_camera, atol=2e-3)

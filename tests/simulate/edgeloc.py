@@ -25,8 +25,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import ndtr
 
-from partinspect.simulate.render import camera_in_part, cast, pixel_rays
-from partinspect.simulate.truth import edge_visibility, feature_geometry, sample_edge
+from partinspect.cad.raycast import camera_in_part, cast, pixel_rays
+from partinspect.cad.sightlines import edge_visibility
+from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 
 STEP = 0.05  # px between profile samples
 HALF = 3.0  # px: profile half length used in the fit

@@ -28,8 +28,8 @@ class Part:
         from partinspect.cad.features import inventory
         from partinspect.cad.mesh import tessellate
         from partinspect.cad.step import load_step
-        from partinspect.simulate.folder import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
-        from partinspect.simulate.render import build_scene
+        from partinspect.cad.raycast import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
+        from partinspect.cad.raycast import build_scene
 
         self.name = name
         self.path = step_path(name)
@@ -45,7 +45,7 @@ class Part:
         return default_rig(size, distortion=distortion)
 
     def pose(self, rig):
-        from partinspect.simulate.pose import default_pose
+        from partinspect.poses import default_pose
 
         return default_pose(self.shape, rig)
 

@@ -5,16 +5,8 @@ import pytest
 
 from tests.simulate.scenes import SIZE, flat_mask
 from tests.simulate.edgeloc import edge_offsets
-from partinspect.simulate.render import (
-    Shading,
-    build_scene,
-    camera_in_part,
-    cast,
-    pixel_rays,
-    render_pair,
-    render_radiance,
-    sample_pattern,
-)
+from partinspect.simulate.render import render_pair, render_radiance, sample_pattern
+from partinspect.cad.raycast import Shading, build_scene, camera_in_part, cast, pixel_rays
 from partinspect.vision.calibration import project_points
 
 
@@ -99,7 +91,7 @@ def test_shading_is_lambertian_with_the_exact_normal(plate):
     h = cast(plate.scene, o, d)
     assert h.label[1] == -1 and h.label[0] >= 0
     assert np.linalg.norm(o + h.distance[0] * d[0] - X[0]) < 1e-4
-    from partinspect.simulate.render import shade
+    from partinspect.cad.raycast import shade
 
     g = shade(plate.scene, h, d, light, sh)
     assert g[0] == pytest.approx(50 + 150 * max(0.0, light[2]), abs=1e-3)
@@ -275,7 +267,7 @@ def test_images_look_like_an_inspection_shot(parts):
 def test_deviated_render_changes_only_near_that_hole(plate):
     from partinspect.cad.deviate import deviate, parse_deviation
     from partinspect.cad.mesh import tessellate
-    from partinspect.simulate.folder import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
+    from partinspect.cad.raycast import RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
 
     rig, pose, nominal = plate.render()
     dev = parse_deviation("circle-4.diameter=0.3")

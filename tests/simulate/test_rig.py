@@ -8,8 +8,8 @@ from partinspect.simulate.rig import (
     PIXEL_PITCH,
     WORKING_DISTANCE,
     default_rig,
-    fixation_point,
 )
+from partinspect.poses import fixation_point
 from partinspect.vision.calibration import camera_pose, project_points, read_calibration, undistort_points, write_calibration
 
 

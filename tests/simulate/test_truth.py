@@ -4,14 +4,8 @@ import numpy as np
 import pytest
 
 from partinspect.simulate.folder import SAMPLES, render_to_folder
-from partinspect.simulate.truth import (
-    SCHEMA,
-    deviated_geometry,
-    feature_geometry,
-    feature_visibility,
-    sample_edge,
-    to_json,
-)
+from partinspect.simulate.truth import SCHEMA, deviated_geometry, feature_visibility, to_json
+from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 from tests.simulate.scenes import step_path
 
 SMALL = (612, 512)
@@ -73,7 +67,7 @@ def test_truth_contents(folder_run, plate):
     assert truth["distortion"] is False
     assert truth["sampling"]["rays_per_supersampled_pixel"] == SAMPLES**2 == 256
     P = np.array(truth["part_to_camera"])
-    from partinspect.simulate.pose import default_pose
+    from partinspect.poses import default_pose
     from partinspect.simulate.rig import default_rig
 
     np.testing.assert_allclose(P, default_pose(plate.shape, default_rig(SMALL)), atol=1e-9)
@@ -163,7 +157,7 @@ def bracket_wall_hole(bracket):
 
 def test_a_hole_turned_away_is_not_visible(bracket):
     """Wall-hole rims on the wall's front face show in the default view; seen from behind they do not."""
-    from partinspect.simulate.pose import default_pose, parse_pose
+    from partinspect.poses import default_pose, parse_pose
     from partinspect.simulate.rig import default_rig
 
     rig = default_rig(SMALL)
@@ -212,8 +206,8 @@ def test_edge_far_outside_the_image_is_not_visible_even_where_the_lens_model_fol
     The default rig's radial distortion folds back beyond about 0.8 of the
     focal length off axis (a render of a large NIST part failed there).
     """
-    from partinspect.simulate.render import camera_in_part
-    from partinspect.simulate.truth import edge_visibility
+    from partinspect.cad.raycast import camera_in_part
+    from partinspect.cad.sightlines import edge_visibility
     from tests.simulate.scenes import Part
 
     p = Part("plate")
@@ -238,9 +232,9 @@ def test_a_face_boundary_shaded_alike_beside_an_edge_does_not_hide_it(bracket):
     levels) it does not. The rule without the shading (any change of face)
     lost single samples there, and with the trim at each end of a visible
     stretch the planner lost 20 deg of the arc at each."""
-    from partinspect.simulate.pose import default_pose
+    from partinspect.poses import default_pose
     from partinspect.simulate.rig import default_rig
-    from partinspect.simulate.truth import edge_visibility
+    from partinspect.cad.sightlines import edge_visibility
 
     rig = default_rig((1224, 1024))
     pose = default_pose(bracket.shape, rig)

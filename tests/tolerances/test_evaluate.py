@@ -9,7 +9,7 @@ import pytest
 from partinspect.cad.features import inventory
 from partinspect.cad.registration import register
 from partinspect.simulate.measured import measure_features
-from partinspect.simulate.pose import default_pose
+from partinspect.poses import default_pose
 from partinspect.simulate.rig import default_rig
 from partinspect.tolerances.evaluate import evaluate, monte_carlo, propagate, true_position
 from partinspect.tolerances.form import circularity, straightness

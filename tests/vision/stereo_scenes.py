@@ -39,7 +39,8 @@ def truth_in_rig(name, distortion=False, size=SIZE):
     key = (name, distortion, size)
     if key in _TRUTH:
         return _TRUTH[key]
-    from partinspect.simulate.truth import feature_geometry, feature_visibility, sample_edge
+    from partinspect.simulate.truth import feature_visibility
+    from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 
     p = part(name)
     rig = p.rig(distortion, size)

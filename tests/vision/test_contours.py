@@ -84,7 +84,7 @@ def test_line_ends_beside_a_junction_keep_clear_of_the_other_edge():
     off the true edge, and they alone set the edge's straightness. Those points are left out:
     over eight noise draws the two points nearest the junction lie on the true edge within the
     noise."""
-    from partinspect.planning.check import render_radiance_pair
+    from partinspect.simulate.render import render_radiance_pair
     from partinspect.simulate.render import sensor
     from partinspect.vision.ideal import camera_matrices
     from partinspect.vision.stereo import measure_images

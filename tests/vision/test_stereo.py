@@ -211,7 +211,8 @@ def test_a_rim_fading_against_its_lit_wall_does_not_bend_its_arc():
     uncertainties. Such points are now left out (matching.FADE_RATIO): the
     rim is then in two short pieces whose fits disagree and is not measured,
     and every hole rim measured is within its 99.9 % ellipsoid."""
-    from partinspect.simulate.render import camera_in_part, render_radiance, sensor
+    from partinspect.simulate.render import render_radiance, sensor
+    from partinspect.cad.raycast import camera_in_part
 
     p = S.part("plate")
     rig = p.rig(False, S.SIZE)
@@ -245,7 +246,8 @@ def test_rims_under_a_flat_shading_are_not_taken_as_exact():
     noise, and without the Type B floor (``EDGE_BIAS_FLOOR``) the 4 mm hole's
     radius came out 8 u off (centre chi-square 68) and the 6 mm hole's centre
     at chi-square 23: the fit took its points as exact."""
-    from partinspect.simulate.render import Shading, render_pair
+    from partinspect.simulate.render import render_pair
+    from partinspect.cad.raycast import Shading
 
     p = S.part("plate")
     rig = p.rig(False, S.SIZE)

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from partinspect.errors import InputError
-from partinspect.simulate.pose import bounds_of, default_pose, euler_pose, parse_pose, view_rotation
-from partinspect.simulate.rig import default_rig, fixation_point
+from partinspect.poses import bounds_of, default_pose, euler_pose, parse_pose, view_rotation
+from partinspect.simulate.rig import default_rig
+from partinspect.poses import fixation_point
 from partinspect.vision.calibration import camera_pose, project_points
 
 RIG = default_rig()

@@ -18,7 +18,7 @@ import numpy as np
 
 from partinspect.errors import InputError
 
-__all__ = ["PoseError", "VIEW_ELEVATION", "VIEW_AZIMUTH", "VIEW_ROLL", "bounds_of", "view_rotation", "default_pose", "parse_pose", "euler_pose"]
+__all__ = ["PoseError", "VIEW_ELEVATION", "VIEW_AZIMUTH", "VIEW_ROLL", "bounds_of", "view_rotation", "default_pose", "parse_pose", "euler_pose", "fixation_point"]
 
 class PoseError(InputError, ValueError):
     """A ``--pose`` text that cannot be read.
@@ -44,6 +44,37 @@ VIEW_ROLL = np.deg2rad(20.0)
 """Rotation about the optical axis. With it the part's x, y and z axes
 project at least 24 degrees away from the epipolar lines in both images
 (checked in the tests for every straight edge of the sample parts)."""
+
+
+def fixation_point(rig):
+    """The point the two optical axes converge on, in the rig (left camera) frame.
+
+    Parameters
+    ----------
+    rig : StereoCalibration
+
+    Returns
+    -------
+    point : ndarray, shape (3,)
+        Midpoint of the shortest segment between the two optical axes, mm.
+
+    Raises
+    ------
+    ValueError
+        If the optical axes are parallel (a rig that does not converge).
+    """
+    c1, a1 = np.zeros(3), np.array([0.0, 0.0, 1.0])
+    R, T = np.asarray(rig.R, float), np.asarray(rig.T, float)
+    c2, a2 = -R.T @ T, R.T @ a1
+    # Closest points c1 + s a1 and c2 + t a2 of two skew lines.
+    b = a1 @ a2
+    d = c1 - c2
+    denom = 1.0 - b * b
+    if denom < 1e-12:
+        raise ValueError("the optical axes are parallel: the rig has no fixation point")
+    s = (b * (a2 @ d) - (a1 @ d)) / denom
+    t = ((a2 @ d) - b * (a1 @ d)) / denom
+    return 0.5 * ((c1 + s * a1) + (c2 + t * a2))
 
 
 def bounds_of(mesh_or_bounds):
@@ -125,8 +156,6 @@ def default_pose(mesh_or_bounds, rig):
     part_to_camera : ndarray, shape (4, 4)
         Rotation :func:`view_rotation` with the module's VIEW_* angles.
     """
-    from partinspect.simulate.rig import fixation_point
-
     return _place(view_rotation(), bounds_of(mesh_or_bounds), fixation_point(rig))
 
 
@@ -157,18 +186,18 @@ def euler_pose(angles_deg, mesh_or_bounds=None, position=None, rig=None):
         Where the centre goes in the left camera frame, mm; default the
         rig's fixation point.
     rig : StereoCalibration, optional
-        For the fixation point; default :func:`~partinspect.simulate.rig.default_rig`.
+        For the fixation point; needed when ``position`` is not given.
 
     Returns
     -------
     part_to_camera : ndarray, shape (4, 4)
     """
-    from partinspect.simulate.rig import default_rig, fixation_point
-
+    if position is None and rig is None:
+        raise ValueError("euler_pose needs a rig (for its fixation point) or a position")
     R = _rotation_xyz(*np.deg2rad(np.asarray(angles_deg, dtype=float)))
     bounds = np.zeros((2, 3)) if mesh_or_bounds is None else bounds_of(mesh_or_bounds)
     if position is None:
-        position = fixation_point(rig if rig is not None else default_rig())
+        position = fixation_point(rig)
     return _place(R, bounds, position)
 
 

@@ -1,0 +1,174 @@
+"""Why a CAD edge was not measured, in words a quality engineer can act on.
+
+A feature without a measurement is either out of view (outside an image,
+hidden behind the part), shows too little grey-level step to be detected,
+was measured and then taken out, or was seen and lost somewhere in the
+chain: found only as part of a longer collinear edge, found as edge points
+too few for a fit, or its image feature not matched to the other image.
+The reason names which, so the user knows whether to re-fixture, relight
+or accept it.
+"""
+
+import numpy as np
+
+from partinspect.vision.posed import image_owners
+
+__all__ = ["COVERED_FRACTION", "image_feature_reasons", "edge_points_along", "unmeasured_reason",
+           "unmeasured_reasons", "edges_found", "split_unseen"]
+
+COVERED_FRACTION = 0.5
+"""An image feature that runs along at least this fraction of a CAD edge's
+image (within 2 px) but mostly elsewhere found that edge as part of a
+longer one: collinear edges of the part (a step's two lips, a slot's two
+sides in line) merge into one line in the images."""
+
+
+def image_feature_reasons(stereo):
+    """(side, image feature index) -> why it was not matched, in words."""
+    from partinspect.vision.matching import REASONS
+
+    out = {(u.side, u.feature): REASONS.get(u.reason, u.reason) + (f" ({u.detail})" if u.detail else "")
+           for u in stereo.matching.unmatched}
+    for m, why in stereo.failed:
+        out[("left", m.left)] = out[("right", m.right)] = f"matched, but {why}"
+    return out
+
+
+def edge_points_along(measured, uv, lo, hi, reach=1.5):
+    """Whether the detector's edge points run along at least COVERED_FRACTION of an edge's image.
+
+    The edge was detected, but its points were left out of every line and
+    arc: a short edge between two corners loses its ends to them
+    (the segmentation keeps crowded points out of its fits) and what is left is too
+    few points for a fit.
+    """
+    from scipy.spatial import cKDTree
+
+    xy = measured.edges.xy
+    box = np.all((xy >= lo) & (xy <= hi), axis=1)
+    if len(uv) == 0 or box.sum() < 2:
+        return False
+    return bool(np.mean(cKDTree(xy[box]).query(uv)[0] < reach) >= COVERED_FRACTION)
+
+
+def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owners=None):
+    """Why a CAD feature has no measurement: out of view, or what became of its edge in the images.
+
+    ``owners``: :func:`partinspect.vision.posed.image_owners`, to name the edge a longer image
+    feature that also covers this one was measured as.
+    """
+    if not vis.in_view:
+        return "not visible: " + vis.reason()
+    noise = max(float(stereo.left.noise), float(stereo.right.noise))
+    if not vis.shows_edge(noise):
+        return (f"in view, but with too little grey-level step across it to be detected ({vis.contrast[0]:.0f} and "
+                f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): "
+                "its two faces look alike under this lighting")
+    withdrawn = dict(getattr(stereo, "withdrawn", ())).get(feature.id)
+    if withdrawn:
+        return f"measured, then taken out: {withdrawn}"
+    from scipy.spatial import cKDTree
+
+    from partinspect.cad.edge_sampling import feature_geometry, sample_edge
+    from partinspect.vision.calibration import project_points
+
+    pts, _ = sample_edge(feature.kind, feature_geometry(feature))
+    R, t = pose[:3, :3], pose[:3, 3]
+    found, longer_sides = [], 0
+    for side, K, D, Rc, tc in (("left", calib.K1, calib.D1, np.eye(3), np.zeros(3)), ("right", calib.K2, calib.D2, calib.R, calib.T)):
+        uv = project_points(pts @ R.T + t, K, D, Rc, tc)
+        tree = cKDTree(uv[np.isfinite(uv).all(axis=1)])
+        feats = (stereo.left if side == "left" else stereo.right).features
+        near = [i for i, f in enumerate(feats) if len(f.uv) and np.median(tree.query(f.uv)[0]) < 2.0]
+        reasons = [unmatched_reasons[(side, i)] for i in near if (side, i) in unmatched_reasons]
+        if not near:
+            ok = np.isfinite(uv).all(axis=1)
+            lo, hi = (uv[ok].min(axis=0) - 2.0, uv[ok].max(axis=0) + 2.0) if ok.any() else (np.inf, -np.inf)
+            longer = [i for i, f in enumerate(feats) if len(f.uv) and np.all(f.uv.max(axis=0) >= lo)
+                      and np.all(f.uv.min(axis=0) <= hi)
+                      and np.mean(cKDTree(f.uv).query(uv[ok])[0] < 2.0) >= COVERED_FRACTION]
+            if longer:
+                i = longer[0]
+                owner = (owners or {}).get((side, i))
+                if owner:
+                    fate = f"measured as {owner}"
+                elif (side, i) in unmatched_reasons:
+                    fate = f"not matched: {unmatched_reasons[(side, i)]}"
+                else:
+                    fate = "which matched no single CAD edge"
+                found.append(f"{side} image: found as part of a longer edge that runs on past it, {fate}")
+                longer_sides += 1
+            elif edge_points_along(stereo.left if side == "left" else stereo.right, uv[ok], lo, hi):
+                length = float(np.sum(np.linalg.norm(np.diff(uv[ok], axis=0), axis=1)))
+                why = ("too few of them clear of the edges meeting it at its ends for a line fit"
+                       if feature.kind == "line" else "the segmentation kept no arc of them")
+                found.append(f"{side} image: edge points found along it, but {why} (its image is {length:.0f} px long)")
+            else:
+                found.append(f"no edge found along it in the {side} image")
+        elif reasons:
+            found.append(f"{side} image: {reasons[0]}")
+    # Its own stretch of a longer image line found but not measured says more
+    # than "found as part of a longer edge"; a reason the matching gave an
+    # image feature of its own (along the epipolar lines, say) says more still.
+    stretch = dict(getattr(stereo, "guided_failed", ())).get(feature.id)
+    if stretch and longer_sides == len(found):
+        return f"its own stretch of a longer straight edge was found in both images, but not measured: {stretch}"
+    return "; ".join(found) if found else "seen in both images but not matched to the CAD model"
+
+
+def unmeasured_reasons(inv, stereo, registration, seen, calib):
+    """CAD id -> why it has no measurement, for every feature registration did not assign.
+
+    Parameters
+    ----------
+    inv : Inventory
+    stereo : StereoResult
+    registration : Registration
+    seen : dict of str to FeatureVisibility
+    calib : StereoCalibration
+
+    Returns
+    -------
+    dict of str to str
+        :func:`unmeasured_reason` of each unmeasured feature.
+    """
+    done = {p.cad_id for p in registration.features_in_part_frame() if p.cad_id is not None}
+    reasons = image_feature_reasons(stereo)
+    owners = image_owners(stereo, registration)
+    return {f.id: unmeasured_reason(f, seen[f.id], calib, registration.part_to_camera, stereo, reasons, owners)
+            for f in inv.features if f.id not in done}
+
+
+def edges_found(inv):
+    """What a model without features has instead, e.g. "its edges: 1 seam (circle)"."""
+    parts = [f"{n} {kind}" for kind, n in inv.skipped_edges.items()]
+    parts += [f"{n} seam ({kind})" for kind, n in inv.seam_edges.items()]
+    if inv.degenerated_edges:
+        parts.append(f"{inv.degenerated_edges} degenerated")
+    return "its edges: " + ", ".join(parts) if parts else "it has no edges"
+
+
+def split_unseen(characteristics, seen, registration):
+    """The characteristics to judge, and those of edges out of view not inspected.
+
+    General tolerances cover the whole part, but a stereo pair sees one
+    side of it: a general-tolerance characteristic of an edge out of view
+    that was not measured anyway is listed as not inspected, with the
+    reason, rather than judged. A characteristic the spec names explicitly
+    is always judged (inconclusive when unseen).
+
+    Returns
+    -------
+    judged : list of Characteristic
+    not_inspected : list of dict
+        report.json's "not_inspected" entries.
+    """
+    measured = set(registration.assignment["circle"].values()) | set(registration.assignment["line"].values())
+    judged, not_inspected = [], []
+    for c in characteristics:
+        hidden = [fid for fid in c.features if not seen[fid].in_view]
+        if hidden and c.source.endswith("(general tolerance)") and not any(fid in measured for fid in c.features):
+            not_inspected.append({**c.to_dict(), "reason": "; ".join(f"{fid} {seen[fid].reason()}" for fid in hidden)})
+        else:
+            judged.append(c)
+    return judged, not_inspected

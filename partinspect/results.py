@@ -1,0 +1,147 @@
+"""A run's measurement objects as report data: features, registration, figures.
+
+Turns what the chain produced (the stereo result, the registration, the
+decisions) into the plain entries report.json and the HTML report's
+figures are written from. Every geometry in report.json is in the part
+frame; the figures' overlays are in distorted pixels, each measured
+feature drawn as its 3D fit projected back through the lens model, so the
+overlay shows the reconstruction, not just the detected edge.
+"""
+
+import numpy as np
+
+from partinspect.reports.assemble import mat, vec
+
+__all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "feature_entries", "curve_3d",
+           "figure_data"]
+
+
+def nominal_geometry(feature):
+    """The CAD geometry of a feature as report.json writes it (part frame, mm)."""
+
+    def vec(v):
+        return [round(float(x), 9) for x in v]
+
+    if feature.kind == "line":
+        return {"start": vec(feature.start), "end": vec(feature.end)}
+    g = {"center": vec(feature.center), "normal": vec(feature.normal), "radius": round(float(feature.radius), 9)}
+    if feature.kind == "arc":
+        g.update(start=vec(feature.start), end=vec(feature.end))
+    return g
+
+
+def characteristic_entry(decision):
+    """report.json's entry of one decided characteristic, with one reason a reader can act on."""
+    d = decision.to_dict()
+    # One "reason" a reader can act on: why it is not measured, else why it was decided so.
+    d["reason"] = d.get("reason") or decision.reason
+    return d
+
+
+def registration_entry(reg):
+    """report.json's "registration": the pose, its uncertainty and fit statistics."""
+    std = reg.pose_std
+    return {
+        "part_to_camera": mat(reg.part_to_camera, 12),
+        "rms": round(float(reg.rms), 9),
+        "weighted_rms": round(float(reg.weighted_rms), 6),
+        "chi2": round(float(reg.chi2), 6),
+        "dof": int(reg.dof),
+        "datums": list(reg.datums),
+        "outliers": [{"feature": fid, "chi2": round(float(c2), 3), "residuals": int(n)}
+                     for fid, (c2, n) in sorted(reg.outliers.items())],
+        "pose_covariance": mat(reg.pose_cov),
+        "rotation_std_deg": vec(np.degrees(std[:3]), 9),
+        "translation_std": vec(std[3:], 9),
+        "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
+    }
+
+
+def feature_entries(inv, stereo, registration, seen, decisions, reasons):
+    """report.json's "features": nominal and measured geometry (part frame) with covariances.
+
+    ``reasons``: CAD id -> why it was not measured
+    (:func:`partinspect.diagnosis.unmeasured_reasons`), for every feature
+    the registration did not assign.
+    """
+    parts = {p.cad_id: p for p in registration.features_in_part_frame() if p.cad_id is not None}
+    index = {"circle": [f for f in stereo.features if f.kind != "line"], "line": [f for f in stereo.features if f.kind == "line"]}
+    worst = {}
+    rank = {"pass": 0, "inconclusive": 1, "fail": 2}
+    for d in decisions:
+        for fid in d.evaluation.characteristic.features:
+            if rank[d.decision] >= rank.get(worst.get(fid), -1):
+                worst[fid] = d.decision
+    out = []
+    for f in inv.features:
+        entry = {"id": f.id, "kind": f.kind, "nominal": nominal_geometry(f), "visibility": {
+            "left": round(seen[f.id].seen[0], 3), "right": round(seen[f.id].seen[1], 3)}}
+        p = parts.get(f.id)
+        if p is None:
+            entry.update(measured=None, status="not measured", reason=reasons[f.id])
+        else:
+            f3 = index[p.kind][p.index]
+            if p.kind == "circle":
+                m = {"center": vec(p.center), "normal": vec(p.normal), "radius": round(p.radius, 9),
+                     "covariance": mat(p.covariance), "radius_std": float(f"{p.radius_std:.6g}")}
+            else:
+                m = {"point": vec(p.point), "direction": vec(p.direction), "start": vec(p.start), "end": vec(p.end),
+                     "covariance": mat(p.covariance)}
+            m.update(n_points=int(len(f3.correspondences)), datum=bool(p.datum), measured_as=f3.kind)
+            entry.update(measured=m, status=worst.get(f.id, "measured"))
+            if f3.guided is not None:
+                entry["reason"] = ("measured on its own stretch of a longer straight edge in the images (edges in "
+                                   "line with it merge into one there), the stretch its CAD edge's image covers")
+        out.append(entry)
+    return out
+
+
+def curve_3d(f, n=96):
+    """Points along a measured Feature3D (rig frame, mm) for drawing."""
+    if f.kind == "line":
+        return f.start + np.linspace(0.0, 1.0, n)[:, None] * (f.end - f.start)
+    from partinspect.frames import orthonormal_frame
+
+    e1, e2, _ = orthonormal_frame(f.normal)
+    a = np.linspace(f.angle_start, f.angle_end, n)
+    return f.center + f.radius * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+
+
+def figure_data(left, right, calib, inv, stereo, registration, features):
+    """The data behind the report's figures (:mod:`partinspect.reports.figures`).
+
+    Images as recorded; overlays in distorted pixels (each measured feature
+    is its 3D fit projected back through the lens model, so the overlay
+    shows the reconstruction, not just the detected edge); 3D data in the
+    part frame.
+    """
+    from partinspect.cad.edge_sampling import feature_geometry, sample_edge
+    from partinspect.vision.calibration import project_points
+
+    status = {e["id"]: e["status"] for e in features}
+    cad_of = {}
+    for kind, key in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
+        measured = [f for f in stereo.features if key(f)]
+        for i, cid in registration.assignment[kind].items():
+            cad_of[id(measured[i])] = cid
+    cams = {"left": (calib.K1, calib.D1, np.eye(3), np.zeros(3)), "right": (calib.K2, calib.D2, calib.R, calib.T)}
+    overlays, residuals, used = [], [], {"left": set(), "right": set()}
+    for f in stereo.features:
+        label = cad_of.get(id(f), "")
+        X = curve_3d(f)
+        for side, index in (("left", f.left), ("right", f.right)):
+            used[side].add(index)
+            K, D, R, t = cams[side]
+            overlays.append({"image": side, "xy": project_points(X, K, D, R, t), "kind": f.kind, "label": label,
+                             "status": status.get(label, "measured") if label else "unmatched"})
+            fit = (stereo.left if side == "left" else stereo.right).features[index].fit
+            residuals.append({"label": label or f"unregistered {f.kind}", "image": side, "residuals": np.asarray(fit.residuals),
+                              "sigma": float(np.median(fit.point_std))})
+    for side in ("left", "right"):
+        for i, imf in enumerate((stereo.left if side == "left" else stereo.right).features):
+            if i not in used[side]:
+                overlays.append({"image": side, "xy": imf.uv, "kind": imf.kind, "label": "", "status": "unmatched"})
+    points3d = [{"label": p.cad_id, "points": p.points, "covs": p.point_covs, "status": status.get(p.cad_id, "measured")}
+                for p in registration.features_in_part_frame() if p.cad_id is not None and p.points is not None]
+    cad_edges = [{"label": f.id, "polyline": sample_edge(f.kind, feature_geometry(f), n=120)[0]} for f in inv.features]
+    return {"left": left, "right": right, "overlays": overlays, "residuals": residuals, "points3d": points3d, "cad_edges": cad_edges}

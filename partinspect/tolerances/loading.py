@@ -1,0 +1,35 @@
+"""A part's tolerances: the spec file given or beside the STEP file, else ISO 2768-mK."""
+
+from pathlib import Path
+
+from partinspect.errors import InputError
+
+__all__ = ["find_tolerances", "load_characteristics"]
+
+
+def find_tolerances(part, tolerances=None):
+    """The tolerance spec for ``part``: the given file, else PART.tol.yaml beside it, else None.
+
+    ``part.step`` looks for ``part.tol.yaml`` (and ``part.tol.yml``).
+    """
+    if tolerances is not None:
+        path = Path(tolerances)
+        if not path.is_file():
+            raise InputError(path, "tolerance file not found" if not path.exists() else "not a regular file")
+        return path
+    part = Path(part)
+    for suffix in (".tol.yaml", ".tol.yml"):
+        candidate = part.with_name(part.stem + suffix)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def load_characteristics(inv, tol_path):
+    """The resolved spec (or the ISO 2768-mK default) and every characteristic to evaluate."""
+    from partinspect.tolerances import spec as spec_mod
+    from partinspect.tolerances.resolve import general_characteristics, resolve_spec
+
+    spec = spec_mod.load_spec(tol_path) if tol_path is not None else spec_mod.default_spec()
+    resolved = resolve_spec(spec, inv, tol_path)
+    return resolved, list(resolved.characteristics) + general_characteristics(inv, resolved)

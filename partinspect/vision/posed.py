@@ -1,0 +1,162 @@
+"""Measurement guided by the registered pose: what knowing where each CAD edge lies adds.
+
+The first pass measures the images blind. Once the part's pose is
+registered, every CAD edge's image is known (as polylines in distorted
+pixels, :func:`partinspect.cad.projection.edge_polylines`), and three
+things the blind pass cannot do become possible:
+
+- a registered line's end points near another edge's image are left out
+  and the line refitted (a faint edge displaces a neighbour's points
+  without giving points of its own);
+- a registered line all of whose points in one image lie on another edge's
+  image, and that disagrees with the pose, is taken out with the reason;
+- collinear CAD edges, one straight line in each image, are measured on
+  their own stretches of it.
+
+The inventory and registration are taken as arguments (objects with the
+attributes used here); this module imports nothing of :mod:`partinspect.cad`.
+"""
+
+__all__ = ["merged_stereo", "image_owners", "posed_stereo", "cleared_stereo", "guided_stereo"]
+
+
+def merged_stereo(base, new, registration, ids):
+    """``base`` (a StereoResult) with the features of ``new`` that ``registration`` assigned to ``ids`` added.
+
+    The added 3D features' image features are appended to ``base``'s of
+    each image (their indices renumbered); each carries its own edge data
+    and filter scale (:class:`~partinspect.vision.stereo.EdgeFeature`), so
+    the result is measured, drawn and Monte Carlo sampled as one. Edges,
+    segments, matching and failures stay ``base``'s: what the report says
+    of unmatched image features is said of the base round's.
+    """
+    from dataclasses import replace
+
+    picks = [registration.measured_feature(kind, i) for kind in ("circle", "line")
+             for i, cid in sorted(registration.assignment[kind].items()) if cid in ids]
+    nl, nr = len(base.left.features), len(base.right.features)
+    left = replace(base.left, features=list(base.left.features) + [new.left.features[f.left] for f in picks])
+    right = replace(base.right, features=list(base.right.features) + [new.right.features[f.right] for f in picks])
+    added = tuple(replace(f, left=nl + j, right=nr + j) for j, f in enumerate(picks))
+    return replace(base, left=left, right=right, features=tuple(base.features) + added)
+
+
+def image_owners(stereo, registration):
+    """(side, image feature index) -> the CAD id its 3D feature was registered as."""
+    owners = {}
+    for kind in ("circle", "line"):
+        for i, cid in registration.assignment[kind].items():
+            f = registration.measured_feature(kind, i)
+            owners[("left", f.left)] = owners[("right", f.right)] = cid
+    return owners
+
+
+def posed_stereo(stereo, registration, seen, inv, calib, polylines):
+    """What the registered pose adds to ``stereo``: :func:`cleared_stereo`, then :func:`guided_stereo`.
+
+    ``seen`` as theirs; ``polylines``: every CAD edge's image at the
+    registered pose (:func:`partinspect.cad.projection.edge_polylines`),
+    shared by both.
+
+    Returns
+    -------
+    stereo : StereoResult
+    found : dict of str to int
+        Of :func:`guided_stereo`.
+    cleared, withdrawn : dict
+        Of :func:`cleared_stereo`.
+    """
+    cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib, polylines)
+    more, found = guided_stereo(cleared, registration, seen, inv, calib, polylines)
+    return more, found, ends, withdrawn
+
+
+def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
+    """``stereo`` with its registered lines fitted again clear of the other edges' images at their ends.
+
+    Under the registered pose every CAD edge's image is known, faint ones
+    too, whose grey step displaces a line's end points without giving edge
+    points of its own (:func:`partinspect.vision.guided.clear_line_ends`).
+    ``seen``: the visibility of each CAD feature, to take in each image
+    only the edges it sees; None to take every edge (more points left out
+    near hidden edges' images, never fewer). ``polylines``: every CAD
+    edge's image at the registered pose
+    (:func:`partinspect.cad.projection.edge_polylines`).
+
+    A line that disagrees with the pose the other features give (a
+    registration outlier) and all of whose points in one image lie on
+    another edge's image is taken out, with the reason: that image's
+    feature is the other edge's, paired with this one's in the other
+    image (a face seen nearly edge-on puts two edges on one image line,
+    and the "line" measured would lie between two edges).
+
+    Returns
+    -------
+    stereo : StereoResult
+        ``withdrawn`` holds the lines taken out and why.
+    cleared : dict of str to (int, int)
+        CAD id -> points left out in the left and the right image.
+    withdrawn : dict of str to str
+        CAD id -> why its line was taken out.
+    """
+    from dataclasses import replace
+
+    from partinspect.vision.guided import clear_line_ends
+
+    at = [k for k, f in enumerate(stereo.features) if f.kind == "line"]
+    lines = {at[i]: cid for i, cid in registration.assignment["line"].items()}
+    if not lines:
+        return stereo, {}, {}
+    images = {}
+    for f in inv.features:
+        shown = (1.0, 1.0) if seen is None else seen[f.id].seen
+        if max(shown) > 0:
+            images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(polylines[f.id], shown))
+    stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)
+    withdrawn = {}
+    for cid, (side, other) in covered.items():
+        if cid in registration.outliers and other is not None:
+            c2, n = registration.outliers[cid]
+            withdrawn[cid] = (f"its points in the {side} image all lie on the image of {other}, and its 3D line "
+                              f"disagreed with the pose the other features give (chi-square {c2:.0f} over {n} "
+                              f"residuals): {other}'s image paired with its own in the other image")
+    if not withdrawn:
+        return stereo, cleared, {}
+    gone = {k for k, cid in lines.items() if cid in withdrawn}
+    stereo = replace(stereo, features=tuple(f for k, f in enumerate(stereo.features) if k not in gone),
+                     withdrawn=tuple(withdrawn.items()))
+    return stereo, cleared, withdrawn
+
+
+def guided_stereo(stereo, registration, seen, inv, calib, polylines):
+    """``stereo`` with the unmeasured line edges in view measured on their stretches of longer image lines.
+
+    Collinear edges of a part merge into one line in each image, whose 3D
+    line then matches no single CAD edge; under the registered pose each
+    edge's image picks its own stretch
+    (:func:`partinspect.vision.guided.guided_lines`). ``seen``: the
+    visibility of each CAD feature (:func:`partinspect.cad.visibility.visibility`),
+    or None to look for every unmeasured line edge: a hidden one takes no
+    points where a seen edge's image runs near its own (every line edge's
+    image is given to ``guided_lines`` to keep them apart). ``polylines``:
+    every CAD edge's image at the registered pose
+    (:func:`partinspect.cad.projection.edge_polylines`).
+
+    Returns
+    -------
+    stereo : StereoResult
+    found : dict of str to int
+        CAD id -> index of the 3D line measured for it (empty: ``stereo``
+        returned unchanged).
+    """
+    from partinspect.vision.guided import guided_lines
+
+    done = {cid for kind in ("circle", "line") for cid in registration.assignment[kind].values()}
+    todo = [f for f in inv.features if f.kind == "line" and f.id not in done and (seen is None or seen[f.id].in_view)]
+    if not todo:
+        return stereo, {}
+    # Every line edge's image, hidden ones too: a point near two edges' images is either's.
+    others = {f.id: polylines[f.id] for f in inv.features if f.kind == "line"}
+    expected = {f.id: others[f.id] for f in todo}
+    more, found, _ = guided_lines(stereo, calib, expected, set(image_owners(stereo, registration)), others=others)
+    return more, found
