@@ -205,6 +205,10 @@ class Registration:
         """The measured record (rig frame) as given to :func:`register`."""
         return (self._circles if kind == "circle" else self._lines)[index]
 
+    def measured_params(self, kind, index):
+        """The measured record's stacked rig-frame parameters and covariance (:func:`rig_params`)."""
+        return rig_params(kind, self.measured_feature(kind, index))
+
     def features_in_part_frame(self):
         """Every measured feature in the part frame with its full covariance.
 
