@@ -85,8 +85,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def characteristics(part):
-    from partinspect.tolerances.resolve import resolve_spec
-    from partinspect.tolerances.spec import characteristics_for, load_spec
+    from partinspect.tolerances.resolve import characteristics_for, resolve_spec
+    from partinspect.tolerances.spec import load_spec
 
     path = REPO / "examples" / part.name / "part.tol.yaml"
     spec = load_spec(path)

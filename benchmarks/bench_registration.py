@@ -40,7 +40,8 @@ import numpy as np
 from scipy import stats
 
 from partinspect.cad.features import inventory
-from partinspect.cad.registration import pose_error, register
+from partinspect.cad.pose_refine import pose_error
+from partinspect.cad.registration import register
 from partinspect.cad.step import load_step
 from partinspect.simulate.measured import measure_features
 from partinspect.poses import default_pose
@@ -153,20 +154,20 @@ def _truth(c, inv, T, ids, shifts):
 
 def scoring_speed(step, runs=3, n_hyps=4000):
     """Batched hypothesis scoring against one pose at a time, on one STEP model (its first ``n_hyps`` hypotheses)."""
-    from partinspect.cad import registration as reg
+    from partinspect.cad import pose_search as reg
     from partinspect.simulate.measured import facing_feature_ids
 
     shape = load_step(step)
     inv = inventory(shape)
     T = default_pose(shape, default_rig())
     m = measure_features(inv, T, facing_feature_ids(inv, T), np.random.default_rng(0), n_points=0)
-    meas, cad = reg._meas_arrays(m.circles, m.lines), reg._cad_arrays(inv)
+    meas, cad = reg.measured_arrays(m.circles, m.lines), reg.cad_arrays(inv)
     hyps = (reg._circle_hypotheses(meas, cad) or reg._line_hypotheses(meas, cad))[:n_hyps]
 
     def one_at_a_time():
         out = []
         for R, t in hyps:
-            circ, lin, cost = reg._match(meas, cad, R, t)
+            circ, lin, cost = reg.match(meas, cad, R, t)
             out.append((len(circ) + len(lin), cost))
         return out
 

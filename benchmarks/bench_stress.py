@@ -238,7 +238,7 @@ def pose_mahalanobis(registration, truth):
     Chi-square with 6 degrees of freedom when the pose covariance is honest
     (95 % below 12.59).
     """
-    from partinspect.cad.registration import pose_error
+    from partinspect.cad.pose_refine import pose_error
 
     e = pose_error(np.asarray(registration["part_to_camera"], float), np.asarray(truth["part_to_camera"], float))
     return float(e @ np.linalg.solve(np.asarray(registration["pose_covariance"], float), e))

@@ -344,7 +344,7 @@ def test_a_line_paired_with_another_edges_image_is_taken_out_and_says_why(edge_o
     (chi-square 1366 on the stress render) and its straightness was reported as measured. Now
     it is taken out, named, and the edge it was confused with is the one whose image truly
     lies along it."""
-    from partinspect.cad.registration import pose_error
+    from partinspect.cad.pose_refine import pose_error
 
     run = edge_on_face
     taken = {fid: f["reason"] for fid, f in run.features.items()

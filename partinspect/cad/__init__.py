@@ -9,4 +9,7 @@ them is cheap):
 - `mesh`: ``tessellate``, a triangle mesh labelled by CAD face.
 - `deviate`: ``deviate`` / ``parse_deviation``, parts with holes resized or
   moved, for synthetic test renders.
+- `registration`: ``register``, the part's pose from measured circles and
+  lines, with its covariance; its hypothesis search is `pose_search`, its
+  weighted least-squares fit `pose_refine`.
 """

@@ -56,20 +56,21 @@ def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
     the sag of a triangle between two edge nodes of a circle of radius r is
     r (1 - cos(pi / n)) for n segments, which is what the tests check.
     """
-    import trimesh
-    from OCP.BRep import BRep_Tool
-    from OCP.BRepMesh import BRepMesh_IncrementalMesh
-    from OCP.IMeshTools import IMeshTools_MeshAlgoType, IMeshTools_Parameters
-    from OCP.BRepTools import BRepTools
-    from OCP.TopAbs import TopAbs_FACE, TopAbs_REVERSED
-    from OCP.TopExp import TopExp
-    from OCP.TopLoc import TopLoc_Location
-    from OCP.TopoDS import TopoDS
-    from OCP.TopTools import TopTools_IndexedMapOfShape
-
     if not tolerance > 0 or not angular_tolerance > 0:
         raise ValueError(f"tolerances must be > 0, got {tolerance} mm and {angular_tolerance} rad")
     wrapped = getattr(shape, "wrapped", shape)
+    face_map, face_label = _face_labels(shape, wrapped, inventory)
+    _triangulate(wrapped, tolerance, angular_tolerance)
+    vertices, triangles, labels = _face_triangles(face_map, face_label)
+    return _closed_mesh(vertices, triangles, labels)
+
+
+def _face_labels(shape, wrapped, inventory):
+    """The shape's faces (OCCT indexed map) and, per map index, the face's label in the inventory's order."""
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopExp import TopExp
+    from OCP.TopTools import TopTools_IndexedMapOfShape
+
     if inventory is None:
         from partinspect.cad.features import face_inventory
 
@@ -83,6 +84,14 @@ def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
     face_label = np.empty(len(faces), dtype=np.int64)
     for label, info in enumerate(faces):
         face_label[info.shape_index] = label
+    return face_map, face_label
+
+
+def _triangulate(wrapped, tolerance, angular_tolerance):
+    """Discard any stored triangulation and mesh every face anew (BRepMesh), stored in the shape."""
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.BRepTools import BRepTools
+    from OCP.IMeshTools import IMeshTools_MeshAlgoType, IMeshTools_Parameters
 
     BRepTools.Clean_s(wrapped)
     params = IMeshTools_Parameters()
@@ -96,6 +105,14 @@ def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
     params.InParallel = False
     params.MeshAlgo = IMeshTools_MeshAlgoType.IMeshTools_MeshAlgoType_Delabella
     BRepMesh_IncrementalMesh(wrapped, params)
+
+
+def _face_triangles(face_map, face_label):
+    """Each triangulated face's nodes (part frame), triangles (wound outward, global node indices) and labels."""
+    from OCP.BRep import BRep_Tool
+    from OCP.TopAbs import TopAbs_REVERSED
+    from OCP.TopLoc import TopLoc_Location
+    from OCP.TopoDS import TopoDS
 
     vertices, triangles, labels = [], [], []
     offset = 0
@@ -119,6 +136,12 @@ def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
         offset += len(nodes)
     if not triangles:
         raise ValueError("OCCT produced no triangles for this shape")
+    return vertices, triangles, labels
+
+
+def _closed_mesh(vertices, triangles, labels):
+    """One labelled trimesh of the faces' triangles: shared edge nodes merged, collapsed triangles dropped."""
+    import trimesh
 
     mesh = trimesh.Trimesh(
         vertices=np.concatenate(vertices),

@@ -189,7 +189,8 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     inv = inventory(shape)
     if not inv.features:
         raise InputError(part, "no line or circle edges to measure")
-    from partinspect.tolerances.spec import characteristics_for, default_spec, load_spec
+    from partinspect.tolerances.resolve import characteristics_for
+    from partinspect.tolerances.spec import default_spec, load_spec
 
     spec = load_spec(tol_path) if tol_path is not None else default_spec()
     chars = characteristics_for(spec, inv, tol_path)

@@ -387,12 +387,14 @@ def measured_angle(fa, fb):
 
 
 def _stacked(recs):
-    """Rig-frame parameter vectors, block covariance and rebuild info of measured records."""
-    from partinspect.cad.registration import rig_params
+    """Rig-frame parameter vectors, block covariance and rebuild info of measured records.
 
+    ``recs``: ``(kind, record, (x, C))`` with ``x``, ``C`` the record's
+    stacked rig-frame parameters and their covariance, as
+    ``Registration.measured_params`` gives them.
+    """
     xs, covs, info = [], [], []
-    for kind, rec in recs:
-        x, C = rig_params(kind, rec)
+    for kind, rec, (x, C) in recs:
         if kind == "circle":
             info.append((kind, None))
         else:
@@ -442,7 +444,8 @@ def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, see
     ----------
     characteristics : sequence of Characteristic
     registration : partinspect.cad.registration.Registration
-        Gives the assignment, the pose and the measured features.
+        Gives the assignment, the pose, the measured features and their
+        rig-frame parameters (``measured_params``).
     inventory : Inventory
         Nominal CAD features (part frame).
     k : float
@@ -553,7 +556,8 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
     if t in ("distance", "angle"):
-        x, cov, info, sizes = _stacked([(p.kind, r) for p, r in zip(picked, rec)])
+        x, cov, info, sizes = _stacked([(p.kind, r, registration.measured_params(p.kind, p.index))
+                                        for p, r in zip(picked, rec)])
         g = measured_distance if t == "distance" else measured_angle
         try:
             value, u = propagate(_pair_function(g, info, sizes), x, cov)

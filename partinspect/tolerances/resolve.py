@@ -5,7 +5,7 @@ exist, ``at:`` selectors pick exactly one edge, characteristics fit the
 feature kind, distances and angles are defined) and turns it into
 :class:`Characteristic` definitions. :func:`general_characteristics` adds
 what the general tolerances (ISO 2768) define for everything the spec
-leaves out.
+leaves out; :func:`characteristics_for` gives both.
 
 General tolerances are applied per characteristic, not per feature, as
 ISO 2768 words it ("features without individual tolerance indications"):
@@ -45,6 +45,7 @@ __all__ = [
     "resolve_spec",
     "select_edge",
     "general_characteristics",
+    "characteristics_for",
 ]
 
 # An at: point is meant to lie on the edge; 1 mm is far beyond CAD rounding
@@ -246,30 +247,66 @@ def resolve_spec(spec, inventory, path=None):
         tolerance.
     """
     path = spec.path if path is None else str(path)
-    feats = list(inventory.features)
-    by_id = {f.id: f for f in feats}
-    errors = []
+    check = _Check(spec, inventory, path)
+    names = _feature_targets(check)
+    chars = _feature_characteristics(check, names)
+    datums = _datums(check, names)
+    chars += _pair_characteristics(check, names)
+    if check.errors:
+        raise InputError(path, join_errors(check.errors))
+    return ResolvedSpec(spec, MappingProxyType(dict(names)), datums, tuple(chars), path)
 
-    def err(loc, msg):
-        errors.append((spec.line_of(loc), f"{format_loc(loc)}: {msg}"))
 
-    def unknown_id(ref):
-        best = difflib.get_close_matches(ref, list(by_id), n=1, cutoff=0.6)
-        hint = f"did you mean {best[0]}?" if best else f"the model has {_kinds_summary(feats)}"
+class _Check:
+    """What the steps of :func:`resolve_spec` share: the spec, the inventory's features and the problems found."""
+
+    def __init__(self, spec, inventory, path):
+        self.spec, self.inventory, self.path = spec, inventory, path
+        self.feats = list(inventory.features)
+        self.by_id = {f.id: f for f in self.feats}
+        self.errors = []
+
+    def err(self, loc, msg):
+        """Record a problem at a spec location, with its line."""
+        self.errors.append((self.spec.line_of(loc), f"{format_loc(loc)}: {msg}"))
+
+    def unknown_id(self, ref):
+        """The message for a feature id the model lacks, with a "did you mean"."""
+        best = difflib.get_close_matches(ref, list(self.by_id), n=1, cutoff=0.6)
+        hint = f"did you mean {best[0]}?" if best else f"the model has {_kinds_summary(self.feats)}"
         return f"no feature {ref} in the CAD model ({hint})"
 
+    def ref_id(self, ref, loc, names):
+        """The CAD id a reference (feature id or spec name) means, or None (the problem recorded)."""
+        if ref in names:
+            return names[ref]
+        if FEATURE_ID_RE.match(ref):
+            if ref in self.by_id:
+                return ref
+            self.err(loc, self.unknown_id(ref))
+        elif ref not in self.spec.features:
+            self.err(loc, f"unknown feature {ref!r}")
+        return None  # a named feature whose selector failed is reported already
+
+    def rule(self, loc):
+        return _rule_of(self.spec, self.path, loc)
+
+
+def _feature_targets(check):
+    """Each ``features:`` key (an id, or a name with ``at:``) to its CAD feature id; bad ones left out."""
+    spec, by_id, err = check.spec, check.by_id, check.err
     names = {}
     for key, fs in spec.features.items():
         loc = ("features", key)
         target = None
         if FEATURE_ID_RE.match(key):
             if key not in by_id:
-                err(loc, unknown_id(key))
+                err(loc, check.unknown_id(key))
                 continue
             target = key
         if fs.at is not None:
             try:
-                picked = select_edge(inventory, fs.at).id
+                picked = select_edge(check.inventory, fs.at).id
             except ValueError as e:
                 err(loc + ("at",), str(e))
                 continue
@@ -282,7 +319,12 @@ def resolve_spec(spec, inventory, path=None):
             err(loc, f"{key!r} is not a CAD feature id and has no at: [x, y, z]")
             continue
         names[key] = target
+    return names
 
+
+def _feature_characteristics(check, names):
+    """The characteristics of the ``features:`` section, in file order; each edge's size or form toleranced once."""
+    spec, by_id, err = check.spec, check.by_id, check.err
     chars = []
     owner = {}
     for key, fs in spec.features.items():
@@ -299,28 +341,25 @@ def resolve_spec(spec, inventory, path=None):
                 err(loc, f"{target.id} already has its {slot[1]} toleranced in {format_loc(owner[slot])}")
                 continue
             owner[slot] = loc
-            chars.append(_feature_characteristic(f"{key}.{ctype}", ctype, target, tol, _rule_of(spec, path, loc)))
+            chars.append(_feature_characteristic(f"{key}.{ctype}", ctype, target, tol, check.rule(loc)))
+    return chars
 
-    def ref_id(ref, loc):
-        if ref in names:
-            return names[ref]
-        if FEATURE_ID_RE.match(ref):
-            if ref in by_id:
-                return ref
-            err(loc, unknown_id(ref))
-        elif ref not in spec.features:
-            err(loc, f"unknown feature {ref!r}")
-        return None  # a named feature whose selector failed is reported already
 
-    if spec.datums is None:
-        datums = tuple(f.id for f in feats)
-    else:
-        datums = tuple(d for i, ref in enumerate(spec.datums) if (d := ref_id(ref, ("datums", i))) is not None)
+def _datums(check, names):
+    """CAD ids of the spec's datums, or of every feature when it names none."""
+    if check.spec.datums is None:
+        return tuple(f.id for f in check.feats)
+    return tuple(d for i, ref in enumerate(check.spec.datums) if (d := check.ref_id(ref, ("datums", i), names)) is not None)
 
+
+def _pair_characteristics(check, names):
+    """The characteristics of the ``distances:`` and ``angles:`` sections, in file order."""
+    spec, by_id, err = check.spec, check.by_id, check.err
+    chars = []
     for section, items in (("distances", spec.distances), ("angles", spec.angles)):
         for i, item in enumerate(items):
             loc = (section, i)
-            ids = [ref_id(ref, loc + ("between", j)) for j, ref in enumerate(item.between)]
+            ids = [check.ref_id(ref, loc + ("between", j), names) for j, ref in enumerate(item.between)]
             if None in ids:
                 continue
             fa, fb = by_id[ids[0]], by_id[ids[1]]
@@ -329,15 +368,12 @@ def resolve_spec(spec, inventory, path=None):
                 err(loc + ("between",), f"{item.between[0]} and {item.between[1]} are the same edge {fa.id}")
                 continue
             if section == "distances":
-                c = _distance_characteristic(cid, fa, fb, item, _rule_of(spec, path, loc), lambda m: err(loc, m))
+                c = _distance_characteristic(cid, fa, fb, item, check.rule(loc), lambda m: err(loc, m))
             else:
-                c = _angle_characteristic(cid, fa, fb, item, _rule_of(spec, path, loc), lambda m, j=None: err(loc if j is None else loc + ("between", j), m))
+                c = _angle_characteristic(cid, fa, fb, item, check.rule(loc), lambda m, j=None: err(loc if j is None else loc + ("between", j), m))
             if c is not None:
                 chars.append(c)
-
-    if errors:
-        raise InputError(path, join_errors(errors))
-    return ResolvedSpec(spec, MappingProxyType(dict(names)), datums, tuple(chars), path)
+    return chars
 
 
 def _feature_characteristic(cid, ctype, feature, tol, rule):
@@ -493,3 +529,22 @@ def general_characteristics(inventory, spec, path=None):
         raise InputError(path, "; ".join(problems))
     return out
 
+
+def characteristics_for(spec, inventory, path=None):
+    """Every characteristic to evaluate on a part: the spec's, then the general ones.
+
+    Parameters
+    ----------
+    spec : ToleranceSpec
+    inventory : object with a ``features`` list
+        The CAD feature inventory (``partinspect.cad.features``).
+    path : str or os.PathLike, optional
+        The spec file, for error messages; default the file the spec was
+        read from.
+
+    Returns
+    -------
+    list of Characteristic
+    """
+    resolved = resolve_spec(spec, inventory, path)
+    return list(resolved.characteristics) + general_characteristics(inventory, resolved)

@@ -81,7 +81,6 @@ __all__ = [
     "default_spec",
     "spec_to_dict",
     "dump_spec",
-    "characteristics_for",
 ]
 
 FEATURE_ID_RE = re.compile(r"^(line|circle|arc)-([0-9]+)$")
@@ -698,26 +697,3 @@ def spec_to_dict(spec):
 def dump_spec(spec):
     """The spec as YAML text in the file format."""
     return yaml.safe_dump(spec_to_dict(spec), sort_keys=False, default_flow_style=None)
-
-
-def characteristics_for(spec, inventory, path=None):
-    """Every characteristic to evaluate on a part: the spec's, then the general ones.
-
-    Parameters
-    ----------
-    spec : ToleranceSpec
-    inventory : object with a ``features`` list
-        The CAD feature inventory (``partinspect.cad.features``).
-    path : str or os.PathLike, optional
-        The spec file, for error messages; default the file the spec was
-        read from.
-
-    Returns
-    -------
-    list of partinspect.tolerances.resolve.Characteristic
-    """
-    # Imported here: resolve.py imports this module for the spec types.
-    from partinspect.tolerances.resolve import general_characteristics, resolve_spec
-
-    resolved = resolve_spec(spec, inventory, path)
-    return list(resolved.characteristics) + general_characteristics(inventory, resolved)

@@ -83,3 +83,25 @@ def plate_path():
 @pytest.fixture(scope="session")
 def bracket_path():
     return EXAMPLES / "bracket" / "part.step"
+
+
+@pytest.fixture(scope="module", params=["plate", "bracket"])
+def scene(request):
+    """(inventory, true pose, visible ids) of a sample part at the renderer's default pose."""
+    import json
+
+    import numpy as np
+
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+    from partinspect.simulate.pose import default_pose
+    from partinspect.simulate.rig import default_rig
+
+    shape = load_step(EXAMPLES / request.param / "part.step")
+    inv = inventory(shape)
+    T = default_pose(shape, default_rig())
+    truth = json.loads((EXAMPLES / request.param / "truth.json").read_text())
+    # the rendered truth was made at the same default pose; its visibility is the renderer's
+    assert np.allclose(T, truth["part_to_camera"], atol=1e-6)
+    ids = [f["id"] for f in truth["features"] if f["visible_both"]]
+    return request.param, inv, T, ids

@@ -8,28 +8,14 @@ import pytest
 from scipy import stats
 
 from partinspect.cad.features import inventory
-from partinspect.cad.registration import Registration, RegistrationError, pose_error, register
+from partinspect.cad.pose_refine import pose_error
+from partinspect.cad.registration import Registration, RegistrationError, register
 from partinspect.errors import InputError
 from partinspect.simulate.measured import facing_feature_ids, measure_features
 from partinspect.poses import default_pose
 from partinspect.simulate.rig import default_rig
 
 from tests.cad.conftest import EXAMPLES
-
-
-@pytest.fixture(scope="module", params=["plate", "bracket"])
-def scene(request):
-    """(inventory, true pose, visible ids) of a sample part at the renderer's default pose."""
-    from partinspect.cad.step import load_step
-
-    shape = load_step(EXAMPLES / request.param / "part.step")
-    inv = inventory(shape)
-    T = default_pose(shape, default_rig())
-    truth = json.loads((EXAMPLES / request.param / "truth.json").read_text())
-    # the rendered truth was made at the same default pose; its visibility is the renderer's
-    assert np.allclose(T, truth["part_to_camera"], atol=1e-6)
-    ids = [f["id"] for f in truth["features"] if f["visible_both"]]
-    return request.param, inv, T, ids
 
 
 def _correct_assignment(reg, m):
@@ -52,27 +38,6 @@ def test_recovers_pose_and_assignment(scene):
     assert 0.5 < reg.weighted_rms < 1.6
     assert 0 < reg.rms < 0.02
     assert set(reg.datums) == set(ids)
-
-
-def test_poses_scored_together_score_as_one_at_a_time(scene):
-    # The search scores its hypotheses in batches; each pose's matches and
-    # cost are those of matching it alone, whichever batch it falls in.
-    from partinspect.cad import registration as reg_mod
-
-    _, inv, T, ids = scene
-    m = measure_features(inv, T, ids, np.random.default_rng(5), n_points=0)
-    meas, cad = reg_mod._meas_arrays(m.circles, m.lines), reg_mod._cad_arrays(inv)
-    hyps = reg_mod._circle_hypotheses(meas, cad) + reg_mod._line_hypotheses(meas, cad)
-    assert len(hyps) > 20
-    one = []
-    for R, t in hyps:
-        circ, lin, cost = reg_mod._match(meas, cad, R, t)
-        one.append((len(circ) + len(lin), cost))
-    batched = reg_mod._scores(meas, cad, hyps, batch=7)
-    assert [n for n, _ in batched] == [n for n, _ in one]
-    assert np.allclose([c for _, c in batched], [c for _, c in one], rtol=1e-12, atol=0)
-    # The true pose is among the best scored, with every feature matched.
-    assert max(n for n, _ in batched) == len(m.circles) + len(m.lines)
 
 
 def test_pose_hint_skips_search(scene):
@@ -185,7 +150,7 @@ def test_deviated_hole_left_out_of_the_pose_does_not_drag_it(monkeypatch):
         pf = [p for p in reg.features_in_part_frame() if p.cad_id == "circle-4"][0]
         assert abs((pf.center - inv["circle-4"].center)[0] - 0.1) < 0.01
     # Kept in the fit (OUTLIER_P = 0), it pulls the pose and the chi-square shows it.
-    monkeypatch.setattr("partinspect.cad.registration.OUTLIER_P", 0.0)
+    monkeypatch.setattr("partinspect.cad.pose_refine.OUTLIER_P", 0.0)
     pulled = register(m.circles, m.lines, inv)
     assert pulled.outliers == {} and pulled.weighted_rms > 3 * held.weighted_rms
 
@@ -223,7 +188,8 @@ def test_rotationally_symmetric_model_is_ambiguous_whatever_is_measured():
             register(circles, m.lines, inv)
     # With a hole off the axis the model is no longer symmetric.
     holed = cq.Workplane("XY").circle(12).circle(5).extrude(3).faces(">Z").workplane().center(8, 0).hole(2).val()
-    from partinspect.cad.registration import _cad_arrays, _symmetric_model
+    from partinspect.cad.pose_search import _symmetric_model
+    from partinspect.cad.pose_search import cad_arrays as _cad_arrays
 
     assert _symmetric_model(_cad_arrays(inv)) and not _symmetric_model(_cad_arrays(inventory(holed)))
 

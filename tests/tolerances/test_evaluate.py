@@ -14,8 +14,8 @@ from partinspect.simulate.rig import default_rig
 from partinspect.tolerances.evaluate import evaluate, monte_carlo, propagate, true_position
 from partinspect.tolerances.form import circularity, straightness
 from partinspect.tolerances.geometry import feature_distance, line_angle
-from partinspect.tolerances.resolve import Characteristic
-from partinspect.tolerances.spec import characteristics_for, load_spec
+from partinspect.tolerances.resolve import Characteristic, characteristics_for
+from partinspect.tolerances.spec import load_spec
 
 from tests.cad.conftest import EXAMPLES
 

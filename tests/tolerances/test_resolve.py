@@ -13,11 +13,12 @@ from partinspect.tolerances.geometry import feature_distance, line_angle
 from partinspect.tolerances.resolve import (
     Characteristic,
     ResolvedSpec,
+    characteristics_for,
     general_characteristics,
     resolve_spec,
     select_edge,
 )
-from partinspect.tolerances.spec import characteristics_for, default_spec, load_spec, parse_spec
+from partinspect.tolerances.spec import default_spec, load_spec, parse_spec
 
 REPO = Path(__file__).resolve().parents[2]
 Z = np.array([0.0, 0.0, 1.0])
