@@ -16,8 +16,8 @@ given. Printed per part:
 
 Then the hypothesis search's scoring on the NIST ftc_09 model (hundreds
 of edges; its visible features at the default pose, one noise draw): every
-hypothesis scored in batches (``registration._scores``, what ``register``
-does) against one pose at a time (``registration._match`` in a loop, the
+hypothesis scored in batches (``pose_search._scores``, what ``register``
+does) against one pose at a time (``pose_search.match`` in a loop, the
 baseline), on the first 4000 hypotheses, median of 3 runs each, and
 whether they agree.
 

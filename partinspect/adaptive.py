@@ -159,7 +159,7 @@ sample parts read 0.8-1.1 (one at 1.7), so the first-order model's
 approximations stay well below it. Stress renders where a few edges were
 paired with a different edge in the other image read 10-27 until the
 registration left such features out of the pose fit
-(:data:`partinspect.cad.registration.OUTLIER_P`), 0.9-1.1 since: what
+(:data:`partinspect.cad.pose_refine.OUTLIER_P`), 0.9-1.1 since: what
 this situation now sees is a misfit spread over many features (a wrong
 calibration, a part of another revision, a part that moved)."""
 
