@@ -61,8 +61,7 @@ SAMPLES = 16
 an edge's coverage coarsely at angles off the pixel axes, which leaves a
 fixed ripple of edge points about the true line, the same in every noise
 draw, that widens straightness over draws and biases it upward; 16 brings
-that ripple well below the noise, at two and a half times the render time
-of 8."""
+that ripple well below the noise."""
 def sample_pattern(n):
     """Sub-pixel sample offsets with ``n**2`` distinct x and distinct y values.
 

@@ -62,13 +62,12 @@ times the median point's are left out of the zone. A zone is a maximum
 minus a minimum, so it cannot weight its points as a fit does: a few points
 several times noisier than the rest (where the epipolar line runs along
 the edge, or the shading's Type B rest is large, as at the tips of an
-oblique hole) would set it alone. The cut depends on the error model, not
-on the residuals, so the value stays unbiased for the points kept; 2.5
-keeps most of a rim and lets no such point set the value, 3 let the tips
-of an oblique rim through, 2 cut into sound points. Lines, whose points
-are alike, keep all. The uncertainty is taken exactly from the simulated
-errors' covariances: estimated from draws, it would change with the seed
-which points next to the cut are kept."""
+oblique hole) would set it alone. 2.5 cuts such tips and keeps most of a
+rim; a lower ratio cuts into sound points. Lines, whose points are alike,
+keep all. The cut depends on the error model, not on the residuals, so the
+value stays unbiased for the points kept; the uncertainty is taken exactly
+from the simulated errors' covariances, since estimated from draws it would
+change with the seed which points next to the cut are kept."""
 
 
 @dataclass(frozen=True)
