@@ -14,9 +14,10 @@ must be indicated next to the dimension (:class:`NoGeneralTolerance`).
 Range boundaries follow the standard's wording: "over 6 up to 30" is the
 half-open interval (6, 30]; the first range of each table is closed.
 
-The general circularity tolerance equals the numerical value of the
-diameter tolerance (individual or general), but is never larger than the
-circular radial run-out tolerance of table 4 (:func:`circularity_tolerance`).
+The general circularity tolerance (ISO 2768-2:1989, 5.2.2) equals the
+numerical value of the diameter tolerance (individual or general), but is
+never larger than the circular radial run-out tolerance of table 4
+(:func:`circularity_tolerance`).
 Lengths in mm, angles returned in radians.
 
 References
