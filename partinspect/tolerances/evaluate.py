@@ -14,11 +14,12 @@ uncertainty ``u`` and ``U = k u`` (k = 2, JCGM 100 6.2). Values:
   measured extent, a circle over the nominal range) from the nominal CAD
   edge, plus the form (ISO 1101 line profile, two-sided zone).
 
-All but position and profile are invariant under the rigid pose: computed
+Sizes, distances and angles are invariant under the rigid pose: computed
 in the rig frame from the measured features, ``u`` by first-order
 propagation (numerical Jacobian) of their covariances, different features'
 errors independent (separate fits; a shared calibration scale error is the
-vision side's budget). Position and profile use the part-frame features of
+vision side's budget); form values carry :mod:`.form`'s own ``u``. Position
+and profile use the part-frame features of
 :meth:`~partinspect.cad.registration.Registration.features_in_part_frame`,
 pose covariance included. Being norms, they are not differentiable and are
 biased upward at zero deviation (Rice), so their ``u`` is Monte Carlo (JCGM
