@@ -1,46 +1,28 @@
 """Adaptive processing: each measuring step checks its result and is re-run when it falls short.
 
 After the paper's planning system (Situation Graph Trees): the chain's
-result is examined against explicit conditions, the *situations*; a
-situation that holds triggers the next untried *action* of its list (a
-change of the processing parameters), the step is re-run, and the better
-result is kept. When a situation persists after its actions are spent, the
-report gives its *advice*: the change of acquisition (pose, lighting,
-another view) that the data call for, because processing alone cannot
-supply what the images do not hold.
+result is examined against explicit conditions, the *situations*; one that
+holds triggers the next untried *action* of its list (a change of the
+processing parameters, :data:`DEFAULTS`: the edge filter's scale
+``sigma`` in px, the hysteresis thresholds ``k_low``, ``k_high`` in units
+of the gradient noise, ``min_points``), the step is re-run, and the better
+result is kept. A situation that persists after its actions are spent
+gives its *advice*: the change of acquisition (pose, lighting, another
+view) the data call for, since processing cannot supply what the images do
+not hold. The graph is data (:data:`SITUATIONS`); nothing else branches on
+the situation.
 
-The graph is data (:data:`SITUATIONS`): a condition is a function of the
-round's :class:`State` returning a description when it holds, an action a
-dict of parameter changes. Nothing else branches on the situation.
-
-Parameters a round runs with (:data:`DEFAULTS`): ``sigma``, the edge
-filter's scale (px); ``k_low``, ``k_high``, the hysteresis thresholds in
-units of the gradient noise; ``min_points``, the fewest edge points a
-feature needs to be matched.
-
-A re-run for missing edges (a situation that ``recovers``) seldom measures
-everything the round before it did: lower thresholds or a wider filter
-find a faint edge and lose or split another (at four times the nominal
-noise, the bracket's wall hole found with the filter at 1.5 px, two lines
-lost). So what it adds is taken, not the whole round: the features it
-measured that the best round left missing join the best round's, the
-pose is fitted again to all of them, and that merged result is the
-candidate. Other situations' re-runs (a wider filter for inconsistent
-residuals or low contrast) are meant to measure everything anew and are
-candidates whole.
-
-A candidate is better than the best round when it aligns the CAD model where the
-other does not, then when it measures more of the CAD edges that the
-cameras see at the registered pose, then, measuring as many, when it mends
-a situation the other meets and meets no new one (:func:`better`). Between
-rounds that tie, the earlier is kept: the defaults are the parameters the
-chain's error model is checked at (``bench_stereo``, ``bench_plan``),
-while lower hysteresis thresholds admit weaker edge points, such as where
-a rim's contrast fades, whose stated uncertainty is checked less. A
-smaller registration misfit alone does not make a round better: it moves
-with which features the pose fit leaves out, not with how well the
-features are measured. Uncertainties need no adjustment for the choice:
-each round's covariances describe that round's own data.
+A re-run for missing edges seldom measures everything the round before it
+did (a lower threshold or wider filter finds a faint edge and loses
+another), so only what it adds is taken: its features that the best round
+lacks join the best round's and the pose is fitted again. A candidate is
+better when it aligns the model where the other does not, then when it
+measures more of the CAD edges in view, then when it mends a situation and
+meets no new one (:func:`better`). Ties keep the earlier round: the defaults
+are the parameters the chain's error model is validated at. A smaller
+registration misfit alone does not count, as it moves with which features
+the pose fit leaves out. Each round's covariances describe its own data,
+so the choice needs no correction of the uncertainties.
 
 References
 ----------
@@ -154,14 +136,12 @@ def _residuals_inconsistent(s):
 REGISTRATION_RMS_LIMIT = 2.0
 """A registration whose weighted RMS (1 when the matched features scatter
 about the CAD model as their covariances say) exceeds this, and whose
-chi-square is beyond chance (p < 1e-6), is a situation. Renders of the
-sample parts read 0.8-1.1 (one at 1.7), so the first-order model's
-approximations stay well below it. Stress renders where a few edges were
-paired with a different edge in the other image read 10-27 until the
-registration left such features out of the pose fit
-(:data:`partinspect.cad.pose_refine.OUTLIER_P`), 0.9-1.1 since: what
-this situation now sees is a misfit spread over many features (a wrong
-calibration, a part of another revision, a part that moved)."""
+chi-square is beyond chance (p < 1e-6), is a situation. Sound renders stay
+well below it with the first-order model's approximations; since single
+mispaired edges are left out of the pose fit
+(:data:`partinspect.cad.pose_refine.OUTLIER_P`), what exceeds it is a misfit
+spread over many features: a wrong calibration, a part of another revision,
+a part that moved."""
 
 
 def _registration_inconsistent(s):

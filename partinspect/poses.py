@@ -36,14 +36,12 @@ VIEW_ELEVATION = np.deg2rad(45.0)
 tilted 45 degrees from facing the left camera (42 from the right one)."""
 VIEW_AZIMUTH = np.deg2rad(212.0)
 """Direction, in the part's XY plane measured from +X towards +Y, from the
-part to the camera: front-left. With the rig's 17 degree convergence the
--Y face is seen at 68 / 56 degrees from its normal by the left / right
-camera and the -X face at 53 / 68 degrees: both side faces (and holes in
-them) show in both images, obliquely but never near edge-on."""
+part to the camera: front-left, so that with the rig's convergence both
+side faces (and holes in them) show in both images, obliquely but never
+near edge-on."""
 VIEW_ROLL = np.deg2rad(20.0)
-"""Rotation about the optical axis. With it the part's x, y and z axes
-project at least 24 degrees away from the epipolar lines in both images
-(checked in the tests for every straight edge of the sample parts)."""
+"""Rotation about the optical axis, so that no edge along a part axis runs
+near the epipolar lines, where its depth would be ill-determined."""
 
 
 def fixation_point(rig):

@@ -103,12 +103,11 @@ def deviate(shape, inventory, deviations):
         ``inventory(shape)``; names the features.
     deviations : iterable of (feature_id, param, delta)
         As `parse_deviation` returns (strings are parsed too). The feature
-        must be a circle or arc that bounds a complete cylindrical wall: a
-        full 360 degree hole or boss, possibly split into several faces.
-        ``radius``/``diameter`` deltas in mm; ``center`` a (3,) shift in mm,
-        part frame; ``x``/``y``/``z`` a shift along that axis. Several
-        deviations may target one feature (or both rims of one hole), but at
-        most one size and one position change per hole.
+        must be a circle or arc bounding a complete cylindrical wall (a full
+        hole or boss, possibly split into several faces). ``radius`` /
+        ``diameter`` in mm; ``center`` a (3,) shift, part frame, mm; ``x`` /
+        ``y`` / ``z`` a shift along that axis. At most one size and one
+        position change per hole.
 
     Returns
     -------
@@ -118,28 +117,22 @@ def deviate(shape, inventory, deviations):
     Raises
     ------
     DeviationError
-        For an unknown id, a line, an arc of a partial cylinder (such as a
-        slot's round end, which cannot change alone), a feature that bounds
-        no cylinder, a shift along the axis, a radius that would become
-        <= 0, or two size (or two position) changes of the same hole.
+        For an unknown id, a line, an arc of a partial cylinder (a slot's
+        round end cannot change alone), a feature that bounds no cylinder, a
+        shift along the axis, a radius that would become <= 0, or two size
+        (or two position) changes of the same hole.
     RuntimeError
         If OCCT's booleans fail or give an invalid solid.
 
     Notes
     -----
-    A hole is first removed with OCCT's defeaturing (its cylindrical faces
-    are taken out and the faces it pierced closed up again; if that fails,
-    the hole is filled with its exact cylinder and the faces unified), then
-    the new cylinder is cut over the same axial extent. A boss is cut away
-    with its exact cylinder and the new one fused on. Other features keep
-    their geometry (the tests check 1e-6 mm; in practice it is exact), so
-    their ids are kept as long as a small change does not reorder the
-    geometric sort (see `features`); face ids may change, as the pierced
-    faces' centroids move.
-
-    Limits: only the cylindrical part of a feature changes, so a blind
-    hole's drill-point cone keeps its old size; a boss that is itself bored
-    (a tube) loses its bore.
+    A hole is removed with OCCT's defeaturing (or, failing that, filled with
+    its exact cylinder), then the new cylinder is cut over the same axial
+    extent; a boss is cut away and the new one fused on. Other features keep
+    their geometry, so their ids survive unless a change reorders the
+    geometric sort; face ids may change. Only the cylindrical part changes: a
+    blind hole's drill-point cone keeps its size, and a bored boss loses its
+    bore.
     """
     import cadquery as cq
 

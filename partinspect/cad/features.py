@@ -1,62 +1,30 @@
 """The feature inventory of a CAD part: its straight and circular edges.
 
 A *feature* is an edge the cameras can see and the vision chain can fit: a
-straight ``line``, a full ``circle`` or a circular ``arc``. Every feature and
-every face gets an id (``line-3``, ``circle-1``, ``arc-2``, ``face-7``) that
-depends on the geometry only, not on the order in which the STEP file or
-OCCT lists entities: the same file always gives the same ids, and so does
-the same B-rep written again in another order. (A CAD system that splits
-edges differently makes different edges, hence different features.) The
-tolerance spec names features by these ids.
-
-Conventions (part frame = STEP frame, mm, radians):
-
-- A circle's or arc's ``normal`` is a unit vector whose sign is fixed by
-  `canonical_direction`: its first component that is not zero (|c| > 1e-9)
-  is positive. A circle has no preferred side, so the sign carries no
-  meaning beyond being reproducible.
-- Angles on a circle are measured counter-clockwise about ``normal`` from the
-  reference direction ``x = reference_direction(normal)``: the world x axis
-  projected into the circle's plane, or the world y axis when the normal is
-  within about 26 degrees of x (|n_x| > 0.9). The frame is ``(x, n cross x,
-  n)``. It is derived from the normal alone, not from the frame the CAD
-  system happened to store, so the vision side can rebuild it.
-- An arc runs counter-clockwise from ``angle_start`` (in [0, 2 pi)) to
-  ``angle_end`` (in (angle_start, angle_start + 2 pi)); ``angle_end`` may
-  exceed 2 pi. ``start``/``end`` are the points at those angles.
-- A line's ``start`` is the end point that sorts first by x, then y, then z
-  (equal within 1e-6 mm); ``end`` is the other.
-
-Which edges become features:
-
-- Only edges whose curve is a LINE or a CIRCLE. Others (B-spline, ellipse,
-  ...) are counted in ``Inventory.skipped_edges`` and otherwise ignored.
-- Seam edges (used twice by one face: the line closing a cylinder, the
-  circle closing a torus) and degenerated edges (a cone's apex) are not
-  features; they are counted in ``seam_edges`` and ``degenerated_edges``.
-- CIRCLE edges on the same circle are merged where their angular ranges
-  touch: together they become one ``circle`` when they cover the full turn
-  (STEP files from many CAD systems split a hole's rim into two half arcs),
-  otherwise one ``arc`` per connected run. "Same" and "touch" use the
-  length tolerance ``t = 1e-6 max(r, 1 mm) + 2 max(edge tolerances)``, the
-  edge tolerances being OCCT's (the file's own statement of how far apart
-  its geometry may be and still meet): radii and centres within t, normals
-  parallel up to sign with ``r |n1 x n2| <= t``, gaps along the circle at
-  most t. In a clean file t is about 1e-6 r; NIST's FTC-09, written with
-  0.01 mm uncertainty, has half arcs whose centres differ by 1e-4 mm. The
-  merged circle's centre and radius are the span-weighted means of its
-  pieces'.
-- Collinear LINE edges that touch end to end stay separate features (a CAD
-  system may split a straight edge where a face on one side changes); they
-  are not merged.
-
-Ids number each kind separately (``line-1 ..``, ``circle-1 ..``,
-``arc-1 ..``, ``face-1 ..``) in the order of a geometric key: lines by
-midpoint (x, then y, then z), then length, then direction; circles and arcs
-by centre, then radius, then normal (arcs then by the midpoint of the arc);
-faces by centroid, then area, then surface type. Keys are compared with a
-tolerance (1e-6 mm, or 1e-6 relative for areas) so that rounding noise in a
+straight ``line``, a full ``circle`` or a circular ``arc``. Features and
+faces get ids (``line-3``, ``circle-1``, ``arc-2``, ``face-7``) that depend
+on the geometry alone, not on the order in which the STEP file or OCCT lists
+entities, so that the tolerance spec can name them. Each kind is numbered in
+the order of a geometric key (lines by midpoint, length, direction; circles
+and arcs by centre, radius, normal, arcs then by midpoint; faces by
+centroid, area, surface type), compared within 1e-6 mm so that rounding in a
 re-exported file does not reorder them.
+
+Only LINE and CIRCLE edges become features (others are counted in
+``Inventory.skipped_edges``), and neither seams nor degenerated edges.
+CIRCLE edges on one circle are merged where their ranges touch: into one
+``circle`` when they close the turn (many CAD systems split a rim into two
+half arcs), else one ``arc`` per run (`_circle_features`). Collinear lines
+stay separate features.
+
+Conventions (part frame = STEP frame, mm, radians): a circle's ``normal``
+has the sign `canonical_direction` gives, reproducible but meaningless;
+angles run counter-clockwise about it from ``reference_direction(normal)``
+(the world x axis projected into the plane, or y when |n_x| > 0.9), built
+from the normal alone so that the vision side can rebuild it; an arc runs
+from ``angle_start`` in [0, 2 pi) to ``angle_end`` in (angle_start,
+angle_start + 2 pi); a line's ``start`` is the end that sorts first by x,
+then y, then z.
 """
 
 import math
@@ -678,7 +646,13 @@ def _circle_record(curve, edge, record):
 
 
 def _circle_features(edges):
-    """Merge co-circular CIRCLE edges into circle and arc features."""
+    """Merge co-circular CIRCLE edges into circle and arc features.
+
+    Pieces are one circle when radii and centres agree within `_merge_tol` and
+    the normals are parallel up to sign (``r |n1 x n2| <= t``); they join where
+    the gap between their angular ranges is at most t. The merged centre and
+    radius are the span-weighted means of the pieces'.
+    """
     groups = _cocircular_groups(edges)
     circles, arcs = [], []
     for members in groups:
@@ -739,7 +713,13 @@ def _cocircular_groups(edges):
 
 
 def _merge_tol(radius, edge_tolerance):
-    """Length within which two circle pieces are the same circle, mm."""
+    """Length within which two circle pieces are the same circle, mm.
+
+    ``1e-6 max(r, 1 mm) + 2 max(edge tolerances)``: the edge tolerances are
+    OCCT's, the file's own statement of how far apart its geometry may be and
+    still meet, so a file written with a coarse uncertainty still closes its
+    rims.
+    """
     return LENGTH_TOL * np.maximum(radius, 1.0) + 2 * edge_tolerance
 
 

@@ -19,42 +19,35 @@ def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
         Solid or compound, part frame, mm.
     tolerance : float
         Largest distance between a triangle and the exact surface (chord
-        error), mm. The default 0.005 mm is a tenth of a pixel's footprint
-        for the rig the project targets (f = 7250 px at 400 mm: 1 px is
-        0.055 mm on the part).
+        error), mm. The default 0.005 mm is a tenth of a pixel's footprint on
+        the part for the rig the project targets.
     angular_tolerance : float
         Largest angle between the normals of neighbouring triangles along a
-        curved surface, radians. Keeps small circles round too (a 1 mm hole
-        at 0.005 mm chord error would otherwise get only 32 segments).
+        curved surface, radians; keeps small circles round too, which the
+        chord error alone would draw with few segments.
     inventory : partinspect.cad.features.Inventory, optional
-        The part's inventory, if already made; saves computing the face
-        order again. It must come from this very shape.
+        The part's inventory, if already made; it must come from this shape.
 
     Returns
     -------
     trimesh.Trimesh
         Vertices (V, 3) in mm, part frame; faces (T, 3) wound so that normals
-        point out of the material (outward for a closed solid). Vertices on
-        a CAD edge are shared by the triangles of both faces, so the mesh of
-        a valid solid is watertight. ``mesh.face_attributes["cad_face"]`` is
-        an int64 array (T,) giving each triangle's CAD face as an index
-        into ``inventory(shape).faces`` (face-1 is 0).
+        point out of the material. Vertices on a CAD edge are shared by both
+        faces' triangles, so a valid solid's mesh is watertight.
+        ``mesh.face_attributes["cad_face"]`` (int64, (T,)) gives each
+        triangle's CAD face as an index into ``inventory(shape).faces``.
 
     Raises
     ------
     ValueError
-        If OCCT cannot triangulate the shape (no face gets a triangulation).
+        If OCCT cannot triangulate the shape.
 
     Notes
     -----
-    Any triangulation stored in the shape is discarded first: OCCT would
-    otherwise reuse a finer or coarser one left by an earlier call, and the
-    same call must give the same mesh. The triangulation is stored in the
-    shape (OCCT keeps it with the faces), shared by copies of it.
-
-    BRepMesh honours ``tolerance`` on each face's interior and on its edges;
-    the sag of a triangle between two edge nodes of a circle of radius r is
-    r (1 - cos(pi / n)) for n segments, which is what the tests check.
+    Any triangulation stored in the shape is discarded first, so that the same
+    call gives the same mesh; the new one is stored in the shape (and shared
+    by its copies). BRepMesh bounds the chord error on faces and edges alike: a
+    circle of radius r in n segments sags by r (1 - cos(pi / n)).
     """
     if not tolerance > 0 or not angular_tolerance > 0:
         raise ValueError(f"tolerances must be > 0, got {tolerance} mm and {angular_tolerance} rad")
@@ -98,10 +91,9 @@ def _triangulate(wrapped, tolerance, angular_tolerance):
     params.Deflection = tolerance
     params.Angle = angular_tolerance
     params.Relative = False
-    # Measured on the NIST files: OCCT's parallel mode gains nothing worth
-    # taking both cores of a shared machine, while the Delabella
-    # triangulator is 3-7 times faster than the default (Watson) one for the
-    # same triangles at these tight tolerances.
+    # Serial: the parallel mode gains too little to be worth both cores of a
+    # shared machine. Delabella gives the same triangles as the default
+    # (Watson) triangulator, several times faster at these tolerances.
     params.InParallel = False
     params.MeshAlgo = IMeshTools_MeshAlgoType.IMeshTools_MeshAlgoType_Delabella
     BRepMesh_IncrementalMesh(wrapped, params)

@@ -441,9 +441,8 @@ def match(meas, cad, R, t, gate=MATCH_GATE):
 _SCORE_BATCH = 150_000
 """Poses :func:`_scores` takes at once: as many as make about this many
 elements in its largest arrays (B x m x K x 3 for the circles, B x n x L
-for the lines' directions). Small batches stay in the CPU's cache and score
-faster than large ones or one pose at a time (``bench_registration.py``
-prints both)."""
+for the lines' directions). Batches this small stay in the CPU's cache and
+score faster than larger ones or one pose at a time."""
 
 
 def _scores(meas, cad, hyps, gate=MATCH_GATE, batch=None):

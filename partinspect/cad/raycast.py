@@ -50,10 +50,10 @@ RENDER_TOLERANCE = 0.005
 """Chord error of the render mesh, mm (a tenth of a pixel's footprint)."""
 RENDER_ANGULAR_TOLERANCE = 0.01
 """Angle between neighbouring facets of a curved face, radians. Finer than
-the mesh module's default: a circle of radius r is drawn as a polygon whose
-mean radius is about r * 8e-6 short (0.00005 mm for r = 6 mm) instead of
-r * 2e-4 at 0.05 rad, which would bias rendered diameters by several
-micrometres, comparable to what the measurement claims to resolve."""
+the mesh module's default: a circle drawn as a polygon has a mean radius
+short by a part of r that grows with the square of this angle, which at
+0.05 rad would bias rendered diameters by micrometres, what the
+measurement claims to resolve."""
 
 
 @dataclass(frozen=True)
@@ -75,10 +75,9 @@ class Shading:
     Notes
     -----
     The default light sits near the cameras, a little to the right of and
-    above the optical axis, like a ring or bar light on the rig. For the
-    default pose it puts the part's +Z, -Y and -X faces at about 213, 163
-    and 117 grey levels (at least 46 apart) and faces turned away at the
-    ambient 65, 40 above the background of 25, so every silhouette shows.
+    above the optical axis, like a ring or bar light on the rig, so that the
+    faces the cameras see differ by tens of grey levels and faces turned away
+    (``ambient``) stay well above the background: every silhouette shows.
     """
 
     light: tuple = (0.351, -0.084, -0.933)

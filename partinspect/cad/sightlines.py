@@ -39,9 +39,9 @@ CONTRAST_OFFSET = 1.5
 NEIGHBOUR_STEP_FRACTION = 0.1
 """A face boundary within ``CONTRAST_OFFSET`` of an edge, on one side, counts
 as a second edge when its grey step is at least this fraction of the edge's
-contrast. On the sample parts (default pose and light) such boundaries step
-by under 0.05 of the edge's contrast (a hole's wall and the face seen past
-it, shaded alike; the 2D chain finds the edge there) or by 0.27 and more."""
+contrast. Faces shaded alike (a hole's wall and the face seen past it,
+where the 2D chain still finds the edge) step by far less, true second
+edges by far more."""
 OCCLUSION_TOLERANCE = 0.05
 """mm: a surface this little in front of an edge point does not hide it
 (the tessellation's chord error, seen at grazing incidence, is below it)."""

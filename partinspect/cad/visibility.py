@@ -31,13 +31,9 @@ image counts as out of view."""
 MIN_CONTRAST_SNR = 3.0
 """An edge whose grey step is below this many noise standard deviations
 cannot be expected to be detected, with any of the parameters the adaptive
-processing tries (:mod:`partinspect.adaptive`). Measured on a straight
-step blurred by 0.65 px (200 rows, 5 noise draws), rows with an edge point
-found: with the edge filter at 1 px (the default) 7 % at 3 noise units,
-65 % at 3.5, 98 % at 4; at 1.5 px (the widest a re-run for missing edges
-uses) 97 % at 2.5 and 98 % at 3. It was 6 until 2026-12-04: edges of 4-6
-noise units, which a re-run finds, were then not expected, so the bracket's
-wall holes lost at four times the nominal noise went unremarked."""
+processing tries (:mod:`partinspect.adaptive`): at 3 the widest edge filter
+a re-run uses (1.5 px) still finds nearly every point of a blurred step, so
+an edge above it that is missing is worth a re-run and worth reporting."""
 CONTRAST_OFFSET = 2.5
 """px either side of the projected edge where its grey step is read."""
 
@@ -132,8 +128,8 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=Non
     from partinspect.cad.sightlines import edge_visibility
     from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 
-    # A coarse mesh: occlusion is decided to a pixel or so, and the exact
-    # renderer's 5 um chord error would cost a minute on a large part.
+    # A coarse mesh: occlusion need only be decided to a pixel or so, and the
+    # renderer's fine mesh would be slow on a large part.
     if mesh is None:
         mesh = tessellate(shape, tolerance=MESH_TOLERANCE, angular_tolerance=0.2, inventory=inventory)
     rs = build_scene(mesh)

@@ -1,37 +1,24 @@
 """Check predicted uncertainties against the real chain on rendered images (JCGM 101).
 
-The part is ray-cast once per camera (noiseless radiance, blurred by the
-optics); each draw then adds fresh sensor noise
-(:attr:`Renderer.sensor`, given by the caller) and runs the whole measurement
-chain as ``inspect`` does: :func:`partinspect.vision.stereo.measure_stereo`,
-:func:`partinspect.cad.registration.register` (with the true pose as hint,
-so a rare ambiguous draw does not stop the check), and
-:func:`partinspect.tolerances.evaluate.evaluate`. Over the draws, each
-characteristic's measured spread is set beside its predicted ``u`` and the
-``u`` the chain reported.
+The part is ray-cast once per camera (noiseless, blurred radiance); each
+draw adds fresh sensor noise (:attr:`Renderer.sensor`) and runs the whole
+chain as ``inspect`` does (measurement, registration with the true pose as
+hint so that a rare ambiguous draw does not stop the check, evaluation).
+Each characteristic's spread over the draws is set beside its predicted
+``u`` and the ``u`` the chain reported. The spread is the values' standard
+deviation, except for position, a norm: there ``2 sqrt(tr Cov(d))`` of the
+centre's in-plane offset d, what ``true_position`` states at the true
+position (the render's small systematic offset is no part of the spread).
 
-The measured spread is the standard deviation of the measured values,
-except for position, which is a norm (2 |d| for the centre's offset d in
-the plane of the nominal circle): its spread is taken as
-``2 sqrt(tr Cov(d))``, the RMS of ``2 |d - mean(d)|``, which is what
-:func:`partinspect.tolerances.evaluate.true_position` gives as ``u`` for a
-centre at its true position (the rendered images carry a small systematic
-offset that is no part of the spread).
-
-:func:`check_pose` is ``inspect plan --check``: the proposed pose's
-prediction set against such draws. The draws show the image-noise part of
-u only (one scene, its systematic displacements fixed), so they are set
-beside the prediction without its Type B part. Where their spread exceeds
-that by more than chance allows for the number of draws and the values'
-tails (:func:`chance_interval`, with the draws' sample kurtosis; for a
-straightness or circularity, whose spread in one scene also depends on
-the scene's fixed displacements, the range of spreads its error model
-gives over scenes, :func:`form_interval`), the excess is a random component the
-first-order model does not carry (a segmentation that keeps different
-pieces of a rim from one image to the next), and it is added to the
-prediction's u in quadrature; a spread below the prediction leaves the
-prediction as it is (conservative). A characteristic the chain did not
-measure in every draw is not called decidable.
+:func:`check_pose` is ``inspect plan --check``. The draws show only the
+image-noise part of u (one scene, its Type B displacements fixed), so they
+are set beside the prediction without its Type B part. A spread above what
+chance allows (:func:`chance_interval`, with the draws' kurtosis; for form
+values the spreads their error model gives over scenes,
+:func:`form_interval`) is a random component the first-order model lacks,
+added to u in quadrature; a spread below it leaves u as it is
+(conservative). A characteristic not measured in every draw is not called
+decidable.
 
 References
 ----------
@@ -260,11 +247,9 @@ def chance_interval(n, level=0.95, excess_kurtosis=0.0):
     degrees of freedom over ``nu``. Values of excess kurtosis ``k`` give
     ``s^2`` the variance ``sigma^4 (2 / (n - 1) + k / n)``; the interval is
     then that of a scaled chi-square of the same variance (Satterthwaite),
-    ``nu = 2 / (2 / (n - 1) + k / n)``: wider for heavy tails (a form
-    value's draws on the sample parts reach k = 1.6, a distance's 2.7).
-    Simulated with Gumbel values (k = 2.4), the normal interval held s in
-    82-88 % of samples of 10-200 values, this one 95-97 % (91-93 % with k
-    estimated from each sample).
+    ``nu = 2 / (2 / (n - 1) + k / n)``: wider for heavy tails, which form values
+    and distances have, so that the normal interval would call a sound
+    prediction wrong too often.
 
     Parameters
     ----------
@@ -336,16 +321,14 @@ def checked_uncertainty(u, u_noise, measured_spread, n, excess_kurtosis=0.0, int
 def form_interval(spreads, u_noise, level=0.95):
     """Interval of ``s / u_noise`` for a form value's spread ``s`` over the images of one scene.
 
-    A straightness or circularity is a zone (maximum minus minimum) of
-    points whose Type B displacements are fixed in a scene: which points
-    set the zone depends on that pattern, so the spread over noise draws
-    of one render differs from scene to scene by more than the chance of
-    the draws (for the sample parts' planned rims -21 to -34 % and +22 to
-    +38 % of its RMS, 5-95 %, with 50 draws). The prediction's ``u_noise`` is that RMS; the
-    interval is the central ``level`` of the spreads the error model gives
-    for as many draws of each scene
-    (:func:`partinspect.tolerances.evaluate.form_scene_spreads`), which
-    takes in the chance of the draws and the values' tails too.
+    A straightness or circularity is a zone (maximum minus minimum) of points
+    whose Type B displacements are fixed in a scene: which points set the zone
+    depends on that pattern, so the spread over noise draws of one render
+    differs from scene to scene by more than the chance of the draws. The
+    prediction's ``u_noise`` is the RMS over scenes; the interval is the
+    central ``level`` of the spreads the error model gives for as many draws
+    of each scene (:func:`partinspect.tolerances.evaluate.form_scene_spreads`),
+    which takes in the chance of the draws and the values' tails too.
 
     Parameters
     ----------

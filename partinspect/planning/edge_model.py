@@ -1,65 +1,26 @@
 """How well the edge detector will locate an edge it has not seen yet.
 
-The standard uncertainty of a detected edge point across the edge follows
-from four numbers: the image noise ``s_n`` (grey levels), the edge's
-contrast ``h`` (grey-level step between the two faces), the optics' blur
-``b`` (standard deviation of the Gaussian PSF, px) and the scale ``s`` of
-the Gaussian-derivative edge filter (px).
-
-Model
------
-Blur, the pixel's box aperture and the filter make the gradient profile
-across a straight step edge a Gaussian of standard deviation
-
-    w = sqrt(s^2 + b^2 + 1/12)                                   (px)
-
-and height ``h / (sqrt(2 pi) w)``. The detector puts the edge at the
-maximum of the gradient magnitude along the normal, i.e. at the zero of
-its derivative. Noise moves that zero by the noise of the derivative
-divided by the profile's curvature ``h / (sqrt(2 pi) w^3)``; the derivative
-of the filtered noise is white noise through the second derivative of the
-2-D Gaussian, variance ``s_n^2 * 3 / (16 pi s^6)`` (the smoothing along the
-edge is what makes it finite). Together, Canny's localisation result [1]_
-for the Gaussian filter extended to a blurred edge and to 2-D smoothing:
+A detected edge point's standard uncertainty across the edge follows from
+the pixel noise ``s_n`` (grey levels, quantisation included:
+:attr:`DetectorModel.pixel_noise`), the contrast ``h`` (grey levels), the
+optical blur ``b`` and the edge filter's scale ``s`` (px). Blur, the pixel's
+box aperture and the filter make the gradient profile across a step a
+Gaussian of width ``w = sqrt(s^2 + b^2 + 1/12)`` px; the detector puts the
+edge at its maximum, which noise moves by the noise of the derivative over
+the profile's curvature. Canny's localisation result [1]_, extended to a
+blurred edge and 2-D smoothing:
 
     sigma_edge = c * sqrt(3 / 8) * (s_n / h) * (w / s)^3          (px)
 
-The constant ``c`` = :data:`EDGE_STD_FACTOR` accounts for the detector being
-discrete (three magnitude samples 1 px apart along the nearer image axis,
-a parabola through their logarithms [2]_). It is calibrated on
-:func:`partinspect.vision.edges.edge_points` itself: on straight blurred
-step edges at 2 to 40 degrees from an image axis, contrasts of 40 to 160
-grey levels, 8-bit images with Gaussian noise of 2 grey levels, the
-standard deviation of each pixel's edge point over 60 noise draws is
-0.97 to 1.07 times the model with ``c = 0.955`` (mean 1.00). (The
-first-order covariance the detector itself reports is 0.93 times the
-continuous model on a noiseless profile, and 4 to 8 % more on noisy
-images: it is slightly conservative.) For the rendered defaults (``s`` = 1,
-``b`` = 0.6, ``s_n`` = 2 plus quantisation) and a 100 grey-level edge this
-gives 0.022 px.
-
-The prediction itself (:func:`stated_std_pattern`) does not use this
-closed form but the detector's own first-order propagation
-(:func:`partinspect.vision.edges.stated_std_spread`) at the magnitudes a
-Gaussian profile of width ``w`` gives at each point's direction and
-sub-pixel phase: it follows the detector where the closed form cannot,
-3.5 % more near 45 deg to the pixel axes than elsewhere (the magnitudes
-are read 1.4 px apart there), and it gives the scatter of the stated
-values that a form zone sees. The closed form stays the quick estimate
-(within 2 % of it from 0 to 40 deg).
-
-``s_n`` is the noise the pixels carry, quantisation included: for 8-bit
-images ``sqrt(noise^2 + 1/12)`` (:attr:`DetectorModel.pixel_noise`), which is
-what :func:`partinspect.vision.noise.estimate_noise` measures on an image.
-
-Errors of neighbouring points on one edge share smoothed noise: their
-correlation is ``exp(-d^2 / (4 s^2))`` at distance ``d``
-(:func:`partinspect.vision.edges.edge_error_correlation`), which the fits
-account for through ``corr_length = s``.
-
-The detector gives one point per pixel row or column, along the image axis
-closer to the edge's direction: :func:`detector_parameters` places the
-points of an edge that way.
+``c`` = :data:`EDGE_STD_FACTOR` accounts for the discrete detector (a
+parabola through the logarithms of three magnitudes [2]_). This closed form
+is the quick estimate; the prediction (:func:`stated_std_pattern`) uses the
+detector's own first-order propagation at the magnitudes the profile gives
+at each point's direction and sub-pixel phase, which follows the detector
+near 45 deg and gives the scatter of stated values a form zone sees.
+Neighbouring points' errors share smoothed noise, correlation
+``exp(-d^2 / (4 s^2))``; the detector gives one point per pixel along the
+image axis nearer the edge's direction (:func:`detector_parameters`).
 
 References
 ----------
@@ -86,7 +47,9 @@ __all__ = [
 ]
 
 EDGE_STD_FACTOR = 0.955
-"""Discrete detector over the continuous model (calibrated, see the module notes)."""
+"""Discrete detector over the continuous model: calibrated on
+:func:`partinspect.vision.edges.edge_points` itself, on blurred straight
+steps over the range of directions and contrasts the chain meets."""
 
 
 @dataclass(frozen=True)
@@ -96,8 +59,8 @@ class DetectorModel:
     Attributes
     ----------
     noise : float
-        Standard deviation of the sensor noise, grey levels (the renderer's
-        default is 2), before 8-bit quantisation.
+        Standard deviation of the sensor noise before 8-bit quantisation, grey
+        levels.
     quantised : bool
         8-bit images: quantisation adds variance 1/12 grey level^2.
     blur : float
@@ -105,27 +68,23 @@ class DetectorModel:
     sigma : float
         Scale of the edge filter, px (the chain's default 1).
     contrast : float or None
-        Grey-level step at every edge; None to take it from the shading of
-        the part's faces (the light of :mod:`partinspect.cad.raycast`).
+        Grey-level step at every edge; None to take it from the shading of the
+        part's faces (the light of :mod:`partinspect.cad.raycast`).
     end_trim : float or None
-        Pixels lost at each end of a visible stretch of edge (the filter
-        mixes the gradients of two edges meeting at a corner); None for
-        ``3 sigma`` on straight edges, ``3 sigma + 1`` on curved ones, see
-        :attr:`run_trim` and :attr:`arc_trim`.
+        Pixels lost at each end of a visible stretch of edge (the filter mixes
+        the gradients of two edges meeting at a corner); None for
+        :attr:`run_trim` on straight edges and :attr:`arc_trim` on curved ones.
     min_points : int
         Fewest edge points in an image for a feature to be matched (the
         matcher's ``min_points``).
     systematic : bool
-        Include the chain's Type B uncertainty of points on curved edges
-        beside shaded surfaces (:func:`partinspect.planning.predict.background_terms`);
-        False predicts the image-noise part alone (what the spread over
-        noise draws of one rendered scene shows; the noise of the chain's
-        correction for that shading included): the fits still weight the
-        points as the chain does, Type B part included, and only that part
-        is left out of the covariances; a form value's u is its spread over
-        images of one scene with the Type B displacements held (a fixed
-        pattern changes which points set the zone, so it is not left out
-        there but fixed).
+        Include the chain's Type B uncertainty of points on curved edges beside
+        shaded surfaces (:func:`partinspect.planning.predict.background_terms`).
+        False predicts the image-noise part alone, what the spread over noise
+        draws of one rendered scene shows: the fits still weight the points as
+        the chain does, only the covariances leave the Type B part out, and a
+        form value's u is its spread over images of one scene with the Type B
+        displacements held (they change which points set the zone).
     """
 
     noise: float = 2.0
@@ -141,18 +100,13 @@ class DetectorModel:
     def run_trim(self):
         """Pixels lost at each end of a visible stretch of edge: ``end_trim``, or ``3 sigma``.
 
-        The segmentation leaves ``3 sigma + 1`` px at a piece's open ends
-        out of its fit (:func:`partinspect.vision.contours.segment_contour`'s
-        ``trim``), counted from where the piece ends, which need not be
-        where the visible edge ends; 3 sigma is chosen on counts. On the
-        sample renders (plate, bracket; default pose, noise 2, 3 draws) the
-        prediction at 3 px has 0-2 points more than the chain per short line
-        (4-7 mm), 2-5 per long one; at 2 px (the default before) it had 2-6
-        more, and the partial arcs' ends, which fix their curvature, were
-        too long (bracket arc-2's radius predicted 0.34 of its spread over
-        50 draws, 0.43 at 3 px, 0.50 at 4 px); at 4 px the plate's 4 mm
-        line-9 fell below the matcher's 12 points, which the chain finds in
-        49 of 50 draws.
+        The segmentation leaves ``3 sigma + 1`` px at a piece's open ends out of
+        its fit (:func:`partinspect.vision.contours.segment_contour`'s ``trim``),
+        counted from where the piece ends, which need not be where the visible
+        edge ends. 3 sigma is chosen so that the predicted point counts match the
+        chain's: less leaves partial arcs' ends, which fix their curvature, too
+        long; more drops short lines below the matcher's ``min_points`` that the
+        chain still finds.
         """
         return float(self.end_trim) if self.end_trim is not None else 3.0 * self.sigma
 
@@ -160,16 +114,11 @@ class DetectorModel:
     def arc_trim(self):
         """Pixels lost at each end of a visible stretch of a curved edge: ``end_trim``, or ``3 sigma + 1``.
 
-        The segmentation moves the break between two fitted pieces to where
-        their models meet (:func:`partinspect.vision.contours._adjust_breaks`),
-        so an arc ends at its junction and loses the segmentation's trim
-        there, ``3 sigma + 1``: on a synthetic slot (30 px half-circles
-        tangent to its sides, 4 seeds) the fitted arcs span 156-164 deg of
-        180, 164.7 with exactly that trim. A partial arc's radius depends
-        steeply on its ends (the bracket's arc-4 in the left image: the
-        semi-axis' u 0.076 px over the predicted points, 0.114 px over those
-        within the chain's ends, 10 deg shorter), which lines are not; there
-        ``run_trim`` is kept for the counts.
+        The segmentation moves the break between two fitted pieces to where their
+        models meet (:func:`partinspect.vision.contours._adjust_breaks`), so an arc
+        ends at its junction and loses the segmentation's full trim there. A
+        partial arc's radius depends steeply on its ends, which a line's does not,
+        so curved edges take this trim and lines keep ``run_trim`` for the counts.
         """
         return float(self.end_trim) if self.end_trim is not None else 3.0 * self.sigma + 1.0
 
@@ -250,21 +199,19 @@ def detector_parameters(t, uv, spacing=1.0):
 def stated_std_pattern(uv, normal, contrast, model, rng=None):
     """The standard uncertainty the detector will state for each point of an edge, and how it scatters.
 
-    The detector states each point's standard uncertainty from the noisy
-    gradient magnitudes it read (:func:`partinspect.vision.edges.stated_std_spread`),
-    so the stated values scatter from point to point (by 5-7 % on the
-    bracket's line-2, -3 and -7), and the chain's form Monte Carlo draws
-    its errors with them: a zone (a maximum) is set by the points stated
-    most uncertain, and the chain's form u comes out 5-12 % above the one
-    from a uniform uncertainty (those lines in three noise draws), which is
-    what the spread of its form values over noise draws shows. The prediction draws one such pattern so that its form u is
-    the one the chain will state.
+    The detector states each point's uncertainty from the noisy gradient
+    magnitudes it read (:func:`partinspect.vision.edges.stated_std_spread`), so
+    the stated values scatter from point to point, and the chain's form Monte
+    Carlo draws its errors with them: a zone (a maximum) is set by the points
+    stated most uncertain, so the chain's form u is above the one a uniform
+    uncertainty gives. The prediction draws one such pattern so that its form
+    u is the one the chain will state.
 
     Parameters
     ----------
     uv, normal : ndarray, shape (N, 2)
-        Predicted edge points in order along the edge and their unit
-        normals, px (distorted image).
+        Predicted edge points in order along the edge and their unit normals,
+        px (distorted image).
     contrast : ndarray, shape (N,)
         Grey-level step at each point.
     model : DetectorModel
@@ -278,10 +225,10 @@ def stated_std_pattern(uv, normal, contrast, model, rng=None):
         noise-free edge, px (``inf`` where the contrast is zero).
     pattern : ndarray, shape (N,)
         ``exp(cv * eta)``: ``cv`` the scatter of the log of the stated
-        uncertainty for the noise-free magnitudes of a Gaussian profile of
-        width :func:`profile_width` at the point's sub-pixel phase,
-        ``eta`` a unit Gaussian field along the edge with the correlation
-        of the points' own errors (their magnitudes share the smoothed noise).
+        uncertainty for the noise-free magnitudes of a Gaussian profile of width
+        :func:`profile_width` at the point's sub-pixel phase, ``eta`` a unit
+        Gaussian field along the edge with the correlation of the points' own
+        errors (their magnitudes share the smoothed noise).
     """
     from partinspect.vision.edges import stated_std_spread
     from partinspect.vision.pointerrors import correlated_field

@@ -1,45 +1,27 @@
 """Predicted uncertainty of every characteristic for the part in a given pose.
 
 Nothing is rendered and nothing is measured: the CAD edges are projected
-into both cameras at the pose, turned into the edge points the detector
-would give (one per pixel of the dominant image axis, where the edge is in
-the image, unoccluded and shows contrast, with the standard uncertainty the
-detector states for such an edge and its scatter,
-:func:`partinspect.planning.edge_model.stated_std_pattern`), and those points,
-lying exactly on the true edges, go through the measurement chain's *own*
-code from the 2D fits on:
+into both cameras at the pose and turned into the edge points the detector
+would give (one per pixel of the dominant axis, where the edge is in the
+image, unoccluded and shows contrast, with the uncertainty the detector
+states and its scatter, :func:`~partinspect.planning.edge_model.stated_std_pattern`).
+Those points, lying exactly on the true edges, go through the measurement
+chain's own code from the 2D fits on: ideal points and 2D fits, stereo
+correspondences, the two-view 3D fits (rims with the chain's Type B
+uncertainty for the shading beside them, :func:`background_terms`; the
+calibration's uncertainty when it states one), the registration with the
+true pose as hint, and :func:`partinspect.tolerances.evaluate.evaluate`.
 
-1. :func:`partinspect.vision.ideal.ideal_points` (distortion removed, with
-   covariances) and the 2D line / ellipse fits of
-   :mod:`partinspect.vision.fitting` (correlated-noise sandwich);
-2. :func:`partinspect.vision.correspondences.correspond` (triangulated
-   correspondences with their 3x3 covariances, the points that form
-   characteristics use);
-3. the two-view 3D fits of :mod:`partinspect.vision.fit3d` through
-   :func:`partinspect.vision.stereo.feature_views` (covariance at the true
-   geometry, since the points are noise-free; for rims of holes including
-   the chain's Type B uncertainty of points beside shaded surfaces, fed
-   with the shading the detector would read there, :func:`background_terms`)
-   and, when the calibration carries standard uncertainties,
-   :func:`partinspect.vision.stereo.calibration_covariance`;
-4. :func:`partinspect.cad.registration.register` with the true pose as hint
-   (the pose covariance from the datum features);
-5. :func:`partinspect.tolerances.evaluate.evaluate` (each characteristic's
-   ``u`` and ``U = k u``).
-
-Because every step is first-order propagation evaluated at the true
-geometry, the result is the uncertainty ``inspect`` would report for a
-part that is exactly nominal, seen in that pose, *if the chain keeps every
-visible edge point*: where its segmentation drops part of a hole's rim
-(which it does on some renders), it reports a larger u than predicted. What cannot be measured
-at all is said with the reason: not visible in both images (occluded,
-outside the image, no contrast, or a tangent edge), a straight edge within
-``EPIPOLAR_MIN_ANGLE`` of the epipolar lines (the matcher rejects it: its
-depth is undetermined), a circle seen within ``90 - EDGE_ON_ANGLE`` degrees
-of edge-on.
+Every step is first-order propagation at the true geometry, so the result
+is the u ``inspect`` would report for an exactly nominal part in that pose,
+*if the chain keeps every visible edge point* (where its segmentation drops
+part of a rim, it reports more). What cannot be measured is said with the
+reason: not visible in both images, a line within ``EPIPOLAR_MIN_ANGLE`` of
+the epipolar lines (depth undetermined), a circle within ``90 -
+EDGE_ON_ANGLE`` degrees of edge-on.
 
 Frames: part frame (STEP) for CAD geometry, rig frame (left camera) for
-measured features, as everywhere in the package; mm, radians inside.
+measured features; mm, radians inside.
 
 References
 ----------
@@ -98,8 +80,8 @@ LOW_CONTRAST = 40.0
 FLAT_ELLIPSE = 0.5
 """A circle whose image is an ellipse flatter than this (minor / major axis)
 is measurable in principle, but the chain's segmentation often breaks such
-an ellipse into pieces too short to match (seen on the bracket's wall
-holes at 65 degrees, axis ratio 0.42): such characteristics carry a warning."""
+an ellipse into pieces too short to match, which the first-order
+prediction cannot show: such characteristics carry a warning."""
 DEFAULT_RATIO = 0.25
 """A characteristic is decidable when U <= ratio x its tolerance."""
 _CONTRAST_OFFSET = 1.5  # px either side of the edge where the faces' greys are read (as truth.py)
@@ -391,31 +373,28 @@ def _trim_runs(mask, uv, trim, closed, breaks=None):
 JUNCTION_STEP_FRACTION = 1.0 / 3.0
 """A third edge meeting an edge parts the 2D chain's contour there when its
 grey step is at least this fraction of the edge's contrast (the larger of
-the two either side of the junction). Measured on the sample parts in the
-default pose and nine fixture poses each (1224 x 1024 px, noise 2, two
-draws): of 48 junctions stepping by 0.35 of the contrast or more, 42 left
-a gap in the chain's edge in both draws (at most 2 points within 3 px of
-the junction), 5 a narrower one, 1 none; of 6 stepping by 0.27 or less,
-none did (5-6 points within 3 px); one at 0.34 kept 4."""
+the two either side of the junction). The chain's edges show a clear
+divide: junctions stepping by well over a third of the contrast leave a
+gap, those well under it none."""
 
 
 def _junctions(vis, every, closed):
     """Where a third edge meets the edge between two visible samples.
 
     The face seen on one side (:func:`partinspect.cad.sightlines.edge_visibility`'s
-    ``side_label``) changes from one sample to the next, with a grey step of
-    at least ``JUNCTION_STEP_FRACTION`` of the edge's contrast: as where a
-    hole's bottom rim, seen through the hole, ends at its top rim. The
-    truth's visibility rule misses such a junction where the third edge
-    leaves steeply (it crosses the span read beside the edge between two
-    samples), yet the chain's contour parts there and the segmentation
-    trims both new ends: on the plate's 6 mm hole (circle-8) the chain's rim
-    had gaps of 15-20 deg at such junctions that the prediction lacked.
+    ``side_label``) changes from one sample to the next, with a grey step of at
+    least ``JUNCTION_STEP_FRACTION`` of the edge's contrast: as where a hole's
+    bottom rim, seen through the hole, ends at its top rim. The truth's
+    visibility rule misses such a junction where the third edge leaves steeply
+    (it crosses the span read beside the edge between two samples), yet the
+    chain's contour parts there and the segmentation trims both new ends, so
+    the prediction must too.
 
     Parameters
     ----------
     vis : dict
-        :func:`~partinspect.cad.sightlines.edge_visibility` of the samples, in order along the edge.
+        :func:`~partinspect.cad.sightlines.edge_visibility` of the samples, in
+        order along the edge.
     every : ndarray of bool, shape (N,)
         Visible samples.
     closed : bool
@@ -458,23 +437,19 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     Returns
     -------
     ViewSamples
-        Only the points that would be detected: in the image, unoccluded,
-        with contrast (the truth's visibility rules), minus ``model.run_trim``
+        Only the points that would be detected: in the image, unoccluded, with
+        contrast (the truth's visibility rules), minus ``model.run_trim``
         (lines) or ``model.arc_trim`` (circles, arcs) px at the ends of each
-        visible stretch; a junction with a third edge (:func:`_junctions`)
-        ends a stretch.
+        visible stretch; a junction with a third edge (:func:`_junctions`) ends
+        a stretch.
 
     Notes
     -----
-    Where a rim's contrast fades out (the two faces shaded alike), the
-    chain's stretches end 3-6 deg beyond these (the bracket's wall hole
-    circle-5, 200 draws at noise 2: the detector follows the rim down to
-    about 10 grey levels, its upper hysteresis threshold, before the
-    segmentation's trim). Ending the stretches at that threshold instead of
-    the truth's 20 grey levels was tried: circle-5's predicted circularity
-    u rose 4 % (0.79 to 0.82 of the chain's spread) but its diameter's fell
-    10 % (0.90 to 0.81), whose spread over the draws that kept the whole
-    rim is already 1.1 times the prediction, so the 20 grey levels stay.
+    Where a rim's contrast fades out, the detector follows it a little further,
+    down to its upper hysteresis threshold (about 10 grey levels), than the
+    truth's 20 grey levels used here. Ending the stretches at the threshold
+    moves one prediction closer to the chain and another further from it, so
+    the truth's rule stays.
     """
     from partinspect.cad.raycast import DEFAULT_SHADING, camera_in_part, cast, pixel_rays, shade
     from partinspect.cad.sightlines import edge_visibility
@@ -716,8 +691,8 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         # points beside a steep shading count less), which widens its
         # random part: the noise-only figure keeps those weights and leaves
         # out only the Type B part (with the bound set to zero instead, the
-        # fit weighted the points by their noise alone and predicted the
-        # random u of rim radii 0.8 times the chain's).
+        # fit would weight the points by their noise alone and describe a
+        # more efficient estimator than the chain's).
         # The points' error model keeps its Type B part: the form's noise-only
         # figure holds it per scene (evaluate_characteristic's one_scene).
         fit = dataclasses.replace(fit, param_cov=fit.param_cov - fit.param_cov_systematic,

@@ -9,7 +9,7 @@ all about the part's bounding-box centre, which stays where it was:
     R = R_start @ Rx(tilt_x) @ Ry(tilt_y) @ Rz(rotation)
 
 The search is coarse to fine, to keep the number of predictions small
-(each takes one to three seconds):
+(each runs the whole covariance chain):
 
 1. rotations over the allowed range at ``step`` degrees, untilted;
 2. for the best two rotations, tilts of half and all of ``max_tilt`` about

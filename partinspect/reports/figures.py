@@ -1,71 +1,26 @@
 """The report's figures, drawn from one run's data (after the paper's Figs. 3-7).
 
-The pipeline hands :func:`build_figures` a plain dict, ``figures``; every
-key is optional, and a figure whose data is missing or empty is left out of
-the report with a one-line note saying why. The interface, exactly:
+The pipeline hands :func:`build_figures` a plain dict (its interface is
+described there); a figure whose data is missing or empty is left out with
+a one-line note saying why. Figures only show the report's numbers, they
+never change them. In report order, the paper's numbers in brackets:
 
-.. code-block:: text
-
-    figures = {
-      "left":  ndarray (H, W), uint8 or uint16   the left grey image as loaded
-                                                  (distorted, full resolution);
-                                                  (H, W, 3) colour is turned grey
-      "right": ndarray (H, W), same              the right image
-      "overlays": [                               fitted 2D features, one per fit
-        {"image":  "left" | "right",
-         "xy":     ndarray (N, 2) float           polyline in DISTORTED pixel
-                                                  coordinates of that image
-                                                  (OpenCV convention: the centre
-                                                  of the top-left pixel is 0, 0)
-         "kind":   "line" | "circle" | "arc",
-         "label":  str                            CAD feature id, "" if unmatched
-         "status": "pass" | "fail" | "inconclusive" | "unmatched" | "measured"},
-        ...],
-      "residuals": [                              one per 2D fit
-        {"label":     str,                        e.g. the CAD feature id
-         "image":     "left" | "right",
-         "residuals": ndarray (M,) float          signed orthogonal residuals
-                                                  of the fitted edge points, px
-         "sigma":     float                       their predicted standard
-                                                  deviation, px},
-        ...],
-      "points3d": [                               triangulated points per feature
-        {"label":  str,
-         "points": ndarray (M, 3) float           part frame, mm
-         "covs":   ndarray (M, 3, 3) float        their covariances, part frame, mm^2
-         "status": str                            as in "overlays"},
-        ...],
-      "cad_edges": [                              nominal CAD edges to draw under them
-        {"label":    str,
-         "polyline": ndarray (K, 3) float         part frame, mm},
-        ...],
-    }
-
-Lists may be empty and arrays may be lists of numbers. Non-finite values are
-dropped. Nothing here changes the report's numbers: figures only show them.
-
-The figures (numbered in report order; the paper's numbers in brackets):
-
-1. [Fig. 3] both images, downscaled to at most ``IMAGE_WIDTH`` px wide
-   (JPEG, inline), with every fitted feature drawn over them as a vector
-   polyline coloured by its status, a legend, and the feature id on hover;
-2. [Fig. 4] a histogram of each fit's residuals against the normal density
-   the noise model predicts, small multiples, at most ``MAX_RESIDUAL_PANELS``;
+1. [Fig. 3] both images, downscaled to at most ``IMAGE_WIDTH`` px, with
+   every fitted feature drawn over them as a vector polyline coloured by
+   its status;
+2. [Fig. 4] histograms of each fit's residuals against the normal density
+   the noise model predicts, at most ``MAX_RESIDUAL_PANELS``;
 3. [Figs. 5-6] the standard deviations of the triangulated points along X,
-   Y and Z: per point along the features, and their distributions. In the
-   left camera's frame when the report has a registration (so Z is the
-   depth), else in the part frame with the principal axes of each point's
-   covariance;
+   Y, Z, per point and as distributions: in the left camera frame when the
+   report has a registration (Z is then the depth), else in the part frame;
 4. [Fig. 7] the reconstructed points over the CAD edges with their k = 2
-   error ellipsoids, magnified (the caption says by how much), in an inline
-   canvas viewer that rotates and zooms with the mouse; no script or data is
-   fetched from anywhere.
+   error ellipsoids, magnified, in an inline canvas viewer (nothing fetched
+   from anywhere).
 
-Each figure is a :class:`Figure`; its ``body`` is trusted HTML made here,
-in which every string from the data (labels) is escaped. Matplotlib is
-imported inside the functions that draw (never at import of the CLI), on
-its Agg canvas without pyplot, with fixed SVG ids and no date, so the same
-data give the same bytes.
+Each :class:`Figure`'s ``body`` is trusted HTML made here, every string from
+the data escaped. Matplotlib is imported only inside the drawing functions,
+on its Agg canvas without pyplot, with fixed SVG ids and no date, so the
+same data give the same bytes.
 """
 
 from __future__ import annotations
@@ -93,7 +48,7 @@ __all__ = [
     "jpeg_data_uri",
 ]
 
-IMAGE_WIDTH = 1000  # px of the downscaled images: ~150-400 kB of JPEG each
+IMAGE_WIDTH = 1000  # px of the downscaled images: keeps each inline JPEG to a few hundred kB
 JPEG_QUALITY = 82
 MAX_RESIDUAL_PANELS = 24
 MAX_OVERLAY_POINTS = 240  # per polyline in the image figure
@@ -745,12 +700,40 @@ def scene_figure(figures, part_to_camera=None):
 
 
 def build_figures(figures, report=None):
-    """All figures of the report for a ``figures`` dict (module docstring); a list of Figure.
+    """All figures of the report for a ``figures`` dict; a list of Figure.
 
-    ``report`` (the report.json dict) gives the registration's
-    ``part_to_camera`` for the camera-frame axes and view. A figure that
-    cannot be drawn is replaced by a note with the reason rather than
-    losing the whole report.
+    A figure that cannot be drawn is replaced by a note with the reason rather
+    than losing the whole report.
+
+    Parameters
+    ----------
+    figures : dict
+        Every key optional; lists may be empty, arrays may be lists of numbers,
+        non-finite values are dropped.
+
+        - ``left``, ``right``: ndarray (H, W), uint8 or uint16, the grey images
+          as loaded (distorted, full resolution); (H, W, 3) colour is made grey.
+        - ``overlays``: list of dicts, one per 2D fit: ``image`` ("left" or
+          "right"), ``xy`` ndarray (N, 2), the fitted polyline in distorted
+          pixels of that image (OpenCV: the top-left pixel's centre is 0, 0),
+          ``kind`` ("line", "circle", "arc"), ``label`` (CAD id, "" if
+          unmatched), ``status`` ("pass", "fail", "inconclusive", "unmatched",
+          "measured").
+        - ``residuals``: list of dicts, one per 2D fit: ``label``, ``image``,
+          ``residuals`` ndarray (M,), signed orthogonal residuals of the fitted
+          edge points, px, and ``sigma``, their predicted standard deviation, px.
+        - ``points3d``: list of dicts, one per feature: ``label``, ``points``
+          ndarray (M, 3), part frame, mm, ``covs`` ndarray (M, 3, 3), mm^2,
+          ``status`` as in ``overlays``.
+        - ``cad_edges``: list of dicts: ``label``, ``polyline`` ndarray (K, 3),
+          the nominal CAD edge, part frame, mm.
+    report : dict, optional
+        The report.json dict; its registration's ``part_to_camera`` puts the
+        point figures' axes and the viewer in the left camera frame.
+
+    Returns
+    -------
+    list of Figure
     """
     if not figures:
         return []

@@ -244,9 +244,9 @@ def render_html(report, figures=None):
     """The report.html text for a report.json dict.
 
     ``figures`` is the optional dict of run data described in
-    :mod:`partinspect.reports.figures`; without it the page has no figures
-    section, and with it every figure whose data is missing is replaced by
-    a one-line note.
+    :func:`partinspect.reports.figures.build_figures`; without it the page has
+    no figures section, and with it every figure whose data is missing is
+    replaced by a one-line note.
     """
     from partinspect.reports.figures import build_figures, scene_json
 

@@ -1,39 +1,26 @@
 """Ray-cast rendering of a tessellated part through calibrated cameras.
 
-Every sample of the image is a ray: a position ``(u, v)`` in *distorted*
-pixel coordinates is mapped to its viewing direction by the calibration's
-exact undistortion, so lens distortion is rendered through the model itself
-rather than by warping an image. The image forms as in a camera: the optics
-blur the radiance with a Gaussian point-spread function (PSF), each pixel
-integrates the blurred irradiance over its square, and the sensor adds noise
-and quantises to 8 bits. (Blurring the pixels' area means instead, as a
-digital filter would, gives a profile the sub-pixel edge estimator reads
-with a different bias from a camera's: up to 0.029 px RMS near the image
-axes for the log-parabola, against 0.0022 px for the optical order at a
-PSF of 0.6 px; ``benchmarks/bench_subpixel.py``.)
+Every sample of the image is a ray: a position in *distorted* pixel
+coordinates is mapped to its viewing direction by the calibration's exact
+undistortion, so lens distortion is rendered through the model itself. The
+image forms as in a camera: the optics blur the radiance with a Gaussian
+PSF, each pixel integrates the blurred irradiance over its square, and the
+sensor adds noise and quantises to 8 bits. The order matters: blurring the
+pixels' means afterwards, as a digital filter would, gives an edge profile
+the sub-pixel estimator reads with a different bias from a camera's.
 
-Area integration is adaptive: a coarse pass casts one ray at every pixel
-corner and one at every pixel centre; a pixel whose five samples all hit the
-same CAD face (or all miss) is *uniform* and takes its centre ray's grey,
-unless the five greys spread by more than a grey level (a strongly curved
-face); the rest, with their eight neighbours (which catches the tip of a
-face that pokes into a pixel between its samples), are supersampled with ``n x n`` rays on a rotated lattice
-whose ``n**2`` x offsets and ``n**2`` y offsets are all distinct, so the
-coverage of an edge parallel to either pixel axis is resolved to
-``1 / n**2`` of a pixel, not ``1 / n``. Each ray of a supersampled pixel is
-spread over the pixels around it with the PSF integrated over their squares;
-a uniform pixel's grey is spread with that weight averaged over its own
-square (:func:`optics`).
-
-Shading is Lambertian and view-independent: ``ambient + albedo * max(0,
-n . l)`` for a directional light fixed in the rig frame, a uniform dark
-background where rays miss. The same light shines for both cameras, so a
-surface point has the same grey in the left and the right image.
-
-The mesh is ray-cast in the part frame (coordinates of tens of mm, where
-float32 resolves 1e-5 mm) and every ray starts at the part's bounding
-sphere rather than at the camera, so the float32 ray caster loses nothing
-measurable: 1/64 px is about 1e-3 mm on the part at 400 mm.
+Area integration is adaptive: one ray at every pixel corner and centre; a
+pixel whose five samples hit the same CAD face (or all miss) with greys
+within ``grey_tolerance`` is *uniform* and takes its centre's grey; the
+rest, and their eight neighbours (a face's tip can poke in between the
+samples), are supersampled with ``n x n`` rays on a rotated lattice whose
+``n**2`` x and y offsets are all distinct, so an edge along a pixel axis is
+resolved to ``1 / n**2`` px. Each ray is spread over the surrounding pixels
+with the PSF integrated over their squares, a uniform pixel's grey with the
+rays' own kernel (:func:`_ray_weights`). Shading is Lambertian and
+view-independent (:class:`partinspect.cad.raycast.Shading`), so a surface
+point has the same grey in both images. Rays start at the part's bounding
+sphere, in the part frame, so float32 ray casting loses nothing measurable.
 
 References
 ----------
@@ -70,16 +57,11 @@ __all__ = [
 ]
 
 SAMPLES = 16
-"""An edge pixel is integrated with ``SAMPLES x SAMPLES`` rays. With 8 (64
-rays) the coverage of a straight edge is resolved to 1/64 px along the pixel
-axes but more coarsely at other angles: on noise-free renders of the sample
-plate the edge points of its straight edges lay 0.008-0.015 px (standard
-deviation) about the true line in a pattern repeating every 8-16 px along it,
-the same in every noise draw, which widened the straightness over noise
-draws and biased it upwards (bench_plan, 50 draws: plate line-3, -19 and
--20 at 0.68-0.83 of their predicted spread). With 16, 0.002-0.007 px, and every
-plate straightness within 20 % of its prediction; a half-size pair takes
-2.5 times as long to render (4.4 -> 11.2 s)."""
+"""An edge pixel is integrated with ``SAMPLES x SAMPLES`` rays. Fewer resolve
+an edge's coverage coarsely at angles off the pixel axes, which leaves a
+fixed ripple of edge points about the true line, the same in every noise
+draw, that widens straightness over draws and biases it upward; 16 brings
+that ripple well below the noise."""
 def sample_pattern(n):
     """Sub-pixel sample offsets with ``n**2`` distinct x and distinct y values.
 
@@ -222,11 +204,10 @@ def _with_psf(img, detail, offsets):
 
     image, psf = detail
     # Uniform pixels spread with the rays' own kernel, not psf_kernel's exact
-    # one, so that a pixel spreads alike whether it was supersampled or not.
-    # With the exact kernel here, the rays' quadrature error (up to 0.0018
-    # of a weight) was left wherever supersampled and uniform pixels meet: a
-    # pattern of up to 0.6 grey along every edge's band that moved the edges
-    # of rendered parts by up to 0.005 px against full supersampling.
+    # one, so that a pixel spreads alike whether it was supersampled or not:
+    # with the exact kernel the rays' quadrature error would be left wherever
+    # supersampled and uniform pixels meet, a grey pattern along every edge's
+    # band that moves the edges.
     _, kc, rad = _ray_weights(offsets, psf)
     spread = cv2.filter2D(np.asarray(img, np.float64), -1, kc.reshape(2 * rad + 1, 2 * rad + 1),
                           borderType=cv2.BORDER_REPLICATE)
@@ -284,10 +265,9 @@ def _ray_weights(offsets, psf):
         (dy, dx) from -R to R.
     kc : ndarray, shape ((2R+1)^2,)
         The same for a pixel of uniform grey: the sum of ``weights`` over the
-        rays. It is :func:`psf_kernel`'s outer product to the lattice's
-        quadrature error (up to 0.0018 of a weight at 16 x 16 rays, halving
-        as n doubles), and point-symmetric (so is the lattice), so it sums
-        to 1 and moves nothing.
+        rays. It is :func:`psf_kernel`'s outer product up to the lattice's
+        quadrature error (which shrinks as n grows), and point-symmetric (so
+        is the lattice), so it sums to 1 and moves nothing.
     R : int
     """
     R = _psf_radius(psf)

@@ -1,52 +1,30 @@
 """Measured value and measurement uncertainty of every toleranced characteristic.
 
 Each :class:`~partinspect.tolerances.resolve.Characteristic` is evaluated on
-the registered measurement: its measured value, deviation from nominal,
-standard uncertainty ``u`` and expanded uncertainty ``U = k u`` (k = 2,
-JCGM 100 6.2). How each type is obtained:
+the registered measurement: value, deviation from nominal, standard
+uncertainty ``u`` and ``U = k u`` (k = 2, JCGM 100 6.2). Values:
 
-============  =====================================================  ============
-type          value                                                  pose in u
-============  =====================================================  ============
-diameter      2 r of the fitted circle                               no
-radius        r                                                      no
-distance      as :func:`geometry.feature_distance` on the measured   no
-              features (centre-centre, centre to line, parallel
-              lines: midpoint of the second to the first)
-angle         :func:`geometry.line_angle` on the measured lines      no
-position      2 x the distance of the centre from its true position  yes
-              in the plane of the nominal circle (ISO 1101 true
-              position, datum frame = the registration's datums)
-profile       2 x the largest offset of the measured edge (fitted    yes
-              line over its measured extent / fitted circle over
-              the nominal angular range) from the nominal CAD edge
-              in the part frame, plus the noise-corrected form
-              (two-sided zone of ISO 1101 line profile)
-straightness  noise-corrected form, :mod:`.form`                     no
-circularity   noise-corrected form, :mod:`.form`                     no
-============  =====================================================  ============
+- diameter, radius: ``2 r`` / ``r`` of the fitted circle;
+- distance, angle: :func:`geometry.feature_distance` /
+  :func:`geometry.line_angle` on the measured features;
+- straightness, circularity: the noise-corrected form (:mod:`.form`);
+- position: 2 x the centre's offset from its true position in the nominal
+  circle's plane (ISO 1101; datum frame = the registration's datums);
+- profile: 2 x the largest offset of the measured edge (a line over its
+  measured extent, a circle over the nominal range) from the nominal CAD
+  edge, plus the form (ISO 1101 line profile, two-sided zone).
 
-Sizes, distances and angles between measured features are invariant under
-the rigid pose, so they are computed in the rig frame from the measured
-features alone and their uncertainty is first-order propagation
-(numerical Jacobian) of the features' covariances; two different features'
-errors are taken as independent (separate fits; a shared calibration scale
-error is the vision side's budget). Position and profile depend on the pose:
-they use the part-frame features of
+Sizes, distances and angles are invariant under the rigid pose: computed
+in the rig frame from the measured features, ``u`` by first-order
+propagation (numerical Jacobian) of their covariances, different features'
+errors independent (separate fits; a shared calibration scale error is the
+vision side's budget); form values carry :mod:`.form`'s own ``u``. Position
+and profile use the part-frame features of
 :meth:`~partinspect.cad.registration.Registration.features_in_part_frame`,
-whose covariance includes the pose covariance and, for datum features, the
-cross-covariance with it.
-
-Position and profile are norms (maxima of norms) of a deviation: not
-differentiable where the deviation vanishes, and their estimate is biased
-upward there (a Rice distribution for the 2D position). Their uncertainty
-is therefore evaluated by Monte Carlo (JCGM 101): ``n_mc`` draws of the
-feature parameters from their Gaussian, the value function applied to each,
-and ``u`` the root mean square of the draws about the measured value. This
-root mean square includes the norm's bias as well as its spread, so ``u``
-is as large as the typical error also at zero deviation (where a plain
-standard deviation of the draws, or first-order propagation, would give
-too small or zero a value).
+pose covariance included. Being norms, they are not differentiable and are
+biased upward at zero deviation (Rice), so their ``u`` is Monte Carlo (JCGM
+101): the RMS of ``n_mc`` draws about the measured value, bias included,
+which keeps ``u`` as large as the typical error there too.
 
 References
 ----------
@@ -257,7 +235,7 @@ def true_position(center, cov, nominal_center, nominal_normal, rng, n=N_MC):
     # the offset as zero unless it is significant (|d|^2 > 3 tr happens by
     # chance in ~5 % of cases at zero offset for an isotropic 2D error); a
     # milder, unbiased shrinkage (1 tr) leaves u anti-correlated with the
-    # error at zero offset and undercovers (87 % instead of 95 %).
+    # error at zero offset, and the interval undercovers.
     excess = float(d @ d) - _SHRINK * float(np.trace(P @ cov @ P))
     mu = d * np.sqrt(max(excess, 0.0) / float(d @ d)) if d @ d > 0 else d
     draws = mu + rng.standard_normal((n, 3)) @ _sqrt_psd(cov).T

@@ -1,59 +1,27 @@
 """Form deviation (straightness, circularity) from measured edge points, corrected for noise.
 
-The form deviation of a measured edge is the width of the zone its points
-span about a reference line or circle. Measurement noise widens that zone:
-the peak-to-valley of N noisy points about their fit is biased upward, by
-about ``2 * sqrt(2 ln N) * sigma`` for pure noise, which for N = 60 points is
-some 5 sigma -- as large as a fine tolerance. Reporting it uncorrected would
-fail good parts on noise alone.
+The form value is the width of the zone the points span about a
+least-squares reference line or circle. Noise widens that zone: the
+peak-to-valley of N noisy points is biased upward by about
+``2 sqrt(2 ln N) sigma``, as large as a fine tolerance, so an uncorrected
+value would fail good parts on noise alone.
 
-Method (JCGM 101-style Monte Carlo of the noise-only case):
+Method (JCGM 101-style Monte Carlo of the noise-only case): fit the
+reference and take the raw zone ``F_raw``; simulate noise-only point sets
+on the fitted reference with errors drawn as the measurement makes them
+(``errors``: correlated along the edge, with the Type B displacements; by
+default independent per point), evaluated the same way; report
+``F = F_raw - b`` with ``u = s``, their mean and standard deviation. ``F``
+is left unclipped so that it stays unbiased (it may be slightly negative);
+where the true form is large against the noise it is low by at most ``b``
+(``noise_bias``). Points far less certain than the rest (``MAX_SD_RATIO``)
+are left out of the zone, chosen by the error model alone.
 
-1. Fit the reference (least squares) to the points and take the raw form
-   value ``F_raw`` about it.
-2. Simulate ``n_draws`` noise-only data sets: points on the fitted reference
-   at the measured points' positions, disturbed by errors drawn as the
-   measurement makes them (``errors``: correlated along the edge, with the
-   Type B displacements of the edge points; or, without it, independently
-   from each point's 3x3 covariance); fit and evaluate each the same way. Their mean
-   ``b`` is the expected noise-only form value for that many points and
-   that noise; their standard deviation ``s``.
-3. Report ``F = F_raw - b`` with standard uncertainty ``s``.
-
-Points much less certain than the rest are left out of the zone (step 1
-and 2 alike): those whose standard uncertainty across the reference
-exceeds ``MAX_SD_RATIO`` times the median point's. That uncertainty is
-taken exactly from the covariances of the simulated errors, not from the
-draws: read from 200 draws it varied by some 5 % from one seed to the
-next, and so did which points next to the cut were kept (on one noise
-draw of the plate's 6 mm hole the raw zone read 0.057-0.058 mm with four
-seeds and 0.161 mm with a fifth). A zone is a maximum minus a minimum, so
-it cannot weight its points as a fit does: a few points several times
-noisier than the rest set it alone, and the value's spread with it. On a stereo rig such
-points are where the epipolar line runs nearly along the edge (the
-partner along the curve is ill-determined) and where the shading's Type B
-rest is large, e.g. at the tips of a hole seen obliquely; with them the
-bracket's wall holes read circularities of 0.35-0.42 mm in 6 of 50 noise
-draws of a perfect part. The choice depends on the error model alone, not
-on the residuals, so the value stays unbiased for the points evaluated;
-a defect where the points are that uncertain could not be resolved
-anyway. ``n_excluded`` says how many were left out.
-
-For a form-free edge ``F`` is zero on average, with the spread ``s``
-(``F`` may be slightly negative: it is an estimate, not a zone width, and
-is kept unclipped so that it stays unbiased). Where the true form is large
-against the noise, the noise widens the zone by less than ``b`` and the
-correction over-corrects by up to ``b``; the value is then low by at most
-``b`` (reported in ``details`` as ``noise_bias``, so a user can judge).
-
-References are least-squares (LSLI / LSCI, ISO 12780-1, ISO 12181-1), not
-minimum-zone: the LS zone is never narrower than the minimum zone, so the
-raw value is an upper bound of the ISO 1101 default (minimum zone).
-
-Straightness is the diameter of a cylinder about the reference line
-containing all points (ISO 1101, 3D straightness with a diameter zone);
-circularity the radial width of two concentric circles in the plane of the
-fitted circle (ISO 1101 roundness), out-of-plane components ignored.
+Straightness is the diameter of a cylinder about the reference line (ISO
+1101, 3D straightness); circularity the radial width of two concentric
+circles in the fitted circle's plane (roundness). The least-squares zone is
+never narrower than the minimum zone, so the raw value bounds the ISO 1101
+default from above. Units: mm; any frame (form does not depend on the pose).
 
 References
 ----------
@@ -76,37 +44,30 @@ N_PATTERNS = 200
 """Scenes drawn for a spread over the images of one scene (``held``), each
 seen in ``HELD_IMAGES`` images. That spread varies from scene to scene (a
 fixed pattern decides which points set the zone), so its RMS needs many
-scenes: with 20 scenes of 10 images it varied by 6-7.5 % from one seed to
-the next on the sample parts' planned rims and lines, with these 1.5-3.5 %
-(three times the time: 40-120 ms a characteristic; only the planner's
-noise-only prediction asks for it)."""
+scenes to be stable to a few per cent; only the planner's noise-only
+prediction asks for it, so the time is affordable."""
 
 HELD_IMAGES = 5
 
 N_SCENES = 400
-"""Scenes :func:`scene_spreads` draws by default: the 2.5 % and 97.5 %
-quantiles of their spreads over 20 images then move by 1.3-3.7 % from one
-seed to the next (eight seeds, the sample parts' planned rims and lines)."""
+"""Scenes :func:`scene_spreads` draws by default: enough that the 2.5 % and
+97.5 % quantiles of their spreads move by a few per cent between seeds."""
 
 SCENE_BATCH = 20
 """Scenes simulated at once (bounds the memory of long checks)."""
 
 MAX_SD_RATIO = 2.5
 """Points whose standard uncertainty across the reference exceeds this many
-times the median point's are left out of the zone. Over 50 noise draws of
-each sample part (rendered, 1224 x 1024) it keeps 77-93 % of a rim's points
-on average (71-100 % in single draws); the rims' circularities spread
-0.011-0.025 mm over the draws (plate) and 0.019-0.024 mm (bracket), the
-values' RMS over their u 0.67-1.14, and every rim's value lies within
-+-2 u in 96-100 % of the draws (``benchmarks/bench_plan.py``). Lines,
-whose points are alike, keep all. With 3 a rim kept 80-96 % and the
-values spread 0.013-0.036 and 0.022-0.037 mm: on the bracket's wall hole
-circle-5, seen obliquely, the last points of a visible run at its tips
-carry 2.5-4 times the median uncertainty and lie outward of the rim (by
-0.2-0.6 of it on average over 49 draws, single points by up to 2.5), and
-in 3 of the 49 draws they set values 3.3-5.7 standard deviations above the
-rest's. At 2 a rim keeps only 71-88 %. With no cut at all (half-size
-renders) the bracket's wall holes read 0.35-0.42 mm in 6 of 50 draws."""
+times the median point's are left out of the zone. A zone is a maximum
+minus a minimum, so it cannot weight its points as a fit does: a few points
+several times noisier than the rest (where the epipolar line runs along
+the edge, or the shading's Type B rest is large, as at the tips of an
+oblique hole) would set it alone. 2.5 cuts such tips and keeps most of a
+rim; a lower ratio cuts into sound points. Lines, whose points are alike,
+keep all. The cut depends on the error model, not on the residuals, so the
+value stays unbiased for the points kept; the uncertainty is taken exactly
+from the simulated errors' covariances, since estimated from draws it would
+change with the seed which points next to the cut are kept."""
 
 
 @dataclass(frozen=True)
@@ -314,40 +275,32 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, hel
     points : array_like, shape (M, 3)
         Edge points, any frame (form does not depend on the pose), mm.
     point_covs : array_like, shape (M, 3, 3)
-        Their covariances, mm^2; with ``errors``, the covariances of what
-        it draws (they choose the points left out, ``MAX_SD_RATIO``).
+        Their covariances, mm^2; with ``errors``, the covariances of what it
+        draws (they choose the points left out, ``MAX_SD_RATIO``).
     rng : numpy.random.Generator, optional
         Seeded for reproducible results (default seed 0).
     n_draws : int
     errors : callable, optional
         ``errors(rng, n_draws)`` -> simulated errors of the points, shape
         (n_draws, M, 3), mm, with their correlations (e.g.
-        :meth:`partinspect.vision.pointerrors.PointErrorModel.draw`); by
-        default each point's error is drawn independently from its
-        ``point_covs``, which overstates the noise-only zone of an edge
-        whose neighbouring points share smoothed noise.
+        :meth:`partinspect.vision.pointerrors.PointErrorModel.draw`). The
+        default, each point drawn independently from ``point_covs``,
+        overstates the noise-only zone of an edge whose neighbouring points
+        share smoothed noise.
     held : callable, optional
-        ``held(rng, n_patterns, n_draws)`` -> errors of ``n_draws`` images
-        of each of ``n_patterns`` scenes, shape (n_patterns, n_draws, M,
-        3) (e.g. :meth:`~partinspect.vision.pointerrors.PointErrorModel.draw_held`:
-        the Type B parts held over the images of a scene). With it ``u`` is
-        the spread of the value over the images of one scene (RMS over the
-        scenes), not its whole uncertainty: a fixed displacement pattern
-        changes which points set the zone, so that spread is wider than
-        that of the noise alone. The planner's noise-only prediction
-        (what noise draws of one render can show) uses it.
+        ``held(rng, n_patterns, n_draws)`` -> errors of ``n_draws`` images of
+        each of ``n_patterns`` scenes, shape (n_patterns, n_draws, M, 3)
+        (e.g. :meth:`~partinspect.vision.pointerrors.PointErrorModel.draw_held`,
+        Type B parts held within a scene). ``u`` is then the spread over the
+        images of one scene (RMS over scenes), what noise draws of one render
+        can show; the planner's noise-only prediction uses it.
     outlier_z : float, optional
-        The measurement's fits reject an edge point whose residual exceeds
-        this many of its standard uncertainties (Chauvenet's criterion,
-        :func:`partinspect.vision.matching.chauvenet_z`), so the points
-        measured are those that passed: a simulated point further across
-        the reference than this many of its ``point_covs``' standard
-        uncertainties is left out of that draw's reference and zone. A zone
-        is the largest residual, set by the errors' tails: with the tails
-        beyond 3.9 cut as the fits cut them, the noise-only zone of the
-        plate's 507-point line-8 spread 14 % less, as the chain's values
-        did over 800 noise draws (0.0071 against 0.0082 px with the tails
-        kept; its mean 0.1 % less). None: no test (every point kept).
+        The measurement's fits reject a point beyond this many standard
+        uncertainties (Chauvenet, :func:`partinspect.vision.matching.chauvenet_z`),
+        so a simulated point beyond it is left out of that draw's reference
+        and zone too: a zone is set by the errors' tails, and keeping tails the
+        measurement cuts would overstate its noise-only spread. None: every
+        point kept.
 
     Returns
     -------
@@ -379,13 +332,11 @@ def scene_spreads(kind, points, point_covs, held, n_images, n_scenes=N_SCENES, r
     """Spreads of a form value over ``n_images`` images of each of ``n_scenes`` scenes.
 
     What a check on ``n_images`` noise draws of one render can show of the
-    form value's image-noise part: its sample standard deviation. The Type
-    B displacements of the points (the shading's, held within a scene)
-    change which points set the zone, so that spread differs from scene
-    to scene beyond the chance of ``n_images`` draws: for the sample parts'
-    rims its 5-95 % range over scenes, with 50 images each, spans -21 to
-    -34 % and +22 to +38 % of its RMS (planned rims, 1224 x 1024). The spreads' quantiles are the interval a
-    measured spread of that many draws is judged by.
+    value's image-noise part: its sample standard deviation. The Type B
+    displacements, held within a scene, change which points set the zone, so
+    that spread differs from scene to scene beyond the chance of ``n_images``
+    draws; the quantiles of these spreads are the interval a measured spread
+    is judged by.
 
     Parameters
     ----------
@@ -393,8 +344,7 @@ def scene_spreads(kind, points, point_covs, held, n_images, n_scenes=N_SCENES, r
     points : array_like, shape (M, 3)
         Measured (or predicted) edge points, mm.
     point_covs : array_like, shape (M, 3, 3)
-        Their covariances, mm^2 (they choose the points left out, as in
-        :func:`straightness`).
+        Their covariances, mm^2 (they choose the points left out).
     held : callable
         ``held(rng, n_scenes, n_images)`` as in :func:`straightness`.
     n_images : int
@@ -408,8 +358,8 @@ def scene_spreads(kind, points, point_covs, held, n_images, n_scenes=N_SCENES, r
     Returns
     -------
     ndarray, shape (n_scenes,)
-        The sample standard deviations (ddof 1), mm; their RMS is the
-        ``u`` of :func:`straightness` / :func:`circularity` with ``held``.
+        The sample standard deviations (ddof 1), mm; their RMS is the ``u`` of
+        :func:`straightness` / :func:`circularity` with ``held``.
 
     References
     ----------

@@ -4,53 +4,21 @@ A drawing that says "ISO 2768-mK" puts every dimension without its own
 tolerance under linear class ``m`` of ISO 2768-1 and every form or location
 without its own tolerance under geometrical class ``K`` of ISO 2768-2.
 
-ISO 2768-1:1989, table 1 -- permissible deviations for linear dimensions
-except broken edges (mm), by nominal size range (mm):
-
-::
-
-    class  0.5-3   >3-6    >6-30   >30-120  >120-400  >400-1000  >1000-2000  >2000-4000
-    f      +-0.05  +-0.05  +-0.1   +-0.15   +-0.2     +-0.3      +-0.5       --
-    m      +-0.1   +-0.1   +-0.2   +-0.3    +-0.5     +-0.8      +-1.2       +-2
-    c      +-0.2   +-0.3   +-0.5   +-0.8    +-1.2     +-2        +-3         +-4
-    v      --      +-0.5   +-1     +-1.5    +-2.5     +-4        +-6         +-8
-
-Below 0.5 mm the standard sets no general tolerance: the deviation has to be
-indicated next to the dimension. "--" means the class defines none.
-
-ISO 2768-1:1989, table 2 -- broken edges (external radii and chamfer
-heights), mm: 0.5 to 3 / >3-6 / >6: classes f and m +-0.2 / +-0.5 / +-1,
-classes c and v +-0.4 / +-1 / +-2.
-
-ISO 2768-1:1989, table 3 -- angular dimensions, by the length of the shorter
-leg of the angle (mm): up to 10 / >10-50 / >50-120 / >120-400 / >400:
-f and m +-1deg / +-0deg30' / +-0deg20' / +-0deg10' / +-0deg5';
-c +-1deg30' / +-1deg / +-0deg30' / +-0deg15' / +-0deg10';
-v +-3deg / +-2deg / +-1deg / +-0deg30' / +-0deg20'.
-
-ISO 2768-2:1989, table 1 -- straightness and flatness (mm), by nominal
-length (mm): up to 10 / >10-30 / >30-100 / >100-300 / >300-1000 / >1000-3000:
-H 0.02 / 0.05 / 0.1 / 0.2 / 0.3 / 0.4;
-K 0.05 / 0.1 / 0.2 / 0.4 / 0.6 / 0.8;
-L 0.1 / 0.2 / 0.4 / 0.8 / 1.2 / 1.6.
-
-ISO 2768-2:1989, table 2 -- perpendicularity (mm), by the nominal length of
-the shorter side (mm): up to 100 / >100-300 / >300-1000 / >1000-3000:
-H 0.2 / 0.3 / 0.4 / 0.5; K 0.4 / 0.6 / 0.8 / 1; L 0.6 / 1 / 1.5 / 2.
-
-ISO 2768-2:1989, table 3 -- symmetry (mm), same length ranges:
-H 0.5 / 0.5 / 0.5 / 0.5; K 0.6 / 0.6 / 0.8 / 1; L 0.6 / 1 / 1.5 / 2.
-
-ISO 2768-2:1989, table 4 -- circular run-out (mm): H 0.1, K 0.2, L 0.5.
-
-Circularity (ISO 2768-2:1989, 5.2.2 in the 1989 numbering): the general
-circularity tolerance equals the numerical value of the diameter tolerance
-(the width upper - lower, whether individually indicated or general), but
-is never larger than the circular radial run-out tolerance of table 4.
-:func:`circularity_tolerance` implements exactly that.
-
+The tables are transcribed as printed in the module's constants: ISO 2768-1
+table 1 (linear dimensions, ``LINEAR``), table 2 (broken edges,
+``BROKEN_EDGE``), table 3 (angles by the shorter leg, ``ANGULAR``, in
+degrees and minutes); ISO 2768-2 table 1 (straightness and flatness), 2
+(perpendicularity), 3 (symmetry), 4 (circular run-out). Below 0.5 mm, and
+in the "--" cells, the standard sets no general tolerance: the deviation
+must be indicated next to the dimension (:class:`NoGeneralTolerance`).
 Range boundaries follow the standard's wording: "over 6 up to 30" is the
 half-open interval (6, 30]; the first range of each table is closed.
+
+The general circularity tolerance (ISO 2768-2:1989, 5.2.2) equals the
+numerical value of the diameter tolerance (individual or general), but is
+never larger than the circular radial run-out tolerance of table 4
+(:func:`circularity_tolerance`).
+Lengths in mm, angles returned in radians.
 
 References
 ----------

@@ -1,44 +1,28 @@
 """The tolerance spec file (part.tol.yaml): reading, validating, writing.
 
-The format is the one of DESIGN.md, "Tolerance spec"::
+The format is the one of DESIGN.md, "Tolerance spec" (``units``,
+``general``, ``decision_rule``, ``datums``, ``features``, ``distances``,
+``angles`` in degrees). Every key is optional; an empty spec means ISO
+2768-mK for everything. A mistake is never silently dropped: unknown keys,
+wrong types, negative tolerances, limits in the wrong order, a
+characteristic on a feature kind it does not apply to, and duplicate keys
+(which PyYAML would resolve to the last one) are reported together, each
+with its line number, as one :class:`partinspect.errors.InputError`.
 
-    units: mm
-    general: ISO2768-mK            # class for everything not toleranced below
-    decision_rule: iso14253        # or: simple
-    datums: [line-2, line-5, circle-1]
-    features:
-      circle-3:
-        diameter: {upper: 0.05, lower: -0.05}
-        position: {tolerance: 0.10}
-      edge-near-top:
-        at: [45.0, 0.0, 12.0]
-        straightness: {tolerance: 0.02}
-    distances:
-      - {between: [circle-1, circle-3], upper: 0.05, lower: -0.05}
-    angles:
-      - {between: [line-1, line-2], upper: 0.5, lower: -0.5}   # degrees
+Characteristics a feature may carry (mm):
 
-Every key is optional; an empty spec means ISO 2768-mK for everything. A
-mistake is never silently dropped: unknown keys (typos), wrong types,
-negative tolerances, limits in the wrong order, a characteristic on a
-feature kind it does not apply to, and duplicate keys (which PyYAML would
-silently resolve to the last one) are all reported together, each with its
-line number, as one :class:`partinspect.errors.InputError`.
-
-Characteristics a feature may carry:
-
-============  ==================  ===================================================
+============  ==================  ============================================
 name          applies to          meaning
-============  ==================  ===================================================
-diameter      circle, arc         size, ``{upper, lower}`` limit deviations in mm
-radius        circle, arc         size, ``{upper, lower}`` limit deviations in mm
-position      circle, arc         ``{tolerance}``: diameter of the true-position zone
-                                  of the centre, mm
-straightness  line                ``{tolerance}``: width of the zone, mm
-circularity   circle              ``{tolerance}``: radial width of the zone, mm
-profile       line, circle, arc   ``{tolerance}``: width of the line-profile zone
-                                  around the nominal edge (form and location), mm
-============  ==================  ===================================================
+============  ==================  ============================================
+diameter      circle, arc         size, ``{upper, lower}`` limit deviations
+radius        circle, arc         size, ``{upper, lower}`` limit deviations
+position      circle, arc         ``{tolerance}``: diameter of the centre's
+                                  true-position zone
+straightness  line                ``{tolerance}``: width of the zone
+circularity   circle              ``{tolerance}``: radial width of the zone
+profile       line, circle, arc   ``{tolerance}``: width of the line-profile
+                                  zone about the nominal edge
+============  ==================  ============================================
 
 References
 ----------
