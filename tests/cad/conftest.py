@@ -94,7 +94,7 @@ def scene(request):
 
     from partinspect.cad.features import inventory
     from partinspect.cad.step import load_step
-    from partinspect.simulate.pose import default_pose
+    from partinspect.poses import default_pose
     from partinspect.simulate.rig import default_rig
 
     shape = load_step(EXAMPLES / request.param / "part.step")
