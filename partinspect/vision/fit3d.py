@@ -35,7 +35,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from partinspect.frames import plane_basis
-from partinspect.vision.fitting import _trR2, fit_ellipse, information_matrices
+from partinspect.vision.fitting import fit_ellipse, information_matrices, trace_r2
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
            "circle_consistency"]
@@ -460,6 +460,6 @@ def circle_consistency(views, fit, starts=None):
         t = v.total_sigma
         e = fit_ellipse(v.xy, (t * t)[:, None, None] * np.eye(2), start=None if starts is None else starts[k])
         chi2_2d += float(np.sum((e.residuals / t) ** 2))
-        scale.append(_trR2(v.xy, v.corr_length) / len(v.xy))
+        scale.append(trace_r2(v.xy, v.corr_length) / len(v.xy))
     delta = float(fit.chi2) - chi2_2d
     return delta, float(chdtrc(4, max(delta, 0.0) / float(np.mean(scale))))

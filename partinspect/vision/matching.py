@@ -72,15 +72,15 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from partinspect.vision.fitting import (
-    _EllipseJob,
-    _as_points,
-    _axis_bound,
-    _direct_residuals,
-    _ellipse_geometry,
-    _ellipse_with_covariance,
-    _fit_ellipses,
-    _fit_line,
-    _line_with_covariance,
+    EllipseJob,
+    as_points,
+    axis_bound,
+    direct_residuals,
+    ellipse_geometry,
+    ellipse_with_covariance,
+    fit_ellipses,
+    fit_line,
+    line_with_covariance,
 )
 from partinspect.vision.ideal import IdealPoints, ideal_points
 from partinspect.vision.triangulation import fundamental_matrix, triangulate
@@ -494,7 +494,7 @@ def _make_features(requests, segments, edges, seg_ideal):
     Points of arcs where the edge has faded are left out (``FADE_RATIO``,
     ``FADE_END_RATIO``); each feature is fitted, its worst outlier dropped
     and the fit redone while one remains (below); the ellipse fits of all requests in one such round run
-    together (:func:`partinspect.vision.fitting._fit_ellipses`), each as it
+    together (:func:`partinspect.vision.fitting.fit_ellipses`), each as it
     would alone. The fits come without their covariances (``cov`` None):
     most features made are merge trials that are not kept;
     :func:`_with_covariance` completes the kept ones, as the fits would
@@ -531,7 +531,7 @@ def _make_features(requests, segments, edges, seg_ideal):
             st["ideal"] = ideal = IdealPoints(*(np.ascontiguousarray(getattr(st["all_ideal"], f)[keep])
                                                 for f in _IDEAL_FIELDS))
             if st["kind"] == "line":
-                st["fit"] = _fit_line(ideal.xy, ideal.cov, edges.sigma, False)
+                st["fit"] = fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma, with_cov=False)
             else:
                 # No smoothing-bias correction (fit_ellipse's ``blur``): on
                 # rendered parts the rims of holes are not uniform discs, and
@@ -540,16 +540,16 @@ def _make_features(requests, segments, edges, seg_ideal):
                 # outwards (measured against the truth). After dropping one
                 # point the previous fit is a start next to the new minimum
                 # (same minimum, fewer iterations).
-                jobs.append((k, _EllipseJob(_as_points(ideal.xy, 6), ideal.cov, edges.sigma, None, st["start"],
-                                            max_axis=_axis_bound(ideal.xy))))
+                jobs.append((k, EllipseJob(as_points(ideal.xy, 6), ideal.cov, edges.sigma, None, st["start"],
+                                           max_axis=axis_bound(ideal.xy))))
         # Converged at fit_ellipse's pixel tolerance or once the remaining
         # step is below a thousandth of the parameters' standard
         # uncertainties: a short piece's ellipse is uncertain by pixels, and
         # its cost so flat that the pixel tolerance takes a hundred
         # iterations to reach, for nothing; such a fit (or a union of two
         # edges) stops after FIT_ITERATIONS, as the segmentation's.
-        for (k, _), fit in zip(jobs, _fit_ellipses([job for _, job in jobs], FIT_ITERATIONS, with_cov=False,
-                                                   sigma_tol=FIT_SIGMA_TOL)):
+        for (k, _), fit in zip(jobs, fit_ellipses([job for _, job in jobs], FIT_ITERATIONS, with_cov=False,
+                                                  sigma_tol=FIT_SIGMA_TOL)):
             states[k]["fit"] = fit
         again = []
         for k in active:
@@ -573,7 +573,7 @@ def _make_features(requests, segments, edges, seg_ideal):
         # Edge normals point dark to bright: their component along the
         # fit's normal (outward for arcs) tells each point's polarity.
         if kind == "arc":
-            _, n_out, _ = _ellipse_geometry(ideal.xy, fit.params, fit.phases)
+            _, n_out, _ = ellipse_geometry(ideal.xy, fit.params, fit.phases)
         else:
             n_out = fit.normal[None, :]
         along = np.einsum("ni,ni->n", n_out, ideal.normal)
@@ -593,7 +593,7 @@ def _with_covariance(f, corr_length):
     """Feature f (of :func:`_make_features`) with its fit's covariance."""
     if f.fit.cov is not None:
         return f
-    complete = _line_with_covariance if f.kind == "line" else _ellipse_with_covariance
+    complete = line_with_covariance if f.kind == "line" else ellipse_with_covariance
     return replace(f, fit=complete(f.fit, f.ideal.xy, corr_length))
 
 
@@ -657,10 +657,10 @@ def _mergeable(a, b, max_angle, max_offset, max_axis_ratio, limit=np.inf):
         return True
     xy = np.concatenate([a.ideal.xy, b.ideal.xy])
     try:
-        direct = _direct_residuals(xy)
+        direct = direct_residuals(xy)
     except (ValueError, np.linalg.LinAlgError, cv2.error):
         return False
-    if direct is None or direct[0][2] > _axis_bound(xy):
+    if direct is None or direct[0][2] > axis_bound(xy):
         return False
     r = direct[2]
     return bool(np.sqrt(np.mean(r * r)) <= MERGE_SCREEN * limit)

@@ -30,9 +30,9 @@ def feature(kind, X, P, polarity_sign=1.0):
     fit = fit_line(uv, cov, corr_length=1.0) if kind == "line" else fit_ellipse(uv, cov, corr_length=1.0)
     pol = 0
     if kind == "arc":
-        from partinspect.vision.fitting import _ellipse_geometry
+        from partinspect.vision.fitting import ellipse_geometry
 
-        _, nout, _ = _ellipse_geometry(uv, fit.params, fit.phases)
+        _, nout, _ = ellipse_geometry(uv, fit.params, fit.phases)
         pol = 1 if np.mean(np.einsum("ni,ni->n", nout, n)) > 0 else -1
     return ImageFeature(kind, (0,), np.arange(len(uv)), uv, cov, ideal, fit, 1.2, pol)
 
