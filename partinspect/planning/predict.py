@@ -574,7 +574,7 @@ def _image_feature(kind, view, K, D, model):
     from partinspect.vision.edges import ALONG_EDGE_VARIANCE
     from partinspect.vision.fitting import fit_ellipse, fit_line
     from partinspect.vision.ideal import ideal_points
-    from partinspect.vision.matching import ImageFeature
+    from partinspect.vision.imagefeatures import ImageFeature
 
     n, s = view.normal, view.std
     tg = np.c_[-n[:, 1], n[:, 0]]

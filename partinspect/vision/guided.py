@@ -24,7 +24,8 @@ import numpy as np
 
 from partinspect.vision.contours import CLEARANCE, arc_length, end_runs
 from partinspect.vision.fitting import fit_line, line_with_covariance
-from partinspect.vision.matching import _IDEAL_FIELDS, MIN_EPIPOLAR_ANGLE, Match, _line_angles
+from partinspect.vision.ideal import IDEAL_FIELDS
+from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, line_angles
 from partinspect.vision.stereo import measure_pair_feature
 
 MAX_DISTANCE = 2.0
@@ -93,7 +94,7 @@ def line_stretch(feature, keep, corr_length):
         covariance) that of those points alone.
     """
     keep = np.asarray(keep, int)
-    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in _IDEAL_FIELDS})
+    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in IDEAL_FIELDS})
     fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False), ideal.xy,
                                corr_length)
     extra = {} if feature.edge_normal is None else {"edge_normal": feature.edge_normal[keep]}
@@ -233,7 +234,7 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
         fl, fr = (line_stretch(_concat([res.features[i] for i, _, _ in got], [k for _, k, _ in got]),
                                np.argsort(np.concatenate([s for _, _, s in got]), kind="stable"), scale)
                   for res, got in zip((L, R), pieces))
-        angle = min(_line_angles(geo, [fl], "left")[0], _line_angles(geo, [fr], "right")[0])
+        angle = min(line_angles(geo, [fl], "left")[0], line_angles(geo, [fr], "right")[0])
         if angle < MIN_EPIPOLAR_ANGLE:
             failed[cid] = (f"its stretch runs {np.degrees(angle):.1f} deg from the epipolar lines "
                            f"(< {np.degrees(MIN_EPIPOLAR_ANGLE):.0f})")
@@ -353,7 +354,7 @@ def _concat(features, positions):
     """One line feature of the points at ``positions`` of each of ``features`` (its fit the first's: refit it)."""
     first = features[0]
     ideal = replace(first.ideal, **{f: np.concatenate([getattr(g.ideal, f)[k] for g, k in zip(features, positions)])
-                                    for f in _IDEAL_FIELDS})
+                                    for f in IDEAL_FIELDS})
     extra = {}
     if first.edge_normal is not None:
         extra["edge_normal"] = np.concatenate([g.edge_normal[k] for g, k in zip(features, positions)])

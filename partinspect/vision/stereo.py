@@ -108,8 +108,8 @@ from partinspect.frames import orthonormal_frame, plane_basis
 from partinspect.vision.fit3d import (View, _circle_residuals, _line_residuals, circle_consistency,
                                       fit_circle_3d, fit_line_3d)
 from partinspect.vision.ideal import camera_matrices, to_ideal
-from partinspect.vision.matching import (MAX_OUTLIER_FRACTION, ImageFeature, arc_circle, chauvenet_z, epipolar_geometry,
-                                         image_features, match_features)
+from partinspect.vision.imagefeatures import MAX_OUTLIER_FRACTION, ImageFeature, chauvenet_z, image_features
+from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
@@ -343,7 +343,7 @@ class StereoResult:
 
 @dataclass(frozen=True)
 class EdgeFeature(ImageFeature):
-    """An :class:`~partinspect.vision.matching.ImageFeature` with what the 3D fit needs of its edge points.
+    """An :class:`~partinspect.vision.imagefeatures.ImageFeature` with what the 3D fit needs of its edge points.
 
     Attributes
     ----------
@@ -894,7 +894,7 @@ def _point_errors(fl, corr, view):
         systematic = (len(comps),)
         comps.append((view.bias, view.bias_corr_length))
     # The left feature's fit rejected its points beyond Chauvenet's threshold
-    # (matching._make_features): the form's simulation cuts its tails there too.
+    # (imagefeatures._make_features): the form's simulation cuts its tails there too.
     return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)))
 
 
