@@ -693,12 +693,12 @@ def foot_phases(xy, params, phi=None, iters=6):
     ndarray, shape (N,)
         Phases, rad.
     """
-    from partinspect.vision import _kernels
+    from partinspect.vision._kernels import foot_phases as compiled
 
     xy = np.ascontiguousarray(xy, float)
     start = phi is None
     phi = np.empty(len(xy)) if start else np.array(phi, float)
-    return _kernels.foot_phases(xy, np.asarray(params, float), phi, int(iters), start)
+    return compiled(xy, np.asarray(params, float), phi, int(iters), start)
 
 
 def ellipse_geometry(xy, params, phi):
@@ -718,10 +718,9 @@ def ellipse_geometry(xy, params, phi):
     ellipse frame: h = (-n_x, -n_y, -l_x cos phi, -l_y sin phi,
     b sin phi l_x - a cos phi l_y).
     """
-    from partinspect.vision import _kernels
+    from partinspect.vision._kernels import ellipse_geometry as compiled
 
-    return _kernels.ellipse_geometry(np.ascontiguousarray(xy, float), np.asarray(params, float),
-                                     np.ascontiguousarray(phi, float))
+    return compiled(np.ascontiguousarray(xy, float), np.asarray(params, float), np.ascontiguousarray(phi, float))
 
 
 # An "ellipse" far larger than its points is no ellipse they show: the
