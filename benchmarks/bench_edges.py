@@ -136,7 +136,7 @@ def timed_chain(img, runs, camera=None):
     """Run the 2D chain ``runs`` times on ``img``; with ``camera`` (K, D) the
     image features too. Returns the wall times per stage (lists, s) and the
     last run's (noise, edge points, contours, segments[, features])."""
-    from partinspect.vision.matching import image_features
+    from partinspect.vision.imagefeatures import image_features
 
     names = ["noise", "edges", "chain", "segment"] + (["features"] if camera else [])
     stages = {k: [] for k in names + ["total"]}

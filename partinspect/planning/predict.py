@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from functools import partial
 from types import SimpleNamespace
 
 import numpy as np
@@ -549,7 +550,7 @@ def _image_feature(kind, view, K, D, model):
     from partinspect.vision.edges import ALONG_EDGE_VARIANCE
     from partinspect.vision.fitting import fit_ellipse, fit_line
     from partinspect.vision.ideal import ideal_points
-    from partinspect.vision.matching import ImageFeature
+    from partinspect.vision.imagefeatures import ImageFeature
 
     n, s = view.normal, view.std
     tg = np.c_[-n[:, 1], n[:, 0]]
@@ -636,11 +637,10 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     FeaturePrediction
     """
     from partinspect.cad.edge_sampling import feature_geometry
+    from partinspect.vision.calibration_uncertainty import calibration_covariance, calibration_parameters
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
-    from partinspect.vision.stereo import (
-        _make_feature3d, calibration_covariance, calibration_parameters, corrected_correspondences, feature_views,
-        fit_feature)
+    from partinspect.vision.stereo import corrected_correspondences, feature_views, fit_feature, make_feature3d
 
     geo = geo if geo is not None else epipolar_geometry(calib)
     fid, kind = feature.id, feature.kind
@@ -684,7 +684,8 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     except (np.linalg.LinAlgError, ValueError) as exc:
         return FeaturePrediction(status="failed", reason=f"{fid}: 3D fit failed ({exc})", **base)
     n = 6 if kind2 == "line" else 7
-    cal = calibration_covariance(fit, kind2, fl, fr, model.sigma, calib) if calibration_parameters(calib) \
+    cal = calibration_covariance(fit, kind2, partial(feature_views, fl, fr, model.sigma), calib) \
+        if calibration_parameters(calib) \
         else np.zeros((n, n))
     if not model.systematic and fit.param_cov_systematic is not None:
         # The chain weights a rim's points by their Type B part too (the
@@ -697,7 +698,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         # figure holds it per scene (evaluate_characteristic's one_scene).
         fit = dataclasses.replace(fit, param_cov=fit.param_cov - fit.param_cov_systematic,
                                   param_cov_systematic=np.zeros_like(fit.param_cov_systematic))
-    f3 = _make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0])
+    f3 = make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0])
     return FeaturePrediction(status="measured", record=f3, **base)
 
 

@@ -350,7 +350,7 @@ def foot_phases(xy, params, phi, iters, start):
 @njit(**_JIT)
 def ellipse_geometry(xy, params, phi):
     """Residuals r (m), outward unit normals n (m, 2) and rows h (m, 5) at
-    the foot points (see :func:`partinspect.vision.fitting._ellipse_geometry`)."""
+    the foot points (see :func:`partinspect.vision.fitting.ellipse_geometry`)."""
     xc, yc, a, b, th = params[0], params[1], params[2], params[3], params[4]
     c, s = np.cos(th), np.sin(th)
     m = len(phi)

@@ -51,19 +51,18 @@ from scipy.spatial import cKDTree
 
 from partinspect.vision.edges import EDGE_BIAS_FACTOR
 from partinspect.vision.fitting import (
-    _as_points,
-    _axis_bound,
-    _ellipse_geometry,
-    _ellipse_plausible,
-    _ellipse_with_covariance,
-    _EllipseJob,
-    _fit_ellipses,
-    _foot_phases,
-    _fit_line,
-    _line_with_covariance,
-    _normal_std,
+    EllipseJob,
+    as_points,
+    axis_bound,
+    direct_residuals,
+    ellipse_geometry,
     ellipse_points,
+    ellipse_with_covariance,
+    fit_ellipses,
     fit_line,
+    foot_phases,
+    line_with_covariance,
+    std_along,
 )
 
 __all__ = ["Contour", "Segment", "chain_edges", "segment_contour", "segment_contours"]
@@ -232,8 +231,43 @@ def chain_edges(edges, *, min_cos=0.5):
     return out
 
 
-def _arc_length(xy):
+def arc_length(xy):
+    """Arc length along a polyline at each of its points, from 0 at the first.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        The points in order along the curve, px.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Cumulative chord lengths, px: the trims at a piece's ends and the
+        clearances from other edges are distances along the edge.
+    """
     return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+
+
+def _ellipse_plausible(xy, cov, factor=9.0):
+    """Cheap screen before the iterative fit: the direct algebraic fit's
+    orthogonal residuals must not exceed the point noise by far (their mean
+    square within ``factor`` times the expected); the geometric fit improves
+    on the algebraic one by much less than that for data that are not an
+    ellipse, and skipping it keeps the merge tests on corners cheap.
+
+    Returns
+    -------
+    tuple or None
+        (params, phases): the algebraic fit and its foot phases, the start
+        of the geometric fit (computed here already), or None if the
+        points fail the screen.
+    """
+    direct = direct_residuals(xy)
+    if direct is None:
+        return None
+    p, phi, r, n = direct
+    s2 = std_along(cov, n) ** 2
+    return (p, phi) if float((r * r / s2).mean()) < factor else None
 
 
 def _test_pieces(requests, min_arc=12, max_iter=_TEST_ITERATIONS):
@@ -241,7 +275,7 @@ def _test_pieces(requests, min_arc=12, max_iter=_TEST_ITERATIONS):
 
     Each piece is tried as a line, else (with ``"arc"`` in its kinds) as an
     elliptical arc; the ellipse fits of all the pieces run together
-    (:func:`partinspect.vision.fitting._fit_ellipses`), each exactly as it
+    (:func:`partinspect.vision.fitting.fit_ellipses`), each exactly as it
     would alone.
 
     An arc is accepted when an ellipse of plausible size (semi-major axis
@@ -285,7 +319,7 @@ def _test_pieces(requests, min_arc=12, max_iter=_TEST_ITERATIONS):
         cov_t = cov + (floor * floor)[..., None, None] * np.eye(2) if np.any(floor) else cov
         if "line" in kinds:
             try:
-                fit = _fit_line(xy, cov_t, corr_length, False)
+                fit = fit_line(xy, cov_t, corr_length=corr_length, with_cov=False)
             except (ValueError, np.linalg.LinAlgError):
                 fit = None
             if fit is not None and fit.consistency.p_value >= alpha:
@@ -298,9 +332,9 @@ def _test_pieces(requests, min_arc=12, max_iter=_TEST_ITERATIONS):
         except (ValueError, np.linalg.LinAlgError):
             init = None
         if init is not None:
-            jobs.append(_EllipseJob(xy, cov_t, corr_length, init=init, max_axis=_axis_bound(xy)))
+            jobs.append(EllipseJob(xy, cov_t, corr_length, init=init, max_axis=axis_bound(xy)))
             where.append(k)
-    fits = _fit_ellipses(jobs, max_iter, None, with_cov=False, sigma_tol=_SIGMA_TOL)
+    fits = fit_ellipses(jobs, max_iter, None, with_cov=False, sigma_tol=_SIGMA_TOL)
     for k, job, fit in zip(where, jobs, fits):
         if fit is None or not np.all(np.isfinite(fit.params)) or fit.params[2] > job.max_axis:
             continue
@@ -438,7 +472,7 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
     if n < min_points:
         return []
     xy_all, cov_all, normal_all = edges.xy[idx], edges.cov[idx], edges.normal[idx]
-    std_all = _normal_std(cov_all, normal_all)
+    std_all = std_along(cov_all, normal_all)
     bound = edges.background_bound[idx] if edges.background_bound is not None else 0.0
     rim_floor = np.hypot(floor, EDGE_BIAS_FACTOR * bound) * np.ones(n)
     cl = edges.sigma
@@ -457,7 +491,7 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
                 continue
             pos = np.arange(lo, hi) % n
             xy = xy_all[pos]
-            keep = _trimmed(pos, _arc_length(xy), trim, o_s, o_e)
+            keep = _trimmed(pos, arc_length(xy), trim, o_s, o_e)
             if keep.sum() < min_points:
                 cache[key] = None
                 continue
@@ -544,7 +578,7 @@ def _model_residuals(kind, fit, xy):
     if kind == "line":
         A, B, C = fit.params
         return A * xy[:, 0] + B * xy[:, 1] + C
-    r, _, _ = _ellipse_geometry(xy, fit.params, _foot_phases(xy, fit.params))
+    r, _, _ = ellipse_geometry(xy, fit.params, foot_phases(xy, fit.params))
     return r
 
 
@@ -774,7 +808,7 @@ def _make_segments(edges, contours, contour_ids, accepted, refit, min_points):
     whole = [todo[k][0].index[todo[k][2]] for k in lines]
     crowded = _crowded(edges, whole, [todo[k][5] for k in lines], reach,
                        [_off_line(edges, idx, todo[k][4], todo[k][5]) for k, idx in zip(lines, whole)])
-    ends = dict(zip(lines, map(_end_runs, crowded)))
+    ends = dict(zip(lines, map(end_runs, crowded)))
     out, arcs = [], []
     for k, (contour, cid, pos, kind, fit, fit_index) in enumerate(todo):
         bad = ends.get(k)
@@ -787,24 +821,37 @@ def _make_segments(edges, contours, contour_ids, accepted, refit, min_points):
         if not (refit or trimmed):
             # The test's fit (of the points with the floor added), with the
             # covariance _test_pieces made it without.
-            complete = _line_with_covariance if kind == "line" else _ellipse_with_covariance
+            complete = line_with_covariance if kind == "line" else ellipse_with_covariance
             fit = complete(fit, xy, cl)
         elif kind == "line":
             fit = fit_line(xy, cov, corr_length=cl)
         else:
             # The test's fit of the same points (with the floor added to
             # their variances) is a start next to the minimum.
-            arcs.append((len(out), _EllipseJob(_as_points(xy, 6), cov, cl, float(np.median(edges.width[fit_index])),
-                                               fit.params, max_axis=_axis_bound(xy))))
+            arcs.append((len(out), EllipseJob(as_points(xy, 6), cov, cl, float(np.median(edges.width[fit_index])),
+                                              fit.params, max_axis=axis_bound(xy))))
         out.append(Segment(kind, contour.index[pos], fit_index, fit, cid))
-    refits = _fit_ellipses([job for _, job in arcs], _TEST_ITERATIONS, sigma_tol=_SIGMA_TOL_REFIT)
+    refits = fit_ellipses([job for _, job in arcs], _TEST_ITERATIONS, sigma_tol=_SIGMA_TOL_REFIT)
     for (k, _), fit in zip(arcs, refits):
         out[k] = replace(out[k], fit=fit)
     return out
 
 
-def _end_runs(bad):
-    """The runs of True at the two ends of ``bad``, as a mask."""
+def end_runs(bad):
+    """The runs of True at the two ends of ``bad``, as a mask.
+
+    Parameters
+    ----------
+    bad : ndarray of bool, shape (N,)
+        Per point along an edge, e.g. "within reach of another edge".
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for the points of the leading and trailing runs of ``bad``
+        (all of them when every point is bad): an edge is cut back from its
+        ends only, so a bad point inside it does not split it.
+    """
     out = np.zeros_like(bad)
     clean = np.flatnonzero(~bad)
     if len(clean) == 0:
@@ -838,7 +885,7 @@ def _off_line(edges, piece, fit, fitted, k=OFF_LINE_Z):
     """
     rest = piece[~np.isin(piece, fitted)]
     # (A, B) of the line's Hesse normal form is its unit normal.
-    sd = _normal_std(edges.cov[rest], np.asarray(fit.params[:2], float))
+    sd = std_along(edges.cov[rest], np.asarray(fit.params[:2], float))
     return rest[np.abs(_model_residuals("line", fit, edges.xy[rest])) > k * sd]
 
 

@@ -35,10 +35,10 @@ import numpy as np
 from scipy.special import chdtrc
 
 from partinspect.frames import plane_basis
-from partinspect.vision.fitting import _trR2, fit_ellipse, information_matrices
+from partinspect.vision.fitting import fit_ellipse, information_matrices, trace_r2
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
-           "circle_consistency"]
+           "circle_consistency", "minimal_residuals"]
 
 
 @dataclass(frozen=True)
@@ -419,6 +419,58 @@ def fit_circle_3d(views, center0, normal0, radius0):
     )
 
 
+def minimal_residuals(fit, kind, views):
+    """The residuals of a fit's minimal parameters about its solution, and their map to its parameters.
+
+    The fits minimise over minimal parameters: for a line, offsets of its
+    point and direction along the basis ``e1, e2`` of the plane normal to
+    its direction (4); for a circle, the centre, two tilts of the normal
+    along the basis of its plane and the radius (6). Taken here about the
+    solution, so that ``theta0`` is the fit and a Jacobian of
+    ``residuals`` at it is the fit's own, for other views of the same
+    points (a perturbed calibration's).
+
+    Parameters
+    ----------
+    fit : Line3D or Circle3D
+    kind : str
+        "line", else a circle or arc.
+    views : sequence of View
+        Whose points' residuals are taken (weighted by ``View.total_sigma``,
+        as the fit's).
+
+    Returns
+    -------
+    residuals : callable
+        ``residuals(theta)``: the weighted residuals of all views' points,
+        (N,), for minimal parameters ``theta``.
+    theta0 : ndarray, shape (4,) or (6,)
+        The solution in the minimal parameters.
+    M : ndarray, shape (6, 4) or (7, 6)
+        Derivative of (point, direction) or (center, normal, radius) with
+        respect to ``theta`` at the solution: it carries a covariance of the
+        minimal parameters (``param_cov``) to the reported ones, to first
+        order.
+    """
+    if kind == "line":
+        d0 = fit.direction
+        e1, e2 = plane_basis(d0).T
+        res = _line_residuals(views, fit.point, d0, e1, e2)
+        theta0 = np.zeros(4)
+        M = np.zeros((6, 4))
+        M[:3, 0], M[:3, 1], M[3:, 2], M[3:, 3] = e1, e2, e1, e2
+    else:
+        n0 = fit.normal
+        e1, e2 = plane_basis(n0).T
+        res = _circle_residuals(views, n0, e1, e2)
+        theta0 = np.r_[fit.center, 0.0, 0.0, fit.radius]
+        M = np.zeros((7, 6))
+        M[:3, :3] = np.eye(3)
+        M[3:6, 3], M[3:6, 4] = e1, e2
+        M[6, 5] = 1.0
+    return res, theta0, M
+
+
 def circle_consistency(views, fit, starts=None):
     """Whether the two views' arcs can be one circle: a likelihood-ratio test.
 
@@ -460,6 +512,6 @@ def circle_consistency(views, fit, starts=None):
         t = v.total_sigma
         e = fit_ellipse(v.xy, (t * t)[:, None, None] * np.eye(2), start=None if starts is None else starts[k])
         chi2_2d += float(np.sum((e.residuals / t) ** 2))
-        scale.append(_trR2(v.xy, v.corr_length) / len(v.xy))
+        scale.append(trace_r2(v.xy, v.corr_length) / len(v.xy))
     delta = float(fit.chi2) - chi2_2d
     return delta, float(chdtrc(4, max(delta, 0.0) / float(np.mean(scale))))

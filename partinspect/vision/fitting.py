@@ -62,6 +62,17 @@ __all__ = [
     "line_kcr_bound",
     "ellipse_kcr_bound",
     "COVERAGE_95",
+    "EllipseJob",
+    "fit_ellipses",
+    "line_with_covariance",
+    "ellipse_with_covariance",
+    "ellipse_geometry",
+    "foot_phases",
+    "direct_residuals",
+    "std_along",
+    "trace_r2",
+    "as_points",
+    "axis_bound",
 ]
 
 COVERAGE_95 = 1.959963984540054  # coverage factor k for a 95 % interval, normal distribution
@@ -228,8 +239,24 @@ class EllipseFit:
 
 # ---------------------------------------------------------------- shared
 
-def _normal_std(cov, normals):
-    """Standard uncertainty of each point along the given unit normals, px."""
+def std_along(cov, normals):
+    """Standard uncertainty of each point along the given unit normals, px.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (N, 2, 2) or (N,), or None
+        Point covariances, px^2, or each point's variance along its normal
+        already (returned as its square root whatever ``normals``).
+    normals : ndarray, shape (N, 2) or (2,)
+        Unit normals, one per point or one for all.
+
+    Returns
+    -------
+    ndarray, shape (N,) or None
+        ``sqrt(n^T cov n)``, px: the fits weigh each point by the inverse of
+        its square, since only the error across the curve moves a point off
+        it. None for ``cov`` None.
+    """
     if cov is None:
         return None
     cov = np.asarray(cov, float)
@@ -288,8 +315,26 @@ def information_matrices(h, s, xy, corr_length):
     return S, M, trR2
 
 
-def _trR2(xy, corr_length):
-    """The ``trR2`` of :func:`information_matrices` alone (the same sum)."""
+def trace_r2(xy, corr_length):
+    """``tr(R^2) = sum_ij rho_ij^2`` of points' errors correlated along a curve.
+
+    The ``trR2`` of :func:`information_matrices` alone (the same band
+    sums), for the Satterthwaite degrees of freedom of a residual test
+    without the covariance [6]_.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        The points, px, ordered along the curve.
+    corr_length : float or None
+        Correlation length of their errors, px (``rho_ij = exp(-d_ij^2 /
+        (4 corr_length^2))``); None or 0 for independent errors.
+
+    Returns
+    -------
+    float
+        N for independent errors, more for correlated ones.
+    """
     from partinspect.vision._kernels import band_sums
 
     if not corr_length or len(xy) < 2:
@@ -344,7 +389,16 @@ def _ci(params, cov):
     return np.column_stack([params - COVERAGE_95 * u, params + COVERAGE_95 * u])
 
 
-def _as_points(xy, min_points):
+def as_points(xy, min_points):
+    """Points as a float array of shape (N, 2), N >= ``min_points``.
+
+    Raises
+    ------
+    ValueError
+        For another shape or fewer points: what a fit of that model cannot
+        be made from (3 for a line or circle, 6 for an ellipse), said
+        before any arithmetic.
+    """
     xy = np.asarray(xy, float)
     if xy.ndim != 2 or xy.shape[1] != 2:
         raise ValueError(f"points must have shape (N, 2), got {xy.shape}")
@@ -369,7 +423,7 @@ def _line_tls(xy, w):
 
 
 def _line_normal_std(cov):
-    """std(normal): :func:`_normal_std` of every point along one common
+    """std(normal): :func:`std_along` of every point along one common
     normal, with the covariance parts taken out once (the line fit asks
     three times)."""
     cov = np.asarray(cov, float)
@@ -385,7 +439,7 @@ def _line_normal_std(cov):
     return std
 
 
-def fit_line(xy, cov=None, *, corr_length=None):
+def fit_line(xy, cov=None, *, corr_length=None, with_cov=True):
     """Orthogonal (total least squares) line fit by SVD, with covariance.
 
     Parameters
@@ -400,6 +454,11 @@ def fit_line(xy, cov=None, *, corr_length=None):
     corr_length : float, optional
         Correlation length of the point errors along the line, px (the edge
         filter's sigma for points from ``edge_points``).
+    with_cov : bool
+        Without it, ``cov``, ``cov_angle_offset`` and ``ci95`` are None and
+        the rest is the same: a test of a piece needs only its consistency,
+        and most pieces tested are not kept (:func:`line_with_covariance`
+        adds them later, the same as computed here).
 
     Returns
     -------
@@ -413,14 +472,7 @@ def fit_line(xy, cov=None, *, corr_length=None):
     With weights from the covariances, two passes are made (the normal
     variances depend on the normal).
     """
-    return _fit_line(xy, cov, corr_length, True)
-
-
-def _fit_line(xy, cov, corr_length, with_cov):
-    """:func:`fit_line`; without ``with_cov`` the covariances and intervals
-    are left out (None), the rest is the same: a test of a piece needs only
-    its consistency, and most pieces tested are not kept."""
-    xy = _as_points(xy, 3)
+    xy = as_points(xy, 3)
     n_pts = len(xy)
     w = np.ones(n_pts)
     nrm, c = _line_tls(xy, w)
@@ -440,7 +492,7 @@ def _fit_line(xy, cov, corr_length, with_cov):
         s = np.maximum(s, 1e-12)
     params = np.array([nrm[0], nrm[1], C])
     if not with_cov:
-        return LineFit(params, None, None, None, r, s, _consistency(r, s, 2, _trR2(xy, corr_length)), c)
+        return LineFit(params, None, None, None, r, s, _consistency(r, s, 2, trace_r2(xy, corr_length)), c)
     cov3, cov2, trR2 = _line_cov(params, s, xy, corr_length)
     return LineFit(params, cov3, cov2, _ci(params, cov3), r, s, _consistency(r, s, 2, trR2), c)
 
@@ -455,8 +507,26 @@ def _line_cov(params, s, xy, corr_length):
     return G @ cov2 @ G.T, cov2, trR2
 
 
-def _line_with_covariance(fit, xy, corr_length):
-    """A LineFit made by ``_fit_line(..., with_cov=False)`` with its covariances and intervals added."""
+def line_with_covariance(fit, xy, corr_length):
+    """A LineFit made by ``fit_line(..., with_cov=False)`` with its covariances and intervals added.
+
+    Parameters
+    ----------
+    fit : LineFit
+        Returned as it is when it has its covariances already.
+    xy : array_like, shape (N, 2)
+        The points it was fitted to, px.
+    corr_length : float or None
+        As :func:`fit_line`'s.
+
+    Returns
+    -------
+    LineFit
+        From the same weights (``fit.point_std``), so the same as
+        ``fit_line(..., with_cov=True)`` computes them: a caller that tests
+        many candidate lines and keeps few pays for the covariances of the
+        kept ones only.
+    """
     if fit.cov is not None:
         return fit
     cov3, cov2, _ = _line_cov(fit.params, fit.point_std, np.asarray(xy, float), corr_length)
@@ -527,7 +597,7 @@ def fit_circle(xy, cov=None, *, corr_length=None, blur=None, max_iter=50, tol=1e
     -------
     CircleFit
     """
-    xy = _as_points(xy, 3)
+    xy = as_points(xy, 3)
     if blur:
         c0 = _kasa(xy)
         d = xy - c0[:2]
@@ -540,7 +610,7 @@ def fit_circle(xy, cov=None, *, corr_length=None, blur=None, max_iter=50, tol=1e
         rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
         u = d / rho[:, None]
         r = rho - p[2]
-        s = _normal_std(cov, u) if cov is not None else np.ones(len(xy))
+        s = std_along(cov, u) if cov is not None else np.ones(len(xy))
         h = np.column_stack([-u, -np.ones(len(xy))])
         hw, rw = h / s[:, None], r / s
         step, *_ = np.linalg.lstsq(hw, -rw, rcond=None)
@@ -554,7 +624,7 @@ def fit_circle(xy, cov=None, *, corr_length=None, blur=None, max_iter=50, tol=1e
     r = rho - p[2]
     h = np.column_stack([-u, -np.ones(len(xy))])
     if cov is not None:
-        s = _normal_std(cov, u)
+        s = std_along(cov, u)
     else:
         s = np.full(len(xy), max(np.sqrt((r * r).sum() / max(len(xy) - 3, 1)), 1e-12))
     covp, _, trR2 = _uncertainty(h, s, xy, corr_length)
@@ -597,26 +667,47 @@ def _canonical(p):
     return p
 
 
-def _foot_phases(xy, params, phi=None, iters=6):
-    """Phases of the orthogonal foot points (Newton on each point, compiled:
-    :func:`partinspect.vision._kernels.foot_phases`).
+def foot_phases(xy, params, phi=None, iters=6):
+    """Phases of the orthogonal foot points of points on an ellipse.
 
-    At most ``iters`` Newton steps; a point stops earlier once its phase
-    moves by less than 1e-13 rad (Newton converges quadratically, so the
-    next step would change nothing beyond rounding). ``phi``: start phases,
-    else the points' angles scaled to the ellipse.
+    Newton's method on each point (compiled:
+    :func:`partinspect.vision._kernels.foot_phases`): the foot point is
+    where the ellipse's normal passes through the point, which is what the
+    orthogonal distance of every ellipse fit is measured to [2]_.
+
+    Parameters
+    ----------
+    xy : array_like, shape (N, 2)
+        Points, px.
+    params : array_like, shape (5,)
+        (xc, yc, a, b, theta) as :class:`EllipseFit`.
+    phi : array_like, shape (N,), optional
+        Start phases, rad; default the points' angles scaled to the ellipse.
+    iters : int
+        Newton steps at most; a point stops earlier once its phase moves by
+        less than 1e-13 rad (Newton converges quadratically, so the next
+        step would change nothing beyond rounding).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Phases, rad.
     """
-    from partinspect.vision._kernels import foot_phases
+    from partinspect.vision._kernels import foot_phases as compiled
 
     xy = np.ascontiguousarray(xy, float)
     start = phi is None
     phi = np.empty(len(xy)) if start else np.array(phi, float)
-    return foot_phases(xy, np.asarray(params, float), phi, int(iters), start)
+    return compiled(xy, np.asarray(params, float), phi, int(iters), start)
 
 
-def _ellipse_geometry(xy, params, phi):
+def ellipse_geometry(xy, params, phi):
     """Residuals (m,), outward unit normals (m, 2) and rows h_i (m, 5) at the
     foot points (compiled: :func:`partinspect.vision._kernels.ellipse_geometry`).
+
+    ``xy`` are the points (px), ``params`` the ellipse (xc, yc, a, b,
+    theta) and ``phi`` the points' foot phases (:func:`foot_phases`, rad);
+    the residuals are signed orthogonal distances, px, positive outside.
 
     The outward normal in the ellipse frame is l = (b cos phi, a sin phi)
     normalised, in the image n = Q(theta) l. Row h_i = d(signed distance_i)
@@ -627,10 +718,9 @@ def _ellipse_geometry(xy, params, phi):
     ellipse frame: h = (-n_x, -n_y, -l_x cos phi, -l_y sin phi,
     b sin phi l_x - a cos phi l_y).
     """
-    from partinspect.vision._kernels import ellipse_geometry
+    from partinspect.vision._kernels import ellipse_geometry as compiled
 
-    return ellipse_geometry(np.ascontiguousarray(xy, float), np.asarray(params, float),
-                            np.ascontiguousarray(phi, float))
+    return compiled(np.ascontiguousarray(xy, float), np.asarray(params, float), np.ascontiguousarray(phi, float))
 
 
 # An "ellipse" far larger than its points is no ellipse they show: the
@@ -640,48 +730,35 @@ def _ellipse_geometry(xy, params, phi):
 MAX_AXIS_SPANS = 50.0
 
 
-def _axis_bound(xy):
-    """The largest semi-major axis of a plausible ellipse through points xy, px."""
+def axis_bound(xy):
+    """The largest semi-major axis of a plausible ellipse through points xy, px.
+
+    ``MAX_AXIS_SPANS`` times the points' extent (at least 1 px): beyond it
+    the points show no ellipse but a flatter conic, and a fit of the 2D
+    chain that would grow past it stops (``EllipseJob.max_axis``).
+    """
     return MAX_AXIS_SPANS * max(float(np.ptp(xy, axis=0).max()), 1.0)
 
 
-def _ellipse_plausible(xy, cov, factor=9.0):
-    """Cheap screen before the iterative fit: the direct algebraic fit's
-    orthogonal residuals must not exceed the point noise by far (their mean
-    square within ``factor`` times the expected); the geometric fit improves
-    on the algebraic one by much less than that for data that are not an
-    ellipse, and skipping it keeps the merge tests on corners cheap.
-
-    Returns
-    -------
-    tuple or None
-        (params, phases): the algebraic fit and its foot phases, the start
-        of the geometric fit (computed here already), or None if the
-        points fail the screen.
-    """
-    direct = _direct_residuals(xy)
-    if direct is None:
-        return None
-    p, phi, r, n = direct
-    s2 = _normal_std(cov, n) ** 2
-    return (p, phi) if float((r * r / s2).mean()) < factor else None
-
-
-def _direct_residuals(xy):
+def direct_residuals(xy):
     """The direct fit of points xy and their orthogonal residuals about it.
+
+    A cheap look at whether points are one ellipse, without the iterative
+    fit: the direct (algebraic) fit [5]_ is biased but not far off, so its
+    residuals tell points of one ellipse from points of two.
 
     Returns
     -------
     tuple or None
         (params, phases, residuals (M,), unit normals (M, 2)) of
-        :func:`_ellipse_start` and :func:`_ellipse_geometry`, or None when
+        :func:`_ellipse_start` and :func:`ellipse_geometry`, or None when
         the direct fit is no finite ellipse.
     """
     p = _ellipse_start(xy)
     if p[3] <= 0 or not np.all(np.isfinite(p)):
         return None
-    phi = _foot_phases(xy, p)
-    r, n, _ = _ellipse_geometry(xy, p, phi)
+    phi = foot_phases(xy, p)
+    r, n, _ = ellipse_geometry(xy, p, phi)
     return p, phi, r, n
 
 
@@ -737,15 +814,26 @@ def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=
     first order), and the sandwich form of the module docstring with
     ``corr_length``.
     """
-    xy = _as_points(xy, 6)
-    return _fit_ellipses([_EllipseJob(xy, cov, corr_length, blur, start)], max_iter, tol)[0]
+    xy = as_points(xy, 6)
+    return fit_ellipses([EllipseJob(xy, cov, corr_length, blur, start)], max_iter, tol)[0]
 
 
 @dataclass(frozen=True)
-class _EllipseJob:
-    """One ellipse fit of :func:`_fit_ellipses`: the arguments of
-    :func:`fit_ellipse`, plus ``init`` = (params, phases), an algebraic start
-    and its foot phases the caller has computed already."""
+class EllipseJob:
+    """One ellipse fit of :func:`fit_ellipses`.
+
+    Attributes
+    ----------
+    xy, cov, corr_length, blur, start
+        The arguments of :func:`fit_ellipse` (``xy`` as checked by
+        :func:`as_points`).
+    init : tuple, optional
+        (params, phases): an algebraic start and its foot phases the caller
+        has computed already (:func:`direct_residuals`).
+    max_axis : float, optional
+        The fit stops before a step would take its semi-major axis beyond
+        this, px (:func:`axis_bound`).
+    """
 
     xy: np.ndarray
     cov: object = None
@@ -756,7 +844,7 @@ class _EllipseJob:
     max_axis: float = None
 
 
-def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=True, sigma_tol=None):
+def fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=True, sigma_tol=None):
     """:func:`fit_ellipse` of several point sets at once.
 
     Each fit follows exactly the iteration it would follow alone
@@ -766,7 +854,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
 
     Parameters
     ----------
-    jobs : list of _EllipseJob
+    jobs : list of EllipseJob
     max_iter, tol : see fit_ellipse
     need_converged : bool
         Return None for a fit that does not converge within ``max_iter``
@@ -774,7 +862,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
         not supported).
     with_cov : bool
         Without it, the fits' ``cov`` and ``ci95`` are None (a test needs
-        only the consistency; :func:`_ellipse_with_covariance` adds them later, the
+        only the consistency; :func:`ellipse_with_covariance` adds them later, the
         same as computed here).
     sigma_tol : float, optional
         Also converged when the remaining Gauss-Newton step is below this
@@ -796,7 +884,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
             starts.append(job.init)
         else:
             p = _ellipse_start(job.xy) if job.start is None else _canonical(job.start)
-            starts.append((p, _foot_phases(job.xy, p)))
+            starts.append((p, foot_phases(job.xy, p)))
     xys = [job.xy for job in jobs]
     # A blurred job's fits before its last correction give only the points'
     # shifts: their covariances are not computed.
@@ -807,14 +895,14 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
         for k in blurred:
             f, blur = fits[k], jobs[k].blur
             xc, yc, a, b, th = f.params
-            _, n, _ = _ellipse_geometry(jobs[k].xy, f.params, f.phases)
+            _, n, _ = ellipse_geometry(jobs[k].xy, f.params, f.phases)
             sp, cp = np.sin(f.phases), np.cos(f.phases)
             kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
             xys[k] = jobs[k].xy + (0.5 * blur * blur * kappa)[:, None] * n
             # The shift is a small fraction of a pixel: start from the fit
             # before it.
             p = _canonical(f.params)
-            starts[k] = (p, _foot_phases(xys[k], p))
+            starts[k] = (p, foot_phases(xys[k], p))
         sub = _fit_ellipses_once([xys[k] for k in blurred], [jobs[k] for k in blurred],
                                  [starts[k] for k in blurred], max_iter, tol, False, with_cov and last, sigma_tol)
         for k, f in zip(blurred, sub):
@@ -823,7 +911,7 @@ def _fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=T
 
 
 def _fit_ellipses_once(xys, jobs, starts, max_iter, tol, need_converged, with_cov=True, sigma_tol=None):
-    """The fits of fixed points (the loop of _fit_ellipses). ``with_cov``:
+    """The fits of fixed points (the loop of fit_ellipses). ``with_cov``:
     for all the fits, or a sequence of one per fit."""
     if isinstance(with_cov, bool):
         with_cov = [with_cov] * len(xys)
@@ -846,27 +934,44 @@ def _ellipse_result(xy, cov, corr_length, p, converged, it, with_cov=True):
     (None without ``with_cov``), test."""
     n_pts = len(xy)
     p = _canonical(p)
-    phi = _foot_phases(xy, p, None, iters=20)
-    r, n, h = _ellipse_geometry(xy, p, phi)
+    phi = foot_phases(xy, p, None, iters=20)
+    r, n, h = ellipse_geometry(xy, p, phi)
     if cov is not None:
-        s = _normal_std(cov, n)
+        s = std_along(cov, n)
     else:
         s = np.full(n_pts, max(np.sqrt((r * r).sum() / max(n_pts - 5, 1)), 1e-12))
     if not with_cov:
-        return EllipseFit(p, None, None, r, phi, s, _consistency(r, s, 5, _trR2(xy, corr_length)), converged, it)
+        return EllipseFit(p, None, None, r, phi, s, _consistency(r, s, 5, trace_r2(xy, corr_length)), converged, it)
     covp, _, trR2 = _uncertainty(h, s, xy, corr_length)
     covp = _theta_gauge(p, h, s, covp)
     cons = _consistency(r, s, 5, trR2)
     return EllipseFit(p, covp, _ci(p, covp), r, phi, s, cons, converged, it)
 
 
-def _ellipse_with_covariance(fit, xy, corr_length):
-    """An EllipseFit made by ``with_cov=False`` with its covariance and
-    intervals added: from the same foot points and weights, so the same as
-    :func:`_ellipse_result` computes them."""
+def ellipse_with_covariance(fit, xy, corr_length):
+    """An EllipseFit made by ``with_cov=False`` with its covariance and intervals added.
+
+    Parameters
+    ----------
+    fit : EllipseFit
+        Of :func:`fit_ellipses` without ``with_cov``; returned as it is
+        when it has its covariance already.
+    xy : array_like, shape (N, 2)
+        The points it was fitted to, px.
+    corr_length : float or None
+        As :func:`fit_ellipse`'s.
+
+    Returns
+    -------
+    EllipseFit
+        From the same foot points and weights, so the same as
+        :func:`_ellipse_result` computes them: a caller that tests many
+        candidate arcs and keeps few pays for the covariances of the kept
+        ones only.
+    """
     if fit.cov is not None:
         return fit
-    _, _, h = _ellipse_geometry(xy, fit.params, fit.phases)
+    _, _, h = ellipse_geometry(xy, fit.params, fit.phases)
     covp, _, _ = _uncertainty(h, fit.point_std, xy, corr_length)
     covp = _theta_gauge(fit.params, h, fit.point_std, covp)
     return replace(fit, cov=covp, ci95=_ci(fit.params, covp))
@@ -998,7 +1103,7 @@ def ellipse_kcr_bound(params_true, xy_true, normal_std, corr_length=None):
     """
     xy_true = np.asarray(xy_true, float)
     params_true = np.asarray(params_true, float)
-    phi = _foot_phases(xy_true, params_true, None, iters=20)
-    _, _, h = _ellipse_geometry(xy_true, params_true, phi)
+    phi = foot_phases(xy_true, params_true, None, iters=20)
+    _, _, h = ellipse_geometry(xy_true, params_true, phi)
     s = np.broadcast_to(np.asarray(normal_std, float), (len(h),))
     return _crb(h, s, xy_true, corr_length)

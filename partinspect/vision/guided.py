@@ -22,15 +22,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from partinspect.vision.contours import CLEARANCE, _arc_length, _end_runs
-from partinspect.vision.matching import (
-    _IDEAL_FIELDS,
-    MIN_EPIPOLAR_ANGLE,
-    Match,
-    _fit_line,
-    _line_angles,
-    _line_with_covariance,
-)
+from partinspect.vision.contours import CLEARANCE, arc_length, end_runs
+from partinspect.vision.fitting import fit_line, line_with_covariance
+from partinspect.vision.ideal import IDEAL_FIELDS
+from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, line_angles
 from partinspect.vision.stereo import measure_pair_feature
 
 MAX_DISTANCE = 2.0
@@ -72,7 +67,7 @@ def stretch_along(uv, polyline, *, max_distance=MAX_DISTANCE, trim=0.0):
     if ok.sum() < 2 or len(uv) == 0:
         return np.zeros(len(uv), bool), np.zeros(len(uv))
     poly = poly[ok]
-    length = _arc_length(poly)
+    length = arc_length(poly)
     d, j = cKDTree(poly).query(uv)
     s = length[j]
     return (d <= max_distance) & (s >= trim) & (s <= length[-1] - trim), s
@@ -99,8 +94,9 @@ def line_stretch(feature, keep, corr_length):
         covariance) that of those points alone.
     """
     keep = np.asarray(keep, int)
-    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in _IDEAL_FIELDS})
-    fit = _line_with_covariance(_fit_line(ideal.xy, ideal.cov, corr_length, False), ideal.xy, corr_length)
+    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in IDEAL_FIELDS})
+    fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False), ideal.xy,
+                               corr_length)
     extra = {} if feature.edge_normal is None else {"edge_normal": feature.edge_normal[keep]}
     return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
                    ideal=ideal, fit=fit, **extra)
@@ -238,7 +234,7 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
         fl, fr = (line_stretch(_concat([res.features[i] for i, _, _ in got], [k for _, k, _ in got]),
                                np.argsort(np.concatenate([s for _, _, s in got]), kind="stable"), scale)
                   for res, got in zip((L, R), pieces))
-        angle = min(_line_angles(geo, [fl], "left")[0], _line_angles(geo, [fr], "right")[0])
+        angle = min(line_angles(geo, [fl], "left")[0], line_angles(geo, [fr], "right")[0])
         if angle < MIN_EPIPOLAR_ANGLE:
             failed[cid] = (f"its stretch runs {np.degrees(angle):.1f} deg from the epipolar lines "
                            f"(< {np.degrees(MIN_EPIPOLAR_ANGLE):.0f})")
@@ -330,7 +326,7 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
             f = res.features[f3.left if side == 0 else f3.right]
             order = np.argsort(f.ideal.xy @ f.fit.direction, kind="stable")
             near = ~crowds[side].clear_of_others(f.uv[order], cid, reach[side])
-            bad = _end_runs(near)
+            bad = end_runs(near)
             kept.append(order[~bad])
             lost.append(int(bad.sum()))
             if len(f.uv) and near.all() and cid not in covered:
@@ -358,7 +354,7 @@ def _concat(features, positions):
     """One line feature of the points at ``positions`` of each of ``features`` (its fit the first's: refit it)."""
     first = features[0]
     ideal = replace(first.ideal, **{f: np.concatenate([getattr(g.ideal, f)[k] for g, k in zip(features, positions)])
-                                    for f in _IDEAL_FIELDS})
+                                    for f in IDEAL_FIELDS})
     extra = {}
     if first.edge_normal is not None:
         extra["edge_normal"] = np.concatenate([g.edge_normal[k] for g, k in zip(features, positions)])

@@ -17,13 +17,13 @@ References
        expression of uncertainty in measurement, section 5.1.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from partinspect.vision.calibration import distortion_jacobian, undistort_points
 
-__all__ = ["IdealPoints", "to_ideal", "ideal_points", "camera_matrices"]
+__all__ = ["IdealPoints", "IDEAL_FIELDS", "to_ideal", "ideal_points", "camera_matrices"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,12 @@ class IdealPoints:
     normal: np.ndarray
     normal_std: np.ndarray
     jacobian: np.ndarray
+
+
+IDEAL_FIELDS = tuple(f.name for f in fields(IdealPoints))
+"""The fields of :class:`IdealPoints`, in order: all are per point (first
+axis N), so a subset of the points, or several sets joined, is made field by
+field without mapping the points to ideal pixels again."""
 
 
 def to_ideal(uv, K, D):

@@ -1,10 +1,8 @@
 """Matching of left and right image features by the epipolar constraint.
 
-Each image's segments (straight lines and elliptical arcs) are first merged
-where several pieces are one edge (collinear lines, co-elliptic arcs: the
-same physical edge interrupted by an occlusion, a specular spot or a corner
-of the segmentation) and refitted in *ideal* pixel coordinates. Left and
-right features are then paired:
+The features of each image (its segments merged where they are one edge and
+refitted in ideal pixels, :mod:`partinspect.vision.imagefeatures`) are
+paired across the two images:
 
 - every feature spans a range of epipolar lines, its *band* (a 1-D
   interval: the signed offset, in ideal left-image pixels at the image
@@ -65,39 +63,25 @@ References
        ``linear_sum_assignment``).
 """
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from partinspect.vision.fitting import (
-    _EllipseJob,
-    _as_points,
-    _axis_bound,
-    _direct_residuals,
-    _ellipse_geometry,
-    _ellipse_with_covariance,
-    _fit_ellipses,
-    _fit_line,
-    _line_with_covariance,
-)
-from partinspect.vision.ideal import IdealPoints, ideal_points
 from partinspect.vision.triangulation import fundamental_matrix, triangulate
 
 __all__ = [
     "EpipolarGeometry",
-    "ImageFeature",
     "Match",
     "Unmatched",
     "Matching",
     "epipolar_geometry",
-    "image_features",
     "match_features",
+    "arc_circle",
+    "line_angles",
     "REASONS",
     "MIN_EPIPOLAR_ANGLE",
     "MIN_AXIS_RATIO",
-    "chauvenet_z",
 ]
 
 MIN_EPIPOLAR_ANGLE = np.deg2rad(8.0)
@@ -301,513 +285,6 @@ def _convergence_depth(R, T):
     return float(s) if s > 0 else 3.0 * float(np.linalg.norm(T))
 
 
-# -------------------------------------------------------------- image features
-
-
-@dataclass(frozen=True)
-class ImageFeature:
-    """One edge in one image: one segment or several merged ones.
-
-    Attributes
-    ----------
-    kind : str
-        "line" or "arc" (an elliptical arc, possibly a whole ellipse).
-    segments : tuple of int
-        Indices of the segments (of ``segment_contours``) it is made of.
-    index : ndarray, shape (N,)
-        Indices into the image's EdgePoints of its points (the segments'
-        ``fit_index``), each segment's points in order along the edge.
-    uv : ndarray, shape (N, 2)
-        The points in distorted pixels (as detected).
-    cov_uv : ndarray, shape (N, 2, 2)
-        Their covariances, px^2.
-    ideal : IdealPoints
-        The points in ideal pixels with their covariances.
-    fit : LineFit or EllipseFit
-        Fit to the ideal points (``corr_length`` = the edge filter's sigma),
-        ideal pixels.
-    blur : float
-        Median width of the edge profile, px (for information: the fits
-        are not corrected for the smoothing bias of curved edges).
-    polarity : int
-        Lines: +1 if the grey level rises along ``ref`` of the epipolar
-        geometry, -1 if it falls (0 before matching). Arcs: +1 if brighter
-        outside the ellipse, -1 if brighter inside (of most points, when
-        ``mixed_polarity``).
-    mixed_polarity : bool
-        An arc merged from pieces of opposite polarity: the faces on the two
-        sides of the edge exchange brightness along it (a hole's rim against
-        its inner wall, lit on one side and in shadow on the other). Its
-        polarity is then not compared in matching: where the exchange
-        happens depends on the view (each camera sees another part of the
-        wall).
-    """
-
-    kind: str
-    segments: tuple
-    index: np.ndarray
-    uv: np.ndarray
-    cov_uv: np.ndarray
-    ideal: IdealPoints
-    fit: object
-    blur: float
-    polarity: int
-    mixed_polarity: bool = False
-
-    def __len__(self):
-        return len(self.index)
-
-
-FIT_SIGMA_TOL = 1e-3
-"""Ellipse fits of features are converged when the remaining Gauss-Newton
-step is below this many standard uncertainties in every direction (or at
-fit_ellipse's pixel tolerance, whichever comes first)."""
-FIT_ITERATIONS = 30
-"""Iterations of an ellipse fit of a feature at most: well-determined ones
-converge in a few (from the segment's fit, or after dropping a point from
-the previous one)."""
-
-OUTLIER_ALPHA = 0.05
-"""Chance that a feature of N clean points loses one to the outlier test:
-a point is an outlier when its residual exceeds ``norm.isf(OUTLIER_ALPHA /
-(2 N))`` (Chauvenet's criterion at this level: 3.6 for 150 points, 4.0 for
-900) times its own standard uncertainty, scaled up by the robust spread of
-the normalised residuals when that exceeds 1 (a very clean image whose
-sub-pixel ripple is as large as its noise). Outliers are corner-rounded
-ends and a neighbouring edge's smoothing; one of them sets a form zone, which
-is the maximum residual."""
-OUTLIER_Z_MAX = 5.0
-"""The threshold never exceeds this (one Gaussian point in 1.7 million)."""
-MAX_OUTLIER_FRACTION = 0.1
-"""At most this fraction of a feature's points is rejected: more means the
-model (line / ellipse) is wrong, which the segmentation's test must see."""
-FADE_RATIO = 5.0
-"""Points of an arc whose standard uncertainty across the edge exceeds this
-many times the arc's median are left out (see :func:`_unfaded` for a
-segment of lower contrast): there the edge profile has
-flattened (a weak or broad step), and the sub-pixel position follows
-whatever else is beside the edge. Where a hole's rim fades against its lit
-inner wall, the contour runs on along what remains of the step and then
-along the wall's shading, and a short arc's ellipse bends to take such a
-tail in and passes every residual test, off by up to 1 mm in 3D."""
-FADE_END_RATIO = 2.5
-"""The same at the ends of each segment of an arc, from the end inwards
-while the points exceed this many times the arc's median: a rim fades
-towards the end of its visible stretch. (A segment whose median exceeds
-this many times the arc's is judged against its own: the plate's 10 mm
-hole has a third of its rim at four times the others' uncertainty, all
-of it "faded" against the arc's median, and a union of the rim's pieces
-dropped it whole in a third of the draws.) On rendered plates and brackets
-under six light directions (36 draws each, 5600 rim points), the rim
-points' errors against the true rim, normalised by their random and Type B
-uncertainties together, had 0.8 % beyond 3 and a largest of 7.5, up to 3 px
-off (the points beyond 2.5 times the median at ends, beyond 5 anywhere,
-RMS 1.5-2.4); without those points (6 % of them), 0.24-0.47 % and 4.4, as
-for Gaussian errors (0.27 %)."""
-
-
-
-def chauvenet_z(n):
-    """Chauvenet's threshold for the |normalised residuals| of a feature of ``n`` points (see ``OUTLIER_ALPHA``).
-
-    The threshold before the scaling by the residuals' robust spread (3.9
-    for 500 points).
-
-    References
-    ----------
-    .. [1] Taylor, J. R. (1997). An Introduction to Error Analysis, 2nd
-           ed., section 6.2 (Chauvenet's criterion).
-    """
-    from scipy.special import ndtri
-
-    return min(float(-ndtri(OUTLIER_ALPHA / (2.0 * max(int(n), 1)))), OUTLIER_Z_MAX)
-
-
-def _outlier_threshold(z):
-    """Chauvenet's threshold for |normalised residuals| ``z``, scaled by their robust spread (see ``OUTLIER_ALPHA``)."""
-    spread = 1.4826 * float(np.median(z))  # MAD of z about zero
-    return chauvenet_z(len(z)) * max(1.0, spread)
-
-
-_IDEAL_FIELDS = ("xy", "cov", "normal", "normal_std", "jacobian")
-
-
-def _segment_ideal(segments, edges, K, D, used=None):
-    """The fitted points of segments in ideal pixels (IdealPoints per segment, None if not ``used``).
-
-    A point's ideal coordinates do not depend on the other points mapped
-    with it, so they are computed once, in one call for all the segments
-    used (default all), and a feature made of several segments (a merge
-    trial) concatenates them instead of mapping its points again.
-    """
-    used = range(len(segments)) if used is None else sorted(used)
-    index = [np.asarray(segments[i].fit_index) for i in used]
-    out = [None] * len(segments)
-    if not index:
-        return out
-    allidx = np.concatenate(index)
-    ideal = ideal_points(edges.xy[allidx], edges.cov[allidx], K, D, edges.normal[allidx])
-    cuts = np.cumsum([len(i) for i in index])[:-1]
-    parts = [np.split(getattr(ideal, f), cuts) for f in _IDEAL_FIELDS]
-    for i, p in zip(used, zip(*parts)):
-        out[i] = IdealPoints(*p)
-    return out
-
-
-def _unfaded(std, lengths):
-    """Indices of the points of an arc kept by ``FADE_RATIO`` and ``FADE_END_RATIO``.
-
-    ``std`` are the points' standard uncertainties across the edge, the
-    arc's segments one after the other with ``lengths`` points each. The
-    ratios are taken to the arc's median, except for a segment whose own
-    median exceeds ``FADE_END_RATIO`` times it: a stretch of the rim of
-    lower contrast than the rest (the rim of a hole whose inner wall is lit
-    on one side), which the arc's median would drop whole, is judged
-    against its own. (Against its own median, any segment kept points at
-    a fading end: the bracket's flat wall hole kept an end point 0.95 px
-    off the rim at 2.4 times its segment's median, 2.7 times the arc's.)
-    """
-    arc_med = float(np.median(std))
-    keep = np.ones(len(std), bool)
-    start = 0
-    for n in lengths:
-        piece = std[start:start + n]
-        med = float(np.median(piece))
-        if med <= FADE_END_RATIO * arc_med:
-            med = arc_med
-        keep[start:start + n] = piece <= FADE_RATIO * med
-        faded = piece > FADE_END_RATIO * med
-        # Runs of faded points at either end of the segment.
-        head = int(np.argmin(faded)) if not faded.all() else n
-        tail = int(np.argmin(faded[::-1])) if not faded.all() else n
-        keep[start:start + head] = False
-        keep[start + n - tail:start + n] = False
-        start += n
-    kept = np.flatnonzero(keep)
-    # A very short arc keeps its points: too few are left to fit.
-    return kept if len(kept) >= 6 else np.arange(len(std))
-
-
-def _make_features(requests, segments, edges, seg_ideal):
-    """Image features of several (kind, segment ids) requests at once.
-
-    Points of arcs where the edge has faded are left out (``FADE_RATIO``,
-    ``FADE_END_RATIO``); each feature is fitted, its worst outlier dropped
-    and the fit redone while one remains (below); the ellipse fits of all requests in one such round run
-    together (:func:`partinspect.vision.fitting._fit_ellipses`), each as it
-    would alone. The fits come without their covariances (``cov`` None):
-    most features made are merge trials that are not kept;
-    :func:`_with_covariance` completes the kept ones, as the fits would
-    have computed them.
-    """
-    states = []
-    for kind, seg_ids in requests:
-        index = np.concatenate([segments[i].fit_index for i in seg_ids])
-        piece = np.repeat(np.arange(len(seg_ids)), [len(segments[i].fit_index) for i in seg_ids])
-        all_ideal = IdealPoints(*(np.concatenate([getattr(seg_ideal[i], f) for i in seg_ids])
-                                  for f in _IDEAL_FIELDS))
-        keep = np.arange(len(index)) if kind == "line" else _unfaded(all_ideal.normal_std, [
-            len(segments[i].fit_index) for i in seg_ids])
-        # A single displaced point (a corner-rounded end that passed the
-        # segmentation's trim) would otherwise enter the 3D points and make
-        # a straight edge look out of straightness by tenths of a mm: points
-        # inconsistent with the fit are rejected, worst first, and the fit
-        # redone.
-        # One arc segment: its own fit (of the same points, in distorted
-        # pixels, corrected for the smoothing) starts the fit next to its
-        # minimum; the direct fit can start a short piece far from it.
-        start = None
-        if kind == "arc" and len(seg_ids) == 1 and segments[seg_ids[0]].kind == "arc":
-            start = segments[seg_ids[0]].fit.params
-        states.append(dict(kind=kind, seg_ids=seg_ids, index=index, piece=piece, all_ideal=all_ideal,
-                           keep=keep, budget=int(MAX_OUTLIER_FRACTION * len(index)),
-                           start=start))
-    active = list(range(len(states)))
-    while active:
-        jobs = []
-        for k in active:
-            st = states[k]
-            keep = st["keep"]
-            st["ideal"] = ideal = IdealPoints(*(np.ascontiguousarray(getattr(st["all_ideal"], f)[keep])
-                                                for f in _IDEAL_FIELDS))
-            if st["kind"] == "line":
-                st["fit"] = _fit_line(ideal.xy, ideal.cov, edges.sigma, False)
-            else:
-                # No smoothing-bias correction (fit_ellipse's ``blur``): on
-                # rendered parts the rims of holes are not uniform discs, and
-                # the edge points lie on the true ellipse to 0.01-0.02 px as
-                # found, while the correction pushed them 0.03-0.06 px
-                # outwards (measured against the truth). After dropping one
-                # point the previous fit is a start next to the new minimum
-                # (same minimum, fewer iterations).
-                jobs.append((k, _EllipseJob(_as_points(ideal.xy, 6), ideal.cov, edges.sigma, None, st["start"],
-                                            max_axis=_axis_bound(ideal.xy))))
-        # Converged at fit_ellipse's pixel tolerance or once the remaining
-        # step is below a thousandth of the parameters' standard
-        # uncertainties: a short piece's ellipse is uncertain by pixels, and
-        # its cost so flat that the pixel tolerance takes a hundred
-        # iterations to reach, for nothing; such a fit (or a union of two
-        # edges) stops after FIT_ITERATIONS, as the segmentation's.
-        for (k, _), fit in zip(jobs, _fit_ellipses([job for _, job in jobs], FIT_ITERATIONS, with_cov=False,
-                                                   sigma_tol=FIT_SIGMA_TOL)):
-            states[k]["fit"] = fit
-        again = []
-        for k in active:
-            st = states[k]
-            fit = st["fit"]
-            z = np.abs(fit.residuals) / np.maximum(fit.point_std, 1e-12)
-            worst = int(np.argmax(z))
-            if z[worst] <= _outlier_threshold(z) or st["budget"] == 0:
-                continue
-            st["keep"] = np.delete(st["keep"], worst)
-            st["budget"] -= 1
-            st["start"] = fit.params if st["kind"] == "arc" else None
-            again.append(k)
-        active = again
-    out = []
-    for st in states:
-        kind, fit, ideal = st["kind"], st["fit"], st["ideal"]
-        index = st["index"][st["keep"]]
-        uv, cov = edges.xy[index], edges.cov[index]
-        blur = float(np.median(edges.width[index]))
-        # Edge normals point dark to bright: their component along the
-        # fit's normal (outward for arcs) tells each point's polarity.
-        if kind == "arc":
-            _, n_out, _ = _ellipse_geometry(ideal.xy, fit.params, fit.phases)
-        else:
-            n_out = fit.normal[None, :]
-        along = np.einsum("ni,ni->n", n_out, ideal.normal)
-        polarity = (1 if along.mean() > 0 else -1) if kind == "arc" else 0
-        # Polarity per piece (the mean over its points), so that a stray
-        # point does not make a feature mixed.
-        piece = st["piece"][st["keep"]]
-        sums = np.bincount(piece, along, minlength=len(st["seg_ids"]))
-        signs = np.sign(sums[np.bincount(piece, minlength=len(st["seg_ids"])) > 0])
-        mixed = bool(signs.min() != signs.max())
-        out.append(ImageFeature(kind, tuple(int(i) for i in st["seg_ids"]), index, uv, cov, ideal, fit, blur,
-                                polarity, mixed))
-    return out
-
-
-def _with_covariance(f, corr_length):
-    """Feature f (of :func:`_make_features`) with its fit's covariance."""
-    if f.fit.cov is not None:
-        return f
-    complete = _line_with_covariance if f.kind == "line" else _ellipse_with_covariance
-    return replace(f, fit=complete(f.fit, f.ideal.xy, corr_length))
-
-
-def _rms(f):
-    return float(np.sqrt(np.mean(f.fit.residuals ** 2)))
-
-
-def _kept(part, union):
-    """Fraction of the points of feature ``part`` that feature ``union`` keeps
-    (the rest are among its rejected outliers)."""
-    return np.count_nonzero(np.isin(part.index, union.index)) / max(len(part.index), 1)
-
-
-def _mergeable(a, b, max_angle, max_offset, max_axis_ratio, limit=np.inf):
-    """Cheap geometric pre-test before the union is refitted.
-
-    Lines: nearly parallel, each piece's centroid near the other's line.
-    Arcs: the two ellipses agree within the fixed tolerances, or, the
-    pieces' own ellipses aside, the direct (algebraic) ellipse fit of the
-    union leaves residuals whose RMS is within ``MERGE_SCREEN`` times
-    ``limit``, the RMS the refitted union must reach to be accepted.
-
-    The second is needed because a short piece of a rim fixes its own
-    ellipse poorly, and worse than its first-order uncertainty says: its
-    cost is flat along a curved valley (a rim piece of 60 points had its
-    centre 17 px off at a stated 3 px), so comparing the pieces' ellipses
-    refuses pieces of one rim; the points themselves tell. The geometric
-    fit improves on the direct one by far less than ``MERGE_SCREEN`` in
-    RMS for points of one ellipse (the direct fit is biased, not far off)
-    and for points of two (both leave the misfit between them), so a union
-    failing the screen would fail its test too.
-
-    Arcs of opposite polarity are tried: a hole's rim is brighter outside
-    along one stretch and darker along another, against its inner wall lit
-    on one side and in shadow on the other (see
-    ``ImageFeature.mixed_polarity``); two different rims are told apart by
-    the refit of their union, whose residuals then show the two. Lines of
-    opposite polarity are not: two pieces of one straight edge along which
-    the faces exchange brightness and two different edges that happen to
-    be collinear in this image (common in a view at grazing incidence) are
-    alike in one image, both one line within the noise (on the grazing
-    render of the sample plate in tests/test_degenerate.py two such edges,
-    12 px apart, gave a union with chi-square p = 0.52; merged, neither
-    matched, and the registration became ambiguous).
-    """
-    if a.kind != b.kind:
-        return False
-    if a.kind == "line":
-        na, nb = a.fit.normal, b.fit.normal
-        if na @ nb < np.cos(max_angle) and -(na @ nb) < np.cos(max_angle):
-            return False
-        if np.mean(np.einsum("ni,i->n", a.ideal.normal, na)) * np.mean(np.einsum("ni,i->n", b.ideal.normal, na)) < 0:
-            return False  # opposite polarity (see above)
-        da = abs(b.fit.centroid @ na + a.fit.params[2])
-        db = abs(a.fit.centroid @ nb + b.fit.params[2])
-        return max(da, db) < max_offset
-    pa, pb = a.fit.params, b.fit.params
-    if (np.hypot(*(pa[:2] - pb[:2])) <= max(max_offset, 0.05 * max(pa[2], pb[2]))
-            and abs(np.log(pa[2] / pb[2])) < max_axis_ratio
-            and abs(np.log(pa[3] / pb[3])) < 2 * max_axis_ratio):
-        return True
-    xy = np.concatenate([a.ideal.xy, b.ideal.xy])
-    try:
-        direct = _direct_residuals(xy)
-    except (ValueError, np.linalg.LinAlgError, cv2.error):
-        return False
-    if direct is None or direct[0][2] > _axis_bound(xy):
-        return False
-    r = direct[2]
-    return bool(np.sqrt(np.mean(r * r)) <= MERGE_SCREEN * limit)
-
-
-MERGE_SCREEN = 3.0
-"""Arcs whose ellipses disagree are still tried as one edge when the direct
-ellipse fit of their union has an RMS residual within this factor of the
-RMS the union must reach (see :func:`_mergeable`); the same factor (9 in
-mean square) as the segmentation's screen of its trial fits."""
-
-
-def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_angle=np.deg2rad(3.0),
-                   max_offset=3.0, max_axis_ratio=0.1, merge_ratio=1.3, max_misfit=0.15):
-    """Image features of one image: its segments, merged where they are one edge.
-
-    Parameters
-    ----------
-    edges : EdgePoints
-        The image's edge points (distorted pixels).
-    segments : list of Segment
-        From :func:`partinspect.vision.contours.segment_contours`.
-    K, D : the camera's matrix and distortion vector.
-    merge : bool
-        Merge collinear lines and co-elliptic arcs (many-to-one).
-    min_fit_points : int
-        Segments with fewer fitted points are skipped.
-    max_angle : float
-        Lines: largest angle between two pieces of one edge, rad.
-    max_offset : float
-        Lines: largest distance of one piece's centroid from the other's
-        line, px; arcs: of the two centres (or 5 % of the major axis).
-    max_axis_ratio : float
-        Arcs: largest ``|log(a1 / a2)|`` (twice that for the minor axes).
-        Arcs whose ellipses disagree beyond these are still tried when the
-        direct fit of their points passes a screen (see :func:`_mergeable`).
-    merge_ratio, max_misfit : float
-        The union is accepted when the RMS of its residuals is at most
-        ``merge_ratio`` times the worse piece's, or, for arcs, at most
-        ``max_misfit`` px: two different edges leave a misfit far larger
-        than the noise, while the pieces of one small ellipse may show a
-        few hundredths of a pixel of systematic misfit that a ratio test
-        alone would refuse. Lines get the ratio test only: two straight
-        edges meeting at a shallow angle differ by a few hundredths of a
-        pixel over a long stretch, which passed ``max_misfit`` and bent
-        the merged line out of straightness by 30 um. The union must also
-        keep more than half of each part's points (see the notes in the
-        code); an arc it mostly rejects is dropped as an outlier stretch.
-        Arcs of opposite polarity are merged (``ImageFeature.mixed_polarity``),
-        lines not (see :func:`_mergeable`).
-
-    Returns
-    -------
-    list of ImageFeature
-        In the order of their first segment.
-    """
-    made = {}
-    used = [i for i, s in enumerate(segments) if len(s.fit_index) >= min_fit_points]
-    seg_ideal = _segment_ideal(segments, edges, K, D, used)
-
-    def make_all(requests):
-        # A feature is fixed by its kind and segments: each is made once,
-        # those not made yet together (their ellipse fits batched).
-        todo = list(dict.fromkeys((kind, tuple(ids)) for kind, ids in requests if (kind, tuple(ids)) not in made))
-        for key, f in zip(todo, _make_features([(kind, list(ids)) for kind, ids in todo], segments, edges,
-                                               seg_ideal)):
-            made[key] = f
-        return [made[(kind, tuple(ids))] for kind, ids in requests]
-
-    feats = make_all([(segments[i].kind, [i]) for i in used])
-    if not merge:
-        return [_with_covariance(f, edges.sigma) for f in feats]
-    tried = {}
-
-    rms = {}
-
-    def feature_rms(f):
-        key = (f.kind, f.segments)
-        if key not in rms:
-            rms[key] = _rms(f)
-        return rms[key]
-
-    def pair_key(a, b):
-        return (a.kind, a.segments, b.segments)
-
-    def try_pairs(pairs):
-        # A pair's test and union need computing once, not in every round;
-        # the unions of one round are made together.
-        new = [(a, b) for a, b in pairs if pair_key(a, b) not in tried]
-        union = []
-        limits = {}
-        for a, b in new:
-            if a.kind != b.kind:
-                tried[pair_key(a, b)] = None
-                continue
-            limit = merge_ratio * max(feature_rms(a), feature_rms(b))
-            limit = max(limit, max_misfit) if a.kind == "arc" else limit
-            if _mergeable(a, b, max_angle, max_offset, max_axis_ratio, limit):
-                union.append((a, b))
-                limits[pair_key(a, b)] = limit
-            else:
-                tried[pair_key(a, b)] = None
-        for (a, b), u in zip(union, make_all([(a.kind, a.segments + b.segments) for a, b in union])):
-            tried[pair_key(a, b)] = (feature_rms(u), limits[pair_key(a, b)], u, _kept(a, u), _kept(b, u))
-
-    # The union's RMS is pooled: a short stretch of another edge, or a
-    # displaced stretch of this one (a rim beside a second edge closer than
-    # the filter resolves), barely raises it, and the outlier rejection hides
-    # it further by dropping its points. A union is taken only if it keeps
-    # more than half of the points of each part. An arc most of whose points
-    # the union rejects, while the union fits the other part within the
-    # limit, is an outlier stretch of that rim: it is dropped, as its points
-    # would have been had the two been found as one piece. (On the sample
-    # renders, pieces of one edge lose at most a fifth of their points to
-    # the union, displaced stretches half or more. Lines are only not
-    # merged: a short edge parallel to a long one and within the merge
-    # offset may be an edge of its own, a chamfer's.)
-    changed = True
-    while changed:
-        changed = False
-        best = None
-        outlier = None
-        try_pairs([(feats[i], feats[j]) for i in range(len(feats)) for j in range(i + 1, len(feats))])
-        for i in range(len(feats)):
-            for j in range(i + 1, len(feats)):
-                trial = tried[pair_key(feats[i], feats[j])]
-                if trial is None:
-                    continue
-                ratio, limit, u, kept_i, kept_j = trial
-                if ratio > limit:
-                    continue
-                if kept_i > 0.5 and kept_j > 0.5:
-                    if best is None or ratio < best[0]:
-                        best = (ratio, i, j, u)
-                elif outlier is None and u.kind == "arc" and (kept_i > 0.5 or kept_j > 0.5):
-                    outlier = j if kept_i > 0.5 else i
-        if best is not None:
-            _, i, j, u = best
-            feats = [f for k, f in enumerate(feats) if k not in (i, j)] + [u]
-            feats.sort(key=lambda f: f.segments[0])
-            changed = True
-        elif outlier is not None:
-            feats = [f for k, f in enumerate(feats) if k != outlier]
-            changed = True
-    return [_with_covariance(f, edges.sigma) for f in feats]
-
-
 # -------------------------------------------------------------------- matching
 
 
@@ -894,8 +371,24 @@ def _bands(geo, feats, side):
     return out
 
 
-def _line_angles(geo, feats, side):
-    """Angle (rad, in [0, pi/2]) between each line and the epipolar lines; NaN for arcs."""
+def line_angles(geo, feats, side):
+    """Angle between each line and the epipolar lines, rad, in [0, pi/2]; NaN for arcs.
+
+    Parameters
+    ----------
+    geo : EpipolarGeometry
+    feats : sequence of ImageFeature
+        Features of one image (their line fits in ideal pixels).
+    side : str
+        "left" or "right": the image they are in.
+
+    Returns
+    -------
+    ndarray, shape (len(feats),)
+        Taken at each line's centroid: a line at a small angle is nearly
+        parallel to the epipolar lines, which then fix its position along
+        them, hence its depth, poorly (``MIN_EPIPOLAR_ANGLE``).
+    """
     out = np.full(len(feats), np.nan)
     for k, f in enumerate(feats):
         if f.kind != "line":
@@ -999,7 +492,8 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
     Parameters
     ----------
     left, right : list of ImageFeature
-        From :func:`image_features` of each image.
+        From :func:`partinspect.vision.imagefeatures.image_features` of each
+        image.
     geo : EpipolarGeometry
     min_points : int
         Features with fewer points are reported "too_short".
@@ -1053,33 +547,92 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
     rows and columns of cost ``max_cost / 2`` so that leaving both features
     unmatched is preferred to any pair costing more than ``max_cost``.
     """
-    nl, nr = len(left), len(right)
-    zmin, zmax = depth_range if depth_range is not None else (0.0, np.inf)
-    band_l, band_r = _bands(geo, left, "left"), _bands(geo, right, "right")
-    ang_l, ang_r = _line_angles(geo, left, "left"), _line_angles(geo, right, "right")
-    ratio_l, ratio_r = _axis_ratios(left), _axis_ratios(right)
-    long_l = np.array([len(f) >= min_points for f in left], bool)
-    long_r = np.array([len(f) >= min_points for f in right], bool)
-    # Degenerate (None: usable) or ("degenerate" | "edge_on", detail) per feature.
-    unfit_l = [_unfit(ang_l[k], ratio_l[k], min_angle, min_axis_ratio) for k in range(nl)]
-    unfit_r = [_unfit(ang_r[k], ratio_r[k], min_angle, min_axis_ratio) for k in range(nr)]
-    usable_l = long_l & np.array([u is None for u in unfit_l], bool)
-    usable_r = long_r & np.array([u is None for u in unfit_r], bool)
-    pol_l = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, "left") for f in left]
-    pol_r = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, "right") for f in right]
-    sang_l = [_signed_line_angle(geo, f, "left") if f.kind == "line" else 0.0 for f in left]
-    sang_r = [_signed_line_angle(geo, f, "right") if f.kind == "line" else 0.0 for f in right]
+    depth = depth_range if depth_range is not None else (0.0, np.inf)
+    sl = _side(geo, left, "left", min_points, min_angle, min_axis_ratio)
+    sr = _side(geo, right, "right", min_points, min_angle, min_axis_ratio)
+    c = _candidates(geo, left, right, sl, sr, band_tolerance=band_tolerance, min_overlap=min_overlap,
+                    radius_tolerance=radius_tolerance, angle_tolerance=angle_tolerance, max_cost=max_cost,
+                    depth=depth)
+    matches, ambiguous = _assigned(geo, left, right, c, max_cost, ambiguity_margin)
+    unmatched = (_unmatched("left", left, sl, sr, {m.left for m in matches}, c, ambiguous, min_points)
+                 + _unmatched("right", right, sr, sl, {m.right for m in matches}, c.transposed(), ambiguous,
+                              min_points))
+    return Matching(tuple(matches), tuple(unmatched), c.cost, sl.angle, sr.angle)
 
+
+@dataclass(frozen=True)
+class _Side:
+    """What the matching reads of the features of one image, per feature."""
+
+    band: np.ndarray
+    """(n, 2): lowest and highest band offset, px."""
+    angle: np.ndarray
+    """Lines: angle to the epipolar lines, rad (:func:`line_angles`); NaN for arcs."""
+    long: np.ndarray
+    """Whether it has at least ``min_points`` points."""
+    unfit: list
+    """None, or (reason, detail) for a degenerate line or an edge-on arc (:func:`_unfit`)."""
+    usable: np.ndarray
+    """Long and not unfit: may take part in a pair."""
+    polarity: list
+    """Arcs: their own; lines: of the grey level along the epipolar lines (:func:`_line_polarity`)."""
+    signed_angle: list
+    """Lines: signed angle to the epipolar lines, rad (:func:`_signed_line_angle`); 0 for arcs."""
+
+
+def _side(geo, feats, side, min_points, min_angle, min_axis_ratio):
+    """The :class:`_Side` of the features ``feats`` of image ``side`` ("left" or "right")."""
+    band = _bands(geo, feats, side)
+    angle = line_angles(geo, feats, side)
+    ratio = _axis_ratios(feats)
+    long = np.array([len(f) >= min_points for f in feats], bool)
+    unfit = [_unfit(angle[k], ratio[k], min_angle, min_axis_ratio) for k in range(len(feats))]
+    usable = long & np.array([u is None for u in unfit], bool)
+    polarity = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, side) for f in feats]
+    signed_angle = [_signed_line_angle(geo, f, side) if f.kind == "line" else 0.0 for f in feats]
+    return _Side(band, angle, long, unfit, usable, polarity, signed_angle)
+
+
+@dataclass(frozen=True)
+class _Candidates:
+    """The candidate pairs, (n_left, n_right) matrices."""
+
+    cost: np.ndarray
+    """Matching cost; inf where not a candidate or above ``max_cost``."""
+    iou: np.ndarray
+    """Intersection over union of the widened bands (0 where they do not meet)."""
+    shape: np.ndarray
+    """Shape part of the cost; inf where not evaluated."""
+    in_band: np.ndarray
+    """Bands overlapping by ``min_overlap`` at least."""
+    same_kind: np.ndarray
+    """In band and of one kind."""
+    blocked: np.ndarray
+    """In band, of one kind and polarity, but one of them degenerate or edge-on: would-be partners."""
+
+    def transposed(self):
+        """The same with the right image's features as rows."""
+        return _Candidates(self.cost.T, self.iou.T, self.shape.T, self.in_band.T, self.same_kind.T, self.blocked.T)
+
+
+def _candidates(geo, left, right, sl, sr, *, band_tolerance, min_overlap, radius_tolerance, angle_tolerance,
+                max_cost, depth):
+    """Every pair's band overlap and shape cost (see :func:`match_features`' notes).
+
+    ``sl`` and ``sr`` are the :class:`_Side` of the left and right
+    features; ``depth`` is (zmin, zmax), mm.
+    """
+    nl, nr = len(left), len(right)
     cost = np.full((nl, nr), np.inf)
     iou = np.zeros((nl, nr))
     shape = np.full((nl, nr), np.inf)
     in_band = np.zeros((nl, nr), bool)
-    same_kind_in_band = np.zeros((nl, nr), bool)
-    blocked = np.zeros((nl, nr), bool)  # would-be partners, one of them degenerate or edge-on
-    for i in np.flatnonzero(long_l):
-        lo_i, hi_i = band_l[i, 0] - band_tolerance, band_l[i, 1] + band_tolerance
-        for j in np.flatnonzero(long_r):
-            lo_j, hi_j = band_r[j, 0] - band_tolerance, band_r[j, 1] + band_tolerance
+    same_kind = np.zeros((nl, nr), bool)
+    blocked = np.zeros((nl, nr), bool)
+    for i in np.flatnonzero(sl.long):
+        lo_i, hi_i = sl.band[i, 0] - band_tolerance, sl.band[i, 1] + band_tolerance
+        for j in np.flatnonzero(sr.long):
+            lo_j, hi_j = sr.band[j, 0] - band_tolerance, sr.band[j, 1] + band_tolerance
             inter = min(hi_i, hi_j) - max(lo_i, lo_j)
             if inter <= 0:
                 continue
@@ -1090,30 +643,61 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
             fl, fr = left[i], right[j]
             if fl.kind != fr.kind:
                 continue
-            same_kind_in_band[i, j] = True
-            if pol_l[i] != pol_r[j] and not (fl.mixed_polarity or fr.mixed_polarity):
+            same_kind[i, j] = True
+            if sl.polarity[i] != sr.polarity[j] and not (fl.mixed_polarity or fr.mixed_polarity):
                 continue
-            if not (usable_l[i] and usable_r[j]):
+            if not (sl.usable[i] and sr.usable[j]):
                 blocked[i, j] = True
                 continue
-            if fl.kind == "arc":
-                _, (rl, rr), (zl, zr) = arc_circle(geo, fl, fr)
-                if not (zmin < zl < zmax and zmin < zr < zmax) or rl <= 0 or rr <= 0:
-                    continue
-                s = abs(np.log(rl / rr)) / _radius_scale(fl, fr, radius_tolerance)
-            else:
-                zl, zr = _line_middle_depth(geo, fl, fr, max(lo_i, lo_j), min(hi_i, hi_j))
-                if not (zmin < zl < zmax and zmin < zr < zmax):
-                    continue
-                # Line angles are defined modulo pi.
-                s = abs((sang_l[i] - sang_r[j] + 0.5 * np.pi) % np.pi - 0.5 * np.pi) / angle_tolerance
+            s = _shape_cost(geo, fl, fr, sl.signed_angle[i], sr.signed_angle[j], max(lo_i, lo_j),
+                            min(hi_i, hi_j), depth, radius_tolerance, angle_tolerance)
+            if s is None:
+                continue
             shape[i, j] = s
             c = (1.0 - iou[i, j]) + s
             if c <= max_cost:
                 cost[i, j] = c
+    return _Candidates(cost, iou, shape, in_band, same_kind, blocked)
 
+
+def _shape_cost(geo, fl, fr, angle_l, angle_r, lo, hi, depth, radius_tolerance, angle_tolerance):
+    """The shape disagreement of two features of one kind, or None if their triangulation is out of ``depth``.
+
+    Arcs: ``|log(r_left / r_right)|`` of the 3D radii each view shows
+    (:func:`arc_circle`) over :func:`_radius_scale`; lines: the difference
+    of their signed angles to the epipolar lines (``angle_l``,
+    ``angle_r``, rad, modulo pi) over ``angle_tolerance``, triangulated at
+    the middle of the bands' overlap (``lo``, ``hi``, px). ``depth`` is
+    (zmin, zmax), mm, open at both ends.
+    """
+    zmin, zmax = depth
+    if fl.kind == "arc":
+        _, (rl, rr), (zl, zr) = arc_circle(geo, fl, fr)
+        if not (zmin < zl < zmax and zmin < zr < zmax) or rl <= 0 or rr <= 0:
+            return None
+        return abs(np.log(rl / rr)) / _radius_scale(fl, fr, radius_tolerance)
+    zl, zr = _line_middle_depth(geo, fl, fr, lo, hi)
+    if not (zmin < zl < zmax and zmin < zr < zmax):
+        return None
+    # Line angles are defined modulo pi.
+    return abs((angle_l - angle_r + 0.5 * np.pi) % np.pi - 0.5 * np.pi) / angle_tolerance
+
+
+def _assigned(geo, left, right, c, max_cost, ambiguity_margin):
+    """The optimal one-to-one assignment less its ambiguous pairs.
+
+    Returns
+    -------
+    matches : list of Match
+    ambiguous : dict
+        ("left" | "right", index) -> the detail of a pair left out as
+        ambiguous: its best alternative assignment costs less than
+        ``ambiguity_margin`` more and breaks the ordering constraint no
+        more often (:func:`_order_violations`).
+    """
+    cost = c.cost
     pairs, total = _assign(cost, max_cost)
-    matches, taken_l, taken_r, ambiguous = [], set(), set(), {}
+    matches, ambiguous = [], {}
     for i, j in pairs:
         forbidden = cost.copy()
         forbidden[i, j] = np.inf
@@ -1127,44 +711,47 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
                 + ", ".join(f"left {a} / right {b} (cost {cost[a, b]:.2f})" for a, b in rivals)
             )
             continue
-        matches.append(Match(int(i), int(j), float(cost[i, j]), float(iou[i, j]), float(shape[i, j]), float(margin)))
-        taken_l.add(i)
-        taken_r.add(j)
+        matches.append(Match(int(i), int(j), float(cost[i, j]), float(c.iou[i, j]), float(c.shape[i, j]),
+                             float(margin)))
+    return matches, ambiguous
 
-    unmatched = []
-    for side, other, feats, unfit, unfit_other, angles, taken, band_mask in (
-        ("left", "right", left, unfit_l, unfit_r, ang_l, taken_l, (in_band, same_kind_in_band, cost, blocked)),
-        ("right", "left", right, unfit_r, unfit_l, ang_r, taken_r, (in_band.T, same_kind_in_band.T, cost.T, blocked.T)),
-    ):
-        inb, same, cst, blk = band_mask
-        for k, f in enumerate(feats):
-            if k in taken:
-                continue
-            ang = float(angles[k])
-            partners = [o for o in np.flatnonzero(blk[k]) if unfit_other[o] is not None]
-            if len(f) < min_points:
-                unmatched.append(Unmatched(side, k, "too_short", f"{len(f)} points < {min_points}", ang))
-            elif unfit[k] is not None:
-                unmatched.append(Unmatched(side, k, unfit[k][0], unfit[k][1], ang))
-            elif partners and not np.isfinite(cst[k]).any():
-                o = partners[0]
-                unmatched.append(Unmatched(side, k, unfit_other[o][0],
-                                           f"its counterpart in the {other} image (feature {int(o)}): "
-                                           + unfit_other[o][1], ang))
-            elif (side, k) in ambiguous:
-                unmatched.append(Unmatched(side, k, "ambiguous", ambiguous[(side, k)], ang))
-            elif not inb[k].any():
-                unmatched.append(Unmatched(side, k, "no_candidate", "", ang))
-            elif not same[k].any():
-                unmatched.append(Unmatched(side, k, "kind_mismatch",
-                                           f"{f.kind} with only other kinds in its band", ang))
-            elif not np.isfinite(cst[k]).any():
-                unmatched.append(Unmatched(side, k, "shape_mismatch", "", ang))
-            else:
-                others = np.flatnonzero(np.isfinite(cst[k]))
-                unmatched.append(Unmatched(side, k, "outcompeted",
-                                           "candidates " + ", ".join(str(int(o)) for o in others), ang))
-    return Matching(tuple(matches), tuple(unmatched), cost, ang_l, ang_r)
+
+def _unmatched(side, feats, mine, theirs, taken, c, ambiguous, min_points):
+    """The features of image ``side`` left without a partner, each with its reason.
+
+    ``mine`` and ``theirs`` are the :class:`_Side` of this image and the
+    other; ``c`` the :class:`_Candidates` with this image's features as
+    rows; ``taken`` the indices matched.
+    """
+    other = "right" if side == "left" else "left"
+    out = []
+    for k, f in enumerate(feats):
+        if k in taken:
+            continue
+        ang = float(mine.angle[k])
+        partners = [o for o in np.flatnonzero(c.blocked[k]) if theirs.unfit[o] is not None]
+        if len(f) < min_points:
+            out.append(Unmatched(side, k, "too_short", f"{len(f)} points < {min_points}", ang))
+        elif mine.unfit[k] is not None:
+            out.append(Unmatched(side, k, mine.unfit[k][0], mine.unfit[k][1], ang))
+        elif partners and not np.isfinite(c.cost[k]).any():
+            o = partners[0]
+            out.append(Unmatched(side, k, theirs.unfit[o][0],
+                                 f"its counterpart in the {other} image (feature {int(o)}): " + theirs.unfit[o][1],
+                                 ang))
+        elif (side, k) in ambiguous:
+            out.append(Unmatched(side, k, "ambiguous", ambiguous[(side, k)], ang))
+        elif not c.in_band[k].any():
+            out.append(Unmatched(side, k, "no_candidate", "", ang))
+        elif not c.same_kind[k].any():
+            out.append(Unmatched(side, k, "kind_mismatch", f"{f.kind} with only other kinds in its band", ang))
+        elif not np.isfinite(c.cost[k]).any():
+            out.append(Unmatched(side, k, "shape_mismatch", "", ang))
+        else:
+            others = np.flatnonzero(np.isfinite(c.cost[k]))
+            out.append(Unmatched(side, k, "outcompeted", "candidates " + ", ".join(str(int(o)) for o in others),
+                                 ang))
+    return out
 
 
 def _unfit(angle, ratio, min_angle, min_axis_ratio):

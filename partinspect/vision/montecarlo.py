@@ -28,8 +28,8 @@ import numpy as np
 
 from partinspect.vision.fit3d import fit_circle_3d, fit_line_3d
 from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
-from partinspect.vision.stereo import (calibration_parameters, correction_corr_length, coupled_noise, feature_views,
-                                       perturbed_calibration)
+from partinspect.vision.calibration_uncertainty import calibration_parameters, perturbed_calibration
+from partinspect.vision.stereo import correction_corr_length, coupled_noise, feature_views
 
 __all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors", "with_monte_carlo_covariances"]
 

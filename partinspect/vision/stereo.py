@@ -12,14 +12,10 @@ Uncertainty (GUM, JCGM 100): each 3D feature's covariance is the
 first-order propagation of the edge points' covariances (sandwich form, the
 along-edge correlation of smoothed noise included). When the calibration
 carries standard uncertainties of its parameters (``calib.std``), their
-contribution is added: the sensitivity of the 3D parameters to each
-calibration parameter is obtained numerically (central differences of
-+-1 standard deviation: the edge points are re-mapped to ideal pixels with
-the perturbed intrinsics and distortion, the cameras rebuilt, and one
-Gauss-Newton step of the 3D fit taken from its solution, which is the
-first-order response), calibration parameters taken as uncorrelated. These
-parts, and the systematic one below, are kept separately in each
-:class:`Feature3D`.
+contribution is added (:mod:`partinspect.vision.calibration_uncertainty`:
+numerical sensitivities of the two-view fit, calibration parameters taken
+as uncorrelated). These parts, and the systematic one below, are kept
+separately in each :class:`Feature3D`.
 
 Rims of holes (circles and arcs). Two systematic displacements of the edge
 points across a curved edge are handled before the 3D fit (numbers from the
@@ -93,6 +89,7 @@ References
 """
 
 from dataclasses import dataclass, fields, replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -105,17 +102,17 @@ from partinspect.vision.edges import (BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FA
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.frames import orthonormal_frame, plane_basis
-from partinspect.vision.fit3d import (View, _circle_residuals, _line_residuals, circle_consistency,
-                                      fit_circle_3d, fit_line_3d)
+from partinspect.vision.calibration_uncertainty import calibration_covariance, calibration_parameters
+from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d, minimal_residuals
 from partinspect.vision.ideal import camera_matrices, to_ideal
-from partinspect.vision.matching import (MAX_OUTLIER_FRACTION, ImageFeature, arc_circle, chauvenet_z, epipolar_geometry,
-                                         image_features, match_features)
+from partinspect.vision.imagefeatures import MAX_OUTLIER_FRACTION, ImageFeature, chauvenet_z, image_features
+from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
            "feature_views", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
            "as_fitted",
-           "corrected_correspondences", "fit_feature", "calibration_covariance", "calibration_parameters"]
+           "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
 # Points of arcs: the corrections and the Type B component of the module
 # notes, "Rims of holes" (the numbers there).
@@ -343,7 +340,7 @@ class StereoResult:
 
 @dataclass(frozen=True)
 class EdgeFeature(ImageFeature):
-    """An :class:`~partinspect.vision.matching.ImageFeature` with what the 3D fit needs of its edge points.
+    """An :class:`~partinspect.vision.imagefeatures.ImageFeature` with what the 3D fit needs of its edge points.
 
     Attributes
     ----------
@@ -658,120 +655,6 @@ def _angular_extent(points, center, normal):
     return float(start), float(start + extent), float(extent)
 
 
-# ------------------------------------------------------ calibration uncertainty
-
-
-def calibration_parameters(calib):
-    """Names, values and standard uncertainties of the calibration parameters with std > 0.
-
-    Returns
-    -------
-    list of (str, int, float)
-        ``(group, index, std)``: group "intrinsics1", "intrinsics2" or
-        "extrinsics", index in OpenCV's order (fx, fy, cx, cy, D...; rx, ry,
-        rz, tx, ty, tz).
-    """
-    out = []
-    for group in ("intrinsics1", "intrinsics2", "extrinsics"):
-        std = np.asarray(calib.std.get(group, ()), float).ravel()
-        for k, s in enumerate(std):
-            if s > 0:
-                out.append((group, k, float(s)))
-    return out
-
-
-def perturbed_calibration(calib, deltas):
-    """A copy of ``calib`` with parameters shifted: ``deltas`` maps (group, index) -> shift."""
-    K1, D1, K2, D2 = (np.array(a, float) for a in (calib.K1, calib.D1, calib.K2, calib.D2))
-    R, T = np.array(calib.R, float), np.array(calib.T, float).ravel()
-    rvec = cv2.Rodrigues(R)[0].ravel()
-    for (group, k), d in deltas.items():
-        if group == "extrinsics":
-            if k < 3:
-                rvec[k] += d
-            else:
-                T[k - 3] += d
-            continue
-        K, D = (K1, D1) if group == "intrinsics1" else (K2, D2)
-        if k < 4:
-            K[[0, 1, 0, 1][k], [0, 1, 2, 2][k]] += d
-        else:
-            D[k - 4] += d
-    R = cv2.Rodrigues(rvec)[0]
-    return replace(calib, K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T)
-
-
-def _minimal_residuals(fit, kind, views):
-    """Residual function of the fit3d parametrisation centred on the solution, and its map to params."""
-    if kind == "line":
-        d0 = fit.direction
-        e1, e2 = plane_basis(d0).T
-        res = _line_residuals(views, fit.point, d0, e1, e2)
-        theta0 = np.zeros(4)
-        M = np.zeros((6, 4))
-        M[:3, 0], M[:3, 1], M[3:, 2], M[3:, 3] = e1, e2, e1, e2
-    else:
-        n0 = fit.normal
-        e1, e2 = plane_basis(n0).T
-        res = _circle_residuals(views, n0, e1, e2)
-        theta0 = np.r_[fit.center, 0.0, 0.0, fit.radius]
-        M = np.zeros((7, 6))
-        M[:3, :3] = np.eye(3)
-        M[3:6, 3], M[3:6, 4] = e1, e2
-        M[6, 5] = 1.0
-    return res, theta0, M
-
-
-def calibration_covariance(fit, kind, fl, fr, corr_length, calib):
-    """Covariance of a 3D feature's parameters due to the calibration's uncertainty.
-
-    Parameters
-    ----------
-    fit : Line3D or Circle3D
-        The fit with the nominal calibration.
-    kind : str
-        "line" or "arc".
-    fl, fr : ImageFeature
-    corr_length : float
-    calib : StereoCalibration
-        With ``std``.
-
-    Returns
-    -------
-    ndarray, shape (6, 6) or (7, 7)
-        Of (point, direction) or (center, normal, radius); zeros when the
-        calibration has no standard uncertainties.
-
-    Notes
-    -----
-    For each parameter p_k with standard uncertainty u_k the fit's
-    minimal parameters respond, to first order, by one Gauss-Newton step
-    from the solution: ``d theta = -(J^T J)^-1 J^T d r`` with ``d r`` the
-    change of the weighted residuals when p_k moves; central differences at
-    +-u_k give ``c_k u_k`` directly, and ``sum_k (c_k u_k)(c_k u_k)^T`` is
-    the law of propagation for uncorrelated inputs (JCGM 100, 5.1.2).
-    """
-    params = calibration_parameters(calib)
-    views0 = feature_views(fl, fr, corr_length, calib)
-    res0, theta0, M = _minimal_residuals(fit, kind, views0)
-    n = M.shape[0]
-    if not params:
-        return np.zeros((n, n))
-    h = 1e-6 * np.maximum(1.0, np.abs(theta0))
-    J = np.stack([(res0(theta0 + e) - res0(theta0 - e)) / (2 * s) for e, s in zip(np.diag(h), h)], 1)
-    pinv = np.linalg.pinv(J)
-    cols = []
-    for group, k, s in params:
-        r = []
-        for sign in (1.0, -1.0):
-            cal = perturbed_calibration(calib, {(group, k): sign * s})
-            res, _, _ = _minimal_residuals(fit, kind, feature_views(fl, fr, corr_length, cal, remap=True))
-            r.append(res(theta0))
-        cols.append(-pinv @ (0.5 * (r[0] - r[1])))
-    G = M @ np.stack(cols, 1)
-    return G @ G.T
-
-
 # ------------------------------------------------------------------ the chain
 
 
@@ -789,7 +672,7 @@ def _image_param_cov(fit, kind):
         C[:3, 3:] = E @ fit.param_cov[:2, 2:] @ E.T
         C[3:, :3] = C[:3, 3:].T
         return C, np.zeros((6, 6))
-    _, _, M = _minimal_residuals(fit, kind, [])
+    _, _, M = minimal_residuals(fit, kind, [])
     sys = np.zeros_like(fit.param_cov) if fit.param_cov_systematic is None else fit.param_cov_systematic
     return M @ (fit.param_cov - sys) @ M.T, M @ sys @ M.T
 
@@ -894,11 +777,40 @@ def _point_errors(fl, corr, view):
         systematic = (len(comps),)
         comps.append((view.bias, view.bias_corr_length))
     # The left feature's fit rejected its points beyond Chauvenet's threshold
-    # (matching._make_features): the form's simulation cuts its tails there too.
+    # (imagefeatures._make_features): the form's simulation cuts its tails there too.
     return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)))
 
 
-def _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
+def make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
+    """The :class:`Feature3D` record of a matched pair's two-view fit.
+
+    Parameters
+    ----------
+    match : Match
+        Its ``left`` and ``right`` indices are recorded.
+    fl, fr : EdgeFeature
+        The left and right image features.
+    fit : Line3D or Circle3D
+        Their two-view fit.
+    corr : Correspondences
+        Their triangulated points (the form is judged on them).
+    cal_cov : ndarray, shape (6, 6) or (7, 7)
+        The calibration's part of the parameters' covariance
+        (:func:`partinspect.vision.calibration_uncertainty.calibration_covariance`;
+        zeros without it).
+    geo : EpipolarGeometry
+    view : View
+        The left view of the fit (:func:`feature_views`): the points'
+        random and systematic parts for their error model.
+
+    Returns
+    -------
+    Feature3D
+        The covariance is the fit's image-noise and systematic parts plus
+        ``cal_cov``, each also kept apart. A circle or arc is a "circle"
+        when the edge points of either image, back-projected onto its
+        plane, cover at least 300 degrees of it.
+    """
     kind = fl.kind
     img_cov, sys_cov = _image_param_cov(fit, kind)
     total = img_cov + cal_cov + sys_cov
@@ -933,9 +845,10 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         The images as recorded (distorted), grey levels.
     calib : StereoCalibration
         With optional ``std`` (standard uncertainties of the intrinsics and
-        extrinsics), which are then propagated into every 3D feature (see
-        the module notes: numerical sensitivities, one Gauss-Newton step of
-        the two-view fit per calibration parameter and sign).
+        extrinsics), which are then propagated into every 3D feature
+        (:mod:`partinspect.vision.calibration_uncertainty`: numerical
+        sensitivities, one Gauss-Newton step of the two-view fit per
+        calibration parameter and sign).
     sigma : float
         Scale of the edge filter, px (the paper's sigma = 1 to start).
     progress : callable, optional
@@ -1022,6 +935,8 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
-    cal_cov = calibration_covariance(fit, fl.kind, fl, fr, corr_length, calib) if calibration_parameters(calib) \
-        else np.zeros((6, 6) if fl.kind == "line" else (7, 7))
-    return _make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, views[0]), None
+    if calibration_parameters(calib):
+        cal_cov = calibration_covariance(fit, fl.kind, partial(feature_views, fl, fr, corr_length), calib)
+    else:
+        cal_cov = np.zeros((6, 6) if fl.kind == "line" else (7, 7))
+    return make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, views[0]), None

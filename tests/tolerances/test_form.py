@@ -192,7 +192,7 @@ def test_the_zones_spread_is_that_of_points_that_passed_the_outlier_test():
     # points), so a measured zone never sees the Gaussian tails beyond it; a
     # zone is a maximum, set by those tails. With the cut simulated, u is
     # the spread of such zones; with the tails kept it was some 20 % larger.
-    from partinspect.vision.matching import chauvenet_z
+    from partinspect.vision.imagefeatures import chauvenet_z
 
     n = 500
     line = np.c_[np.linspace(0, 50, n), np.zeros(n), np.full(n, 300.0)]
@@ -212,7 +212,7 @@ def test_the_zones_spread_is_that_of_points_that_passed_the_outlier_test():
 
 
 def test_a_rims_zone_is_cut_the_same_way():
-    from partinspect.vision.matching import chauvenet_z
+    from partinspect.vision.imagefeatures import chauvenet_z
 
     n = 150
     ring, th = _ring(n)

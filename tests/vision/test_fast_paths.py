@@ -9,16 +9,15 @@ from partinspect.vision.correspondences import intersect_ellipse, intersect_line
 from partinspect.frames import plane_basis
 from partinspect.vision.fit3d import circle_image_conic
 from partinspect.vision.fitting import (
-    _ellipse_with_covariance,
-    _EllipseJob,
-    _fit_ellipses,
-    _fit_line,
+    EllipseJob,
     _line_tls,
-    _line_with_covariance,
     _pinv_sym,
     ellipse_points,
+    ellipse_with_covariance,
     fit_ellipse,
+    fit_ellipses,
     fit_line,
+    line_with_covariance,
 )
 from partinspect.vision.stereo import smoothed_background
 
@@ -91,18 +90,18 @@ def test_fits_without_covariance_completed_are_the_full_fits():
     xy = np.c_[10 + 0.6 * t, 5 - 0.8 * t] + rng.normal(0, 0.05, (120, 2))
     cov = np.broadcast_to(0.0025 * np.eye(2), (120, 2, 2)) + np.diag([1e-4, 0.0])
     full = fit_line(xy, cov, corr_length=1.0)
-    bare = _fit_line(xy, cov, 1.0, False)
+    bare = fit_line(xy, cov, corr_length=1.0, with_cov=False)
     assert bare.cov is None and bare.consistency == full.consistency
-    done = _line_with_covariance(bare, xy, 1.0)
+    done = line_with_covariance(bare, xy, 1.0)
     for name in ("params", "cov", "cov_angle_offset", "ci95", "residuals", "point_std", "centroid"):
         assert np.array_equal(getattr(done, name), getattr(full, name)), name
 
     xy = ellipse_points([400, 300, 80, 50, 0.4], np.linspace(0.3, 4.0, 200)) + rng.normal(0, 0.05, (200, 2))
     cov = np.broadcast_to(0.0025 * np.eye(2), (200, 2, 2))
     full = fit_ellipse(xy, cov, corr_length=1.0)
-    bare, = _fit_ellipses([_EllipseJob(xy, cov, 1.0)], with_cov=False)
+    bare, = fit_ellipses([EllipseJob(xy, cov, 1.0)], with_cov=False)
     assert bare.cov is None and bare.consistency == full.consistency
-    done = _ellipse_with_covariance(bare, xy, 1.0)
+    done = ellipse_with_covariance(bare, xy, 1.0)
     for name in ("params", "cov", "ci95", "residuals", "phases", "point_std"):
         assert np.array_equal(getattr(done, name), getattr(full, name)), name
     # With blur the fits before the last correction have no covariance; the result is the same.

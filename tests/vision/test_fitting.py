@@ -79,10 +79,10 @@ def test_consistency_flags_wrong_model():
 
 
 def test_stacked_ellipse_fits_follow_each_fit_alone():
-    # _fit_ellipses runs several fits in lockstep (padded arrays, their own
+    # fit_ellipses runs several fits in lockstep (padded arrays, their own
     # damping each): every fit must take the path it takes alone, down to
     # its iteration count, including one that does not converge.
-    from partinspect.vision.fitting import _EllipseJob, _fit_ellipses
+    from partinspect.vision.fitting import EllipseJob, fit_ellipses
 
     rng = np.random.default_rng(5)
     jobs = []
@@ -92,11 +92,11 @@ def test_stacked_ellipse_fits_follow_each_fit_alone():
         xy = ellipse_points(P, np.linspace(0.1, 0.1 + span, m)) + rng.normal(0, 0.03, (m, 2))
         s2 = rng.uniform(0.5, 1.5, m) * 0.03 ** 2
         cov = {"full": s2[:, None, None] * np.array([[1.0, 0.2], [0.2, 0.8]]), "normal": s2, "none": None}[cov_kind]
-        jobs.append(_EllipseJob(xy, cov, 1.0))
+        jobs.append(EllipseJob(xy, cov, 1.0))
     alone = [fit_ellipse(j.xy, j.cov, corr_length=j.corr_length, max_iter=10) for j in jobs]
     # Twice over: more than eight fits take the stacked solve, fewer the
     # per-fit one.
-    together = _fit_ellipses(jobs + jobs, max_iter=10)
+    together = fit_ellipses(jobs + jobs, max_iter=10)
     assert not all(f.converged for f in alone)  # the stop at max_iter is exercised
     for a, b in zip(alone + alone, together):
         assert (a.converged, a.iterations) == (b.converged, b.iterations)
@@ -105,11 +105,11 @@ def test_stacked_ellipse_fits_follow_each_fit_alone():
             assert np.allclose(a.cov, b.cov, rtol=1e-6, atol=0)
             assert a.consistency.p_value == pytest.approx(b.consistency.p_value, rel=1e-9)
     # need_converged drops the unconverged fits only.
-    kept = _fit_ellipses(jobs, max_iter=10, need_converged=True)
+    kept = fit_ellipses(jobs, max_iter=10, need_converged=True)
     assert [f is not None for f in kept] == [f.converged for f in alone]
     # With blur (the segment refits), as fit_ellipse with blur alone.
-    blurred = [_EllipseJob(j.xy, j.cov, 1.0, 1.2, a.params) for j, a in zip(jobs, alone) if a.converged]
-    for job, b in zip(blurred, _fit_ellipses(blurred)):
+    blurred = [EllipseJob(j.xy, j.cov, 1.0, 1.2, a.params) for j, a in zip(jobs, alone) if a.converged]
+    for job, b in zip(blurred, fit_ellipses(blurred)):
         a = fit_ellipse(job.xy, job.cov, corr_length=1.0, blur=1.2, start=job.start)
         assert a.iterations == b.iterations and np.allclose(a.params, b.params, rtol=0, atol=1e-7)
         assert np.allclose(a.residuals, b.residuals, rtol=0, atol=1e-7)
@@ -141,7 +141,7 @@ def test_ellipse_fit_is_the_least_squares_minimum():
 
 
 def test_band_and_information_matrices_match_the_loop_over_offsets():
-    from partinspect.vision.fitting import _trR2, information_matrices
+    from partinspect.vision.fitting import information_matrices, trace_r2
 
     rng = np.random.default_rng(7)
     for n, closed, cl in [(2, False, 1.0), (7, True, 1.0), (40, False, 1.0), (40, True, 3.0), (200, False, 0.5),
@@ -164,4 +164,4 @@ def test_band_and_information_matrices_match_the_loop_over_offsets():
         S2, M2, trR2 = information_matrices(h, s, xy, cl)
         assert np.allclose(M2, M, rtol=1e-12, atol=1e-12 * np.abs(M).max())
         assert trR2 == pytest.approx(n + 2 * sum(float(r @ r) for _, r in ref), rel=1e-13)
-        assert _trR2(xy, cl) == trR2
+        assert trace_r2(xy, cl) == trR2

@@ -65,7 +65,7 @@ def test_the_points_error_model_cuts_its_tails_where_the_left_fit_rejected_point
     # A form zone is set by its points' largest errors; the left fit let
     # through only points within Chauvenet's threshold for its count, and
     # the model the form's simulation draws from says so.
-    from partinspect.vision.matching import chauvenet_z
+    from partinspect.vision.imagefeatures import chauvenet_z
 
     rig, res = measured(0)
     for f in res.features:
@@ -369,7 +369,7 @@ def _tip_arc(bump):
     from partinspect.vision.fit3d import View
     from partinspect.vision.fitting import fit_ellipse
     from partinspect.vision.ideal import IdealPoints
-    from partinspect.vision.matching import ImageFeature
+    from partinspect.vision.imagefeatures import ImageFeature
 
     true = np.array([100.0, 80.0, 30.0, 6.5, 0.46])
     xc, yc, a, b, th = true
