@@ -11,7 +11,7 @@ the fitted circles' centres and radii.
 
 Then the same stages on the rendered sample parts (plate and bracket, left
 image of the default pair at noise 2), with the merging of pieces into
-image features (``matching.image_features``) that ``inspect`` runs after
+image features (``imagefeatures.image_features``) that ``inspect`` runs after
 them: the whole 2D chain of one image as it is used.
 
     python3 benchmarks/bench_edges.py [--runs 5] [--no-parts]

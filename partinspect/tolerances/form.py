@@ -296,7 +296,7 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, hel
         can show; the planner's noise-only prediction uses it.
     outlier_z : float, optional
         The measurement's fits reject a point beyond this many standard
-        uncertainties (Chauvenet, :func:`partinspect.vision.matching.chauvenet_z`),
+        uncertainties (Chauvenet, :func:`partinspect.vision.imagefeatures.chauvenet_z`),
         so a simulated point beyond it is left out of that draw's reference
         and zone too: a zone is set by the errors' tails, and keeping tails the
         measurement cuts would overstate its noise-only spread. None: every

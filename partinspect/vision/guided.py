@@ -3,7 +3,7 @@
 Collinear edges of a part (the two lips of a slot in line, the edges of a
 step on either side of a gap) are one straight line in each image. The
 segmentation cannot see where one ends and the next begins, and the merge
-of collinear pieces (:func:`partinspect.vision.matching.image_features`)
+of collinear pieces (:func:`partinspect.vision.imagefeatures.image_features`)
 joins them across the gap, as it must join the pieces of one broken edge.
 Their 3D line then spans both CAD edges and the registration matches it to
 neither (a measured line's ends must lie on the CAD edge). Once the pose is

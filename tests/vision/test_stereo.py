@@ -208,7 +208,7 @@ def test_a_rim_fading_against_its_lit_wall_does_not_bend_its_arc():
     contour ran on for a few points along the wall's shading (0.5-3 px off
     the rim, their uncertainty up to 30 times the rim's), and the short arc's
     ellipse took them in: the 3D centre came out 0.98 mm off, 17 standard
-    uncertainties. Such points are now left out (matching.FADE_RATIO): the
+    uncertainties. Such points are now left out (imagefeatures.FADE_RATIO): the
     rim is then in two short pieces whose fits disagree and is not measured,
     and every hole rim measured is within its 99.9 % ellipsoid."""
     from partinspect.simulate.render import render_radiance, sensor
