@@ -253,7 +253,10 @@ def write_plan(out_dir, result, created=None):
 
     out = prepare_output_dir(out_dir)
     data = plan_to_dict(result)
-    write_text_atomic(out / "plan.json", json.dumps(data, indent=1) + "\n")
-    write_text_atomic(out / "best_pose.json", json.dumps({"part_to_camera": data["best"]["part_to_camera"]}, indent=1) + "\n")
+    # allow_nan=False: a non-finite number is a defect upstream, never written as invalid JSON.
+    plan_json = json.dumps(data, indent=1, allow_nan=False) + "\n"
+    pose_json = json.dumps({"part_to_camera": data["best"]["part_to_camera"]}, indent=1, allow_nan=False) + "\n"
+    write_text_atomic(out / "plan.json", plan_json)
+    write_text_atomic(out / "best_pose.json", pose_json)
     write_text_atomic(out / "plan.html", render_plan_html(result, created))
     return out

@@ -46,7 +46,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from partinspect.tolerances import geometry
-from partinspect.tolerances.form import N_SCENES, circularity, scene_spreads, straightness
+from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
 
 __all__ = [
     "COVERAGE_FACTOR",
@@ -484,7 +484,8 @@ def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_S
     of the points held within a scene (for points without any, the
     sampling distribution of the spread of n values, their tails
     included). None for other characteristics, for a feature not measured,
-    or for points without an error model.
+    for points without an error model, or where the zone cannot be
+    simulated (:class:`~partinspect.tolerances.form.FormSimulationError`).
 
     Returns
     -------
@@ -500,7 +501,10 @@ def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_S
     held, points = _held(rec), _form_points(rec)
     if held is None or points is None:
         return None
-    return scene_spreads(c.type, *points, held, n_images, n_scenes, _rng(seed, c.id), _outlier_z(rec))
+    try:
+        return scene_spreads(c.type, *points, held, n_images, n_scenes, _rng(seed, c.id), _outlier_z(rec))
+    except FormSimulationError:
+        return None  # no range over scenes: the caller judges by chance alone
 
 
 def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC,
@@ -529,8 +533,12 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         points = _form_points(rec[0])
         if points is None:
             return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
-        fr = (straightness if t == "straightness" else circularity)(
-            *points, rng, **_simulation(rec[0], one_scene))
+        try:
+            fr = (straightness if t == "straightness" else circularity)(
+                *points, rng, **_simulation(rec[0], one_scene))
+        except FormSimulationError as e:
+            return _unmeasured(c, f"the {t} of {c.features[0]} has no uncertainty: its noise-only zone cannot be "
+                                  f"simulated ({e})")
         return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
     if t in ("distance", "angle"):
@@ -560,7 +568,11 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         details = {"fitted": value}
         points = _form_points(rec[0])
         if form_fn is not None and points is not None:
-            fr = form_fn(*points, rng, **_simulation(rec[0], one_scene))
+            try:
+                fr = form_fn(*points, rng, **_simulation(rec[0], one_scene))
+            except FormSimulationError as e:
+                return _unmeasured(c, f"the profile of {c.features[0]} has no uncertainty: its form's noise-only "
+                                      f"zone cannot be simulated ({e})")
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
                            n_excluded=fr.n_excluded)

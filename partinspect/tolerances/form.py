@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FormResult", "straightness", "circularity", "scene_spreads", "fit_line_points", "fit_circle_points"]
+__all__ = ["FormResult", "FormSimulationError", "straightness", "circularity", "scene_spreads", "fit_line_points", "fit_circle_points"]
 
 N_DRAWS = 200
 
@@ -142,6 +142,22 @@ def _circle_zone(P):
     return float(rho.max() - rho.min())
 
 
+class FormSimulationError(ValueError):
+    """A form value's noise-only zone could not be simulated; the message says why."""
+
+
+def _enough(w, need):
+    """Raise :class:`FormSimulationError` if a draw keeps fewer than ``need`` points.
+
+    The measurement's own fits would refuse so few points: such a draw
+    has no zone, and a simulation that lost draws would misstate the spread.
+    """
+    few = int((w.sum(1) < need).sum())
+    if few:
+        raise FormSimulationError(f"in {few} of {len(w)} simulated draws the outlier test left fewer than "
+                                  f"{need} points")
+
+
 def _line_zones(Ps, w=None):
     """``_line_zone`` of a stack of point sets (D, M, 3) at once: (D,).
 
@@ -150,6 +166,7 @@ def _line_zones(Ps, w=None):
     """
     if w is None:
         w = np.ones(Ps.shape[:2], bool)
+    _enough(w, 3)
     wf = w.astype(float)
     v = Ps - np.einsum("dm,dmi->di", wf, Ps)[:, None] / wf.sum(1)[:, None, None]
     _, V = np.linalg.eigh(np.einsum("dm,dmi,dmj->dij", wf, v, v))
@@ -162,6 +179,14 @@ def _circle_zones(Ps, w=None):
     """``_circle_zone`` of a stack of point sets (D, M, 3) at once: (D,); ``w`` as in :func:`_line_zones`."""
     if w is None:
         w = np.ones(Ps.shape[:2], bool)
+    _enough(w, 4)
+    try:
+        return _fitted_circle_zones(Ps, w)
+    except np.linalg.LinAlgError as e:
+        raise FormSimulationError(f"a simulated draw's points fix no circle ({e})") from None
+
+
+def _fitted_circle_zones(Ps, w):
     wf = w.astype(float)
     c0 = np.einsum("dm,dmi->di", wf, Ps)[:, None] / wf.sum(1)[:, None, None]
     v = Ps - c0
@@ -260,6 +285,8 @@ def _corrected(kind, P, covs, rng, n_draws, errors, held=None, outlier_z=None):
     P, ideal, e, sd = P[keep], ideal[keep], e[:, keep], sd[keep]
     raw = zone(P)
     sims = zones(ideal + e, _passed(e, ideal, axis, sd, outlier_z))
+    if not (np.isfinite(sims).all() and np.isfinite(raw)):
+        raise FormSimulationError(f"{int((~np.isfinite(sims)).sum())} of {len(sims)} simulated zones are not finite")
     b, s = float(sims.mean()), float(sims.std(ddof=1))
     if held is not None:
         s = float(np.sqrt(np.mean(_scene_spreads(zones, ideal, axis, sd, keep, held, rng, N_PATTERNS, HELD_IMAGES,

@@ -39,6 +39,7 @@ import numpy as np
 from partinspect.vision.edges import CURVATURE_SAMPLING_BIAS
 from partinspect.vision.fitting import ellipse_geometry
 from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE
+from partinspect.vision.psd import covariance_factor
 from partinspect.vision.triangulation import triangulate
 
 __all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred", "ARC_MIN_CROSSING"]
@@ -360,7 +361,12 @@ def correspond(left, right, geo, *, xy=None, min_angle=None, step=1e-4, margin=2
     cov_p = np.asarray(right.fit.cov, float)
     # A near-circle's axis angle is free (infinite variance, zero effect).
     cov_p = np.where(np.isfinite(cov_p), cov_p, 0.0)
+    # Through one PSD factor (see partinspect.vision.psd): a short arc's fit
+    # covariance is too ill-conditioned to propagate as the matrix it is.
+    Lp = covariance_factor(cov_p)
+    cov_p = Lp @ Lp.T
     cov_x = left.ideal.cov[idx]
-    cov = np.einsum("nij,njk,nlk->nil", Jx, cov_x, Jx) + np.einsum("nij,jk,nlk->nil", Jp, cov_p, Jp)
+    JL = np.einsum("nij,jk->nik", Jp, Lp)
+    cov = np.einsum("nij,njk,nlk->nil", Jx, cov_x, Jx) + np.einsum("nik,nlk->nil", JL, JL)
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
     return Correspondences(idx, x, y, X, cov, int(len(keep) - n), Jx, Jp, cov_p)

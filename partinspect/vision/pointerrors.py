@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from partinspect.vision.psd import covariance_factor
+
 __all__ = ["PointErrorModel", "correlated_field", "point_error_model", "short_scale_ratio"]
 
 CHI2_1_MEDIAN = 0.454936423119572
@@ -149,8 +151,20 @@ class PointErrorModel:
         var = sum(np.asarray(std, float) ** 2 for std, _ in self.components) if self.components else 0.0
         C = np.asarray(var)[..., None, None] * np.einsum("ni,nj->nij", J, J)
         if self.common_jacobian is not None and self.common_cov is not None:
-            C = C + np.einsum("nik,kl,njl->nij", self.common_jacobian, self.common_cov, self.common_jacobian)
+            F = self._common_factor()
+            C = C + np.einsum("nik,njk->nij", F, F)
         return C
+
+    def _common_factor(self):
+        """d(points)/d(unit normal deviates) of the common part, shape (N, 3, k), mm.
+
+        The one factor both :meth:`covariances` and the draws use
+        (:func:`partinspect.vision.psd.covariance_factor`): a right fit's
+        covariance can be so ill-conditioned that propagating the matrix
+        itself and drawing from its eigen-decomposition disagree by more
+        than the points' own variance.
+        """
+        return np.einsum("nik,kl->nil", self.common_jacobian, covariance_factor(self.common_cov))
 
     def _draw(self, rng, n_draws, which, common):
         n = len(self.arc_length)
@@ -160,10 +174,8 @@ class PointErrorModel:
             f = correlated_field(self.arc_length, length, rng, n_draws) * std
             out += f[:, :, None] * self.normal_jacobian
         if common and self.common_jacobian is not None and self.common_cov is not None:
-            w, V = np.linalg.eigh(self.common_cov)
-            L = V * np.sqrt(np.clip(w, 0.0, None))
-            dp = rng.standard_normal((n_draws, len(w))) @ L.T
-            out += np.einsum("nik,dk->dni", self.common_jacobian, dp)
+            F = self._common_factor()
+            out += np.einsum("nik,dk->dni", F, rng.standard_normal((n_draws, F.shape[2])))
         return out
 
 

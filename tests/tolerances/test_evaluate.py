@@ -169,3 +169,23 @@ def test_spec_characteristics_and_unmeasured(plate):
     # reproducible: same inputs, same numbers
     again = evaluate(chars, reg, inv)
     assert [e.measured for e in again] == [e.measured for e in ev]
+
+
+def test_a_form_value_that_cannot_be_simulated_is_inconclusive_with_its_reason(plate, monkeypatch):
+    """Never a crash, never a pass: the characteristic is left unmeasured, so its decision is inconclusive."""
+    from partinspect.tolerances import evaluate as E
+    from partinspect.tolerances.decision import decide
+    from partinspect.tolerances.form import FormSimulationError
+
+    inv, T, ids = plate
+    m = measure_features(inv, T, ids, np.random.default_rng(0), n_points=60)
+    reg = register(m.circles, m.lines, inv, pose_hint=T)
+
+    def fails(*args, **kwargs):
+        raise FormSimulationError("in 3 of 200 simulated draws the outlier test left fewer than 4 points")
+
+    monkeypatch.setattr(E, "circularity", fails)
+    ev = evaluate([C("k", "circularity", ["circle-4"])], reg, inv)[0]
+    assert ev.measured is None and ev.standard_uncertainty is None
+    assert "cannot be simulated" in ev.reason and "fewer than 4 points" in ev.reason
+    assert decide(ev).decision == "inconclusive"

@@ -227,3 +227,23 @@ def test_a_rims_zone_is_cut_the_same_way():
     full = circularity(P, covs, np.random.default_rng(0), n_draws=2000)
     assert cut.u == pytest.approx(seen, rel=0.06)
     assert full.u > 1.08 * seen
+
+
+def test_a_zone_that_cannot_be_simulated_says_why_instead_of_crashing():
+    """Draws whose outlier test leaves too few points have no zone (the measurement's
+    fits would refuse them): the form value raises FormSimulationError, not a
+    LinAlgError from a singular fit or a NaN zone."""
+    t = np.linspace(0.0, 0.5, 12)
+    P = np.c_[5 * np.cos(t), 5 * np.sin(t), np.zeros_like(t)]
+    covs = np.repeat((1e-6 * np.eye(3))[None], len(P), axis=0)
+
+    def wild(rng, n_draws):  # errors a hundred times what the covariances say, in every other draw
+        e = rng.standard_normal((n_draws, len(P), 3)) * 1e-3
+        e[::2] *= 100.0
+        return e
+
+    with pytest.raises(form.FormSimulationError, match="left fewer than"):
+        circularity(P, covs, np.random.default_rng(0), errors=wild, outlier_z=3.0)
+    with pytest.raises(form.FormSimulationError, match="left fewer than"):
+        straightness(np.c_[t, np.zeros_like(t), np.zeros_like(t)], covs, np.random.default_rng(0), errors=wild,
+                     outlier_z=3.0)
