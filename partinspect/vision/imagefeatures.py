@@ -568,11 +568,9 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         alone would refuse. Lines get the ratio test only: two straight
         edges meeting at a shallow angle differ by a few hundredths of a
         pixel over a long stretch, which would pass ``max_misfit`` and bend
-        the merged line out of straightness. The union must also
-        keep more than half of each part's points (see
-        :func:`_merge_once`); an arc it mostly rejects is dropped as an outlier stretch.
-        Arcs of opposite polarity are merged (``ImageFeature.mixed_polarity``),
-        lines not (see :func:`_mergeable`).
+        the merged line out of straightness. The union must also keep more
+        than half of each part's points (:func:`_merge_once`); arcs of
+        opposite polarity are tried, lines not (:func:`_mergeable`).
 
     Returns
     -------

@@ -493,8 +493,9 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
     max_cost : float
         Pairs costing more are rejected.
     ambiguity_margin : float
-        A match whose best alternative assignment costs less than this more
-        is "ambiguous" and not kept.
+        A match whose best alternative assignment costs less than this more,
+        and breaks the ordering constraint (matched lines keep their order
+        along the epipolar lines) no more often, is "ambiguous" and not kept.
     depth_range : (float, float), optional
         Plausible depths of the scene, mm; default only "in front of both
         cameras".
@@ -505,15 +506,9 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
 
     Notes
     -----
-    A degenerate or edge-on feature takes part in no pair. A feature left
-    unmatched whose band holds such a feature of its kind and polarity (the
-    partner it would have had) is given the same reason, naming it.
-
-    A match whose best alternative is within ``ambiguity_margin`` is kept
-    only when the alternative breaks the ordering constraint more often
-    (matched lines keep their order along the epipolar lines).
-
-    The cost of a candidate pair is ``(1 - IoU of the bands) + shape cost``;
+    A degenerate or edge-on feature takes part in no pair; a feature left
+    unmatched whose band holds such a feature of its kind and polarity is
+    given that feature's reason, naming it. The cost of a candidate pair is ``(1 - IoU of the bands) + shape cost``;
     polarity disagreement (unless either feature is of mixed polarity), a
     kind mismatch or a triangulated point outside the depth range exclude
     the pair. Dummy rows and columns of cost ``max_cost / 2`` make leaving
