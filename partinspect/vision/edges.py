@@ -85,11 +85,12 @@ position's."""
 EDGE_BIAS_FACTOR = 0.75
 """Standard uncertainty of what remains of a point's displacement by the
 shading beside it after the correction, in units of its (averaged)
-``EdgePoints.background_bound``: the Type B of rim points in the 3D fits
-(:mod:`partinspect.vision.stereo`, the bound averaged along the edge) and,
-with the bound as read at each point, in the segmentation's test of the
-whole of a closed contour and of two arcs together
-(:mod:`partinspect.vision.contours`)."""
+``EdgePoints.background_bound``: about two thirds of the remaining
+displacements lie within it, as within a standard uncertainty. The Type B
+of rim points in the 3D fits (:mod:`partinspect.vision.stereo`, the bound
+averaged along the edge) and, with the bound as read at each point, in the
+segmentation's test of the whole of a closed contour and of two arcs
+together (:mod:`partinspect.vision.contours`)."""
 # px: wider profiles are not step edges (a plateau of the gradient magnitude
 # on a shading ramp steeper than the thresholds); optical blur of a usable
 # image keeps step edges well below it.
@@ -397,13 +398,11 @@ def background_gradients(gx, gy, xy, normal, strength, width, grad_noise=0.0, di
         px. Its standard deviation from image noise is
         ``W^2 sqrt(BACKGROUND_NOISE) grad_noise / h``.
     bound : ndarray, shape (N,)
-        ``W^2 |g_b - g_d| / h``, px, with the expected contribution of the
-        image noise removed in quadrature. Background structure the linear
-        model does not describe (a slope that steepens towards the edge, as
-        on a surface seen near grazing incidence; a gradient along the
-        edge) displaces points by amounts of this order; a background
-        common to both sides (one shaded face, the step's own tail) does
-        not count.
+        ``W^2 |g_b - g_d| / h``, px, less the image noise's expected part
+        in quadrature: the order of what the linear model misses (a slope
+        steepening towards the edge, as on a surface seen near grazing
+        incidence; a gradient along the edge). A background common to both
+        sides (one shaded face, the step's own tail) does not count.
     """
     n = len(xy)
     if n == 0:

@@ -16,24 +16,21 @@ part when ``calib.std`` is given
 uncorrelated), plus the Type B part of rims below; :class:`Feature3D`
 keeps the three apart.
 
-Rims of holes (circles and arcs). Two systematic displacements of the edge
-points across a curved edge are handled before the 3D fit
-(:func:`feature_views`). The detector's curvature bias, an error of ours,
-is removed (:func:`partinspect.vision.correspondences.deblurred`). The
-shaded inner wall beside a rim, which a real camera sees too, moves the
-points beyond their noise; as GUM asks for a recognised systematic effect,
-it is corrected as far as it is known (``BACKGROUND_CORRECTION`` times the
+Rims of holes (circles and arcs). Before the 3D fit (:func:`feature_views`)
+the detector's curvature bias, an error of ours, is removed
+(:func:`partinspect.vision.correspondences.deblurred`), and so is, as far
+as it is known, the displacement by the shaded inner wall beside the rim,
+which a real camera sees too (``BACKGROUND_CORRECTION`` times the
 first-order shift read beside each point,
-:func:`partinspect.vision.edges.background_gradients`) and the rest is a
-Type B standard uncertainty per point (JCGM 100, 4.3.1:
-``EDGE_BIAS_FACTOR`` times the shading's bound, ``EDGE_BIAS_FLOOR`` in
-quadrature), correlated along the rim over ``EDGE_BIAS_CORR_ANGLE``
-(neighbouring points are displaced alike). The fit weights each point by
-its random and systematic variance together and propagates both. The
-correction's own noise is a random component, correlated over
-:func:`correction_corr_length`, which the Monte Carlo
-(:mod:`partinspect.vision.montecarlo`) draws; the Type B part it does not.
-Lines are not corrected: an edge between two planar faces under a
+:func:`partinspect.vision.edges.background_gradients`). As GUM asks for a
+recognised systematic effect, the rest is a Type B standard uncertainty
+per point (JCGM 100, 4.3.1: ``EDGE_BIAS_FACTOR`` times the shading's bound,
+``EDGE_BIAS_FLOOR`` in quadrature), correlated along the rim over
+``EDGE_BIAS_CORR_ANGLE`` (neighbouring points are displaced alike); the
+fit weights and propagates it with the random part. The correction's own
+noise is random, correlated over :func:`correction_corr_length`, and drawn
+by the Monte Carlo (:mod:`partinspect.vision.montecarlo`); the Type B part
+is not. Lines are not corrected: an edge between two planar faces under a
 directional light has uniform grey on both sides.
 
 Frames: 2D points in distorted pixels as detected, or ideal pixels where
