@@ -83,8 +83,8 @@ _SIGMA_TOL_REFIT = 1e-3
 # deviation of the edge's whole blur, filter and optics, EdgePoints.width) to
 # another edge are left out of its fit (_crowded). A parallel step at
 # distance d displaces an edge point by up to about d exp(-d^2 / 2 w^2) times
-# the ratio of the two contrasts: 0.3 px at 2 w, 0.04 px at 3 w, where it is
-# below a point's noise.
+# the ratio of the two contrasts: 0.3 px at 2 w, 0.04 px at 3 w, no more
+# than a point's noise.
 CLEARANCE = 3.0
 
 # A line piece's own end point this many of its standard uncertainties off
