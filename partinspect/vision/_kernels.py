@@ -15,8 +15,9 @@ call overhead (a few hundred calls an iteration of the ellipse fit). The
 algorithms and their notation are documented in those functions; this
 module only carries them out, as loops over the points.
 
-Imported where the fits run (Numba takes about 0.3 s to import, and the
-first call compiles, or loads the compiled code cached beside this file).
+Imported where the fits run, not before (Numba's import is not free, and
+the first call compiles, or loads the compiled code cached beside this
+file).
 
 References
 ----------
@@ -482,10 +483,11 @@ def circle_sampson(thetas, n0, e1, e2, P, xy, sig):
 def warm():
     """Compile the kernels (or load them from the cache beside this file) now.
 
-    The first call of each compiles it, 10-20 s on a fresh install, after
-    that about 0.3 s to load: the install script calls this once, and a
-    caller about to fork (:func:`partinspect.vision.stereo.measure_stereo`)
-    calls it first, so that the child inherits the loaded code.
+    The first call of each compiles it, which takes a while on a fresh
+    install, after that it only loads: the install script calls this once,
+    and a caller about to fork
+    (:func:`partinspect.vision.stereo.measure_stereo`) calls it first, so
+    that the child inherits the loaded code.
     """
     t = np.linspace(0.0, 6.0, 12)
     xy = np.ascontiguousarray(np.c_[10.0 * np.cos(t), 6.0 * np.sin(t)])

@@ -1,32 +1,27 @@
 """Chaining of edge points into contours, and their segmentation into lines and arcs.
 
-Chaining follows Devernay: each edge point links forward to the nearest
-8-neighbour lying ahead of it along the edge (the gradient turned by +90
+Chaining follows Devernay [1]_: each edge point links forward to the
+nearest 8-neighbour ahead of it along the edge (the gradient turned by +90
 deg) with a compatible gradient, and backward likewise; a link is kept when
-both ends agree. The chains are then ordered without a per-point Python
-loop: cycles are cut once, and every point's rank along its chain comes from
-pointer jumping.
+both ends agree. Chains are ordered by pointer jumping, without a per-point
+Python loop.
 
-Segmentation (paper, section 3: contours subdivided into straight-line
-segments and elliptical arcs) is split-and-merge with a statistical test: a
-piece is accepted as a line, else as an elliptical arc, when the chi-square
-of its orthogonal residuals against the points' own standard uncertainties
-(correlation along the edge included) is not significant at level
-``alpha``; otherwise it is split at its sharpest corner, where there is
-one, else at the point farthest from its chord.
-Pieces too short to split further that pass no test are kept pending;
-adjacent pieces are then merged while their union still passes the test,
-which is how a pending piece joins a neighbour, accepted or pending (or is
-dropped). Each break between two accepted neighbours (and a dropped piece
-between them) is then moved to where the two fitted models explain the
-points best, as Pavlidis and Horowitz adjust their breakpoints: a split
-falls where a chord is farthest, not at the junction of two primitives.
-Points within ``trim`` px (arc length) of a piece's open ends are left out
-of its fit, and so are a line's points at its ends that lie within
-``CLEARANCE`` edge widths of another piece's or contour's edge points, or
-of its own unfitted end points lying off its line (a split that fell past
-a corner): there the Gaussian smoothing mixes two edges (corners,
-junctions of three edges) and the points are displaced.
+Segmentation (paper, section 3 [2]_) is split-and-merge [4]_ with a
+statistical test: a piece is accepted as a line, else as an elliptical arc,
+when the chi-square of its orthogonal residuals against the points' own
+standard uncertainties (correlation along the edge included) is not
+significant at level ``alpha``; otherwise it is split at its sharpest
+corner, else at the point farthest from its chord [3]_. Pieces too short to
+split that pass no test stay pending until the merge of adjacent pieces
+(while their union passes) takes them in or drops them. Each break between
+two accepted neighbours is then moved to where their fitted models meet,
+since a split falls where a chord is farthest, not at the junction of two
+primitives. A piece's fit leaves out ``trim`` px (arc length) at its open
+ends, and a line's end points within ``CLEARANCE`` edge widths of another
+edge: there the Gaussian smoothing mixes two edges (corners, junctions of
+three edges) and the points are displaced.
+
+Points in px, distorted image (as detected).
 
 References
 ----------
@@ -88,10 +83,8 @@ _SIGMA_TOL_REFIT = 1e-3
 # deviation of the edge's whole blur, filter and optics, EdgePoints.width) to
 # another edge are left out of its fit (_crowded). A parallel step at
 # distance d displaces an edge point by up to about d exp(-d^2 / 2 w^2) times
-# the ratio of the two contrasts: 0.3 px at 2 w, 0.04 px at 3 w. Measured on
-# the sample plate (half size, w = 1.2 px, points 0.02-0.04 px uncertain):
-# end points 1.9 w from a third edge at a junction lay 4-5 uncertainties off
-# the true edge; points 3.2 w from one, within 1.5.
+# the ratio of the two contrasts: 0.3 px at 2 w, 0.04 px at 3 w, no more
+# than a point's noise.
 CLEARANCE = 3.0
 
 # A line piece's own end point this many of its standard uncertainties off
@@ -100,10 +93,10 @@ CLEARANCE = 3.0
 OFF_LINE_Z = 5.0
 
 # px: a line meets an arc tangentially when the point of the arc's ellipse
-# whose tangent is parallel to the line lies this close to it (a corner of
-# angle a on an arc of radius r leaves r (1 - cos a) there: 1 px for
-# a = 14 deg at r = 35 px; a tangent junction leaves the points'
-# displacement by the shading beside them, under 0.2 px on the sample parts).
+# whose tangent is parallel to the line lies this close to it. A corner of
+# angle a on an arc of radius r leaves r (1 - cos a) there (1 px for a = 14
+# deg at r = 35 px); a tangent junction leaves only the points' displacement
+# by the shading beside them, a fraction of a pixel.
 TANGENT_TOLERANCE = 1.0
 
 _NEIGHBOURS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
@@ -292,9 +285,8 @@ def _test_pieces(requests, min_arc=12, max_iter=_TEST_ITERATIONS):
     only decreases along the iteration, so an iterate that passes shows an
     ellipse consistent with the points, and the minimum would pass too.
     Where the fit has not converged the cost is flat (a short piece, whose
-    ellipse the points hardly fix) and its chi-square settled: on the 669
-    trial fits of the sample renders (plate and bracket, noise 2) every
-    decision at 30 iterations is the one at 1000.
+    ellipse the points hardly fix) and its chi-square settled, so more
+    iterations would not change the decision.
 
     Parameters
     ----------
@@ -356,13 +348,11 @@ CORNER_TURN = np.deg2rad(60.0)
 across one point (between the gradients of the points either side), rather
 than at the point farthest from its chord. The chaining links points whose
 gradients differ by up to 60 deg, so a weak edge meeting a rim ends up in the
-rim's contour through a corner; Ramer's rule then halves the rim stretch
-instead of cutting the other edge off, and a stretch of 23 points (of the
-bracket's 4.5 mm hole, 40 px across: 75 deg of rim) halved gives two pieces
-too short for an arc after their trims, and the whole stretch was lost (in
-10-18 % of noise draws, at 160-220 deg). A smooth edge turns across a point by
-2 / rho rad (rho its radius of curvature, px): 60 deg takes rho under 2 px,
-sharper than the tip of any ellipse the segmentation keeps but the flattest."""
+rim's contour through a corner; Ramer's rule would then halve a short rim
+stretch into two pieces too short for an arc after their trims, instead of
+cutting the other edge off. A smooth edge turns across a point by 2 / rho
+rad (rho its radius of curvature, px): 60 deg takes rho under 2 px, sharper
+than the tip of any ellipse the segmentation keeps but the flattest."""
 
 
 def _split_position(xy, normal, margin):
@@ -431,18 +421,16 @@ def segment_contour(edges, contour, *, alpha=0.01, trim=None, min_points=8, floo
         Pieces with fewer fitted points are dropped.
     floor : float
         Standard uncertainty added in quadrature to the points' normal
-        uncertainty for the test only, px: a floor for the residual
-        systematic error of the sub-pixel estimator (< 0.005 px measured),
-        so that very clean images are not cut into pieces by it. The
-        whole of a closed contour, and the union of two arcs, are tested
-        with the Type B of their points beside a shaded surface too (in
-        quadrature, ``EDGE_BIAS_FACTOR`` times ``background_bound``, as
-        the 3D fits of rims take it): the shading of a hole's inner wall
-        displaces some of its rim's points beyond their noise, the whole rim
-        failed, was split, and each split cost two trims of its points (the
-        plate's 4 mm hole, 18 px across: gaps of 34-70 deg in all of 8
-        images, 5-7 deg in 7 of them with the Type B). The returned fits
-        use the points' own covariances.
+        uncertainty for the test only, px: a floor above the residual
+        systematic error of the sub-pixel estimator, so that very clean
+        images are not cut into pieces by it. The whole of a closed
+        contour, and the union of two arcs, are tested with the Type B of
+        their points beside a shaded surface too (in quadrature,
+        ``EDGE_BIAS_FACTOR`` times ``background_bound``, as the 3D fits of
+        rims take it): the shading of a hole's inner wall displaces some of
+        its rim's points beyond their noise, and a rim that failed on them
+        was split, each split costing two trims of its points. The returned
+        fits use the points' own covariances.
     refit : bool
         Refit each accepted piece with the points' own covariances.
 
@@ -526,9 +514,9 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
             if hi - lo < 2 * min_points:
                 # Failed its test and too short to split further: kept
                 # pending, for the merge pass to test together with a
-                # neighbour, and dropped if none takes it. Dropping
-                # these pieces here lost up to half of some hole rims that
-                # one ellipse fits (short stretches next to a displaced one).
+                # neighbour, and dropped if none takes it. Dropping it
+                # here would lose the short stretches of a rim next to a
+                # displaced one, which one ellipse fits together.
                 pieces.append((lo, hi, None))
                 continue
             k = lo + _split_position(xy_all[np.arange(lo, hi) % n], normal_all[np.arange(lo, hi) % n],
@@ -566,8 +554,7 @@ def _segment_steps(edges, contour, alpha, trim, min_points, floor):
         pieces.sort(key=lambda t: t[0])
     # A pending piece taken by no neighbour is dropped. Two pending
     # neighbours are tried together too: a stretch between a tangent line
-    # and a junction came as two pieces too short to pass alone and was
-    # lost (the bracket's arc-2 in the right image, 50 of its 168 degrees).
+    # and a junction can come as two pieces too short to pass alone.
     pieces = [p for p in pieces if p[2] is not None]
     pieces = yield from _adjust_breaks(pieces, n, contour.closed, xy_all, std_all, trim, min_points, fit_ranges)
     return [(np.arange(lo, hi) % n, res) for lo, hi, res in pieces]
@@ -638,34 +625,23 @@ def _adjust_breaks(pieces, n, closed, xy_all, std_all, trim, min_points, fit_ran
 
     The split falls at the point farthest from a chord, not at the
     junction of two primitives, and the test of a piece does not see the
-    ``trim`` px at its open ends: a line running into a tangent arc kept
-    up to ``trim`` px of the arc untested, and the arc lost those and its
-    own ``trim`` again (the bracket's slot ends, 4 mm arcs seen 30 px
-    wide, 10-25 deg short at each end, by an amount that changed from
-    draw to draw with where the splits fell). Each break is moved, within
-    ``3 trim`` points either way, to where the two pieces' fitted models
-    (fitted on the pieces' cores, away from the break) explain the points
-    between them best (:func:`_best_break`); or, where a line meets an arc
-    tangentially (``TANGENT_TOLERANCE``), to the point nearest where the
-    line touches the arc's ellipse (:func:`_tangent_point`). The moved
-    pieces are tested again (an arc with its points' Type B beside a
-    shaded surface, as two arcs together are), and a piece that no longer
-    passes keeps its old ends (as do its neighbours, then, on that side).
-    A generator, like :func:`_segment_steps`.
-
-    At a tangent junction the two models part by s^2 / 2r at a distance s
-    from it, less than the points' noise over several px on either side,
-    so the least-cost break there follows the noise and the points'
-    displacement by the shading beside them: the bracket's slot ends
-    (r = 35 px) came 2-5 px into the arc, by an amount that changed from
-    draw to draw, and the arc's radius with it (its spread over 50 noise
-    draws 1.5-1.8 times the planner's, which ends the arc at the junction).
-    The point where the two models touch is as certain as the models.
-    Where an arc re-tested with only its points' noise failed after
-    taking in a stretch the split had dropped, that stretch was lost
-    (35-50 deg of the slot ends in some draws); a point's Type B covers
-    the shading's displacement in the 3D fits, and the re-test of an arc
-    uses it as the test of two arcs together does.
+    ``trim`` px at its open ends: a line running into a tangent arc keeps
+    up to ``trim`` px of the arc untested, and the arc loses those and its
+    own ``trim`` again, by an amount that changes from image to image with
+    where the splits fall. Each break is moved, within ``3 trim`` points
+    either way, to where the two pieces' fitted models (fitted on the
+    pieces' cores, away from the break) explain the points between them
+    best (:func:`_best_break`); or, where a line meets an arc tangentially
+    (``TANGENT_TOLERANCE``), to the point nearest where the line touches the
+    arc's ellipse (:func:`_tangent_point`): there the two models part by
+    only s^2 / 2r at a distance s, less than the points' noise over several
+    px, so the least-cost break would follow the noise and the shading,
+    while the touching point is as certain as the models. The moved pieces
+    are tested again, an arc with its points' Type B beside a shaded
+    surface (as two arcs together are: the shading's displacement would
+    otherwise fail an arc that took in a stretch the split had dropped); a
+    piece that no longer passes keeps its old ends (as do its neighbours,
+    then, on that side). A generator, like :func:`_segment_steps`.
 
     Parameters
     ----------
@@ -784,9 +760,8 @@ def _make_segments(edges, contours, contour_ids, accepted, refit, min_points):
     for a stretch would otherwise lose it; the chi-square test of the
     segmentation has passed them. Arcs keep theirs: the two sides of a rim
     seen nearly edge-on come within the reach of each other at its tips,
-    whose points fix the ellipse's major axis; without them the bracket's
-    wall hole circle-5 had its diameter within +-U in 75 % of 50 noise
-    draws instead of 93 %. A line left with fewer than ``min_points`` is
+    whose points fix the ellipse's major axis. A line left with fewer than
+    ``min_points`` is
     dropped, and one that lost points is refitted whatever ``refit``
     says.
 
@@ -869,14 +844,11 @@ def _off_line(edges, piece, fit, fitted, k=OFF_LINE_Z):
     corner: the line's piece then ends with the corner's rounded points
     and a few of the other edge's, which its end trim keeps out of the fit
     but which, being its own, do not count as another edge for
-    :func:`_crowded`. Its fitted points next to the corner stayed,
-    displaced by the other edge's gradient: on the plate's 4 mm silhouette
-    edge line-19 (612 x 512 px, 10 points) the last one, 2 px from the
-    corner, lay 6 of its standard uncertainties off the true edge, and the
-    line's straightness came out 2 to 7 u above its true 0 in 7 of 12 noise
-    draws. A point more than ``k`` of its own standard uncertainties off
-    the line is taken as the other edge's: the fitted points within the
-    reach of it go.
+    :func:`_crowded`; its fitted points next to the corner would stay,
+    displaced by the other edge's gradient, and set a short line's
+    straightness. A point more than ``k`` of its own standard
+    uncertainties off the line is taken as the other edge's: the fitted
+    points within the reach of it go.
 
     Returns
     -------
@@ -896,9 +868,9 @@ def _crowded(edges, pieces, fitted, reach, foreign=None):
     its scales, and displaces both: at a junction of three edges, where an
     edge of another contour ends beside this piece's end (which the
     arc-length trim of :func:`_trimmed` cannot see), at an acute corner, or
-    beside a close parallel edge. A piece's end points there lay 4-5 of
-    their standard uncertainties off the true edge and alone set the
-    straightness of short lines (plate line-16 and line-19).
+    beside a close parallel edge. A piece's end points there are displaced
+    by several of their standard uncertainties and can alone set the
+    straightness of a short line.
 
     Parameters
     ----------
@@ -931,9 +903,9 @@ def _crowded(edges, pieces, fitted, reach, foreign=None):
     near = cKDTree(edges.xy[pts]).sparse_distance_matrix(cKDTree(edges.xy), reach, output_type="coo_matrix")
     # A line's neighbour across a split lies the trim (3 sigma + 1 px) away
     # along the edge, beyond the reach while the edge width is below
-    # sigma + 1/3 px (1.2 px on the sample renders, sigma 1). In a blurrier image
-    # the end points within the reach of that neighbour go too: right at a
-    # corner, a small loss where the split cut one straight edge.
+    # sigma + 1/3 px, as in a sharp image. In a blurrier image the end
+    # points within the reach of that neighbour go too: right at a corner,
+    # a small loss where the split cut one straight edge.
     other = (owner[near.col] != label[near.row]) & (near.data < reach)
     bad = np.zeros(len(pts), bool)
     bad[near.row[other]] = True

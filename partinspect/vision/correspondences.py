@@ -50,11 +50,9 @@ ARC_MIN_CROSSING = np.deg2rad(10.0)
 Lines take the matcher's gate instead
 (:data:`partinspect.vision.matching.MIN_EPIPOLAR_ANGLE`): a line's
 crossing angle is nearly the same at all its points, so a stricter angle
-here would drop every point of a line the matcher kept. Lines 8 to 10 deg
-from the epipolar lines were matched and then reported as "matched, but
-only 0 corresponding points" (the plate's step edges on a stress-run
-render: 8.1 and 8.6 deg). An arc's crossing angle falls to zero where its
-epipolar line is tangent to it, and only the points near there go."""
+here would drop every point of a line the matcher kept. An arc's crossing
+angle falls to zero where its epipolar line is tangent to it, and only the
+points near there go."""
 
 
 @dataclass(frozen=True)
@@ -301,11 +299,8 @@ def correspond(left, right, geo, *, xy=None, min_angle=None, step=1e-4, margin=2
         # ellipse: near the epipolar tangent point a left point off the
         # ellipse by a pixel (a rim point displaced by the shading beside
         # it) moves its epipolar line to cross the right ellipse twice at
-        # steeper angles, and the partner found there passes the right-image
-        # test. On the bracket's 10 mm wall hole one such point, 1.1 px off
-        # where the epipolar line touches the rim, took a partner 14 deg
-        # along the right ellipse and put a circularity of 0.32 mm (12 times
-        # its stated u) on a round hole.
+        # steeper angles, and the partner found there, far along the right
+        # ellipse, passes the right-image test and sets the circularity.
         keep &= _left_crossing_sin(geo, x, pl) >= np.sin(min_angle)
     if kind == "line":
         # Only where the right image sees the edge too: the fitted right line
@@ -315,8 +310,7 @@ def correspond(left, right, geo, *, xy=None, min_angle=None, step=1e-4, margin=2
     else:
         # Likewise on an arc: where the right image has no edge point, the
         # partner is the fitted ellipse extrapolated, which for a partial
-        # rim can lie far from the real edge (it had put a circularity of
-        # 0.39 mm on a round hole).
+        # rim can lie far from the real edge.
         keep &= _near_points(y, right.ideal.xy, margin)
     idx = np.flatnonzero(keep)
     x, y = x[idx], y[idx]

@@ -60,10 +60,8 @@ ALONG_EDGE_VARIANCE = 1e-6
 # along a pixel axis see the curve recede on both sides, which moves the
 # found point a further CURVATURE_SAMPLING_BIAS sin^2(2 phi) kappa towards
 # the centre of curvature (phi: angle between the normal and the nearest
-# pixel axis; kappa in 1/px). Measured on exact area-integrated discs of
-# radius 10-80 px, optical blur 0.3-1.0 px, sigma 1, either polarity: the
-# coefficient is the same for all (0.27 / 2 px^2), and the model leaves
-# < 0.003 px of the curvature bias at any angle (R = 10 px).
+# pixel axis; kappa in 1/px; the coefficient in px^2). Fitted on exact
+# discs; it does not depend on the radius, the blur or the polarity.
 CURVATURE_SAMPLING_BIAS = 0.135
 # Distances from an edge point, px, at which the background gradient beside
 # the edge is read (background_gradients): beyond 2.5 W (W ~ 1.2 px for
@@ -71,29 +69,28 @@ CURVATURE_SAMPLING_BIAS = 0.135
 # per cent of its peak and is subtracted.
 BACKGROUND_DISTANCES = (3.0, 3.5, 4.0)
 # Mean squared magnitude of the image-noise part of one side's background
-# gradient (the mean over BACKGROUND_DISTANCES), per grad_noise^2: measured
-# on white noise, 1.27-1.30 for every direction of the normal. Half of it
-# is the variance of the component along any one direction.
+# gradient (the mean over BACKGROUND_DISTANCES), per grad_noise^2, read on
+# white noise (the same for every direction of the normal). Half of it is
+# the variance of the component along any one direction.
 BACKGROUND_NOISE = 1.28
 BACKGROUND_POSITION_COUPLING = -0.14
 """px of ``EdgePoints.background_shift`` per px of the point's own position
 error along its normal, both from the same image noise: the readings beside
 the edge are taken from the point as found and the step's own response
 subtracted there, so a point found too far towards the bright side reads
-a background shift towards the dark side. Measured on white noise
-(straight steps of contrast 50 and 100 grey levels, normals at 0 and 30
-deg, noise 2, 400 draws): -0.136 to -0.144 (correlation -0.41 to -0.43),
-the same at every contrast; between points 1, 2, 3 px apart along the edge
--0.108, -0.047, -0.008, as the points' own correlation (-0.110, -0.052,
--0.015). The rest of the shift's noise is independent of the position's."""
+a background shift towards the dark side. Read on white noise, the same at
+every contrast, and correlated between points along the edge as the
+points' own errors; the rest of the shift's noise is independent of the
+position's."""
 EDGE_BIAS_FACTOR = 0.75
 """Standard uncertainty of what remains of a point's displacement by the
 shading beside it after the correction, in units of its (averaged)
-``EdgePoints.background_bound``: the Type B of rim points in the 3D fits
-(:mod:`partinspect.vision.stereo`, the bound averaged along the edge) and,
-with the bound as read at each point, in the segmentation's test of the
-whole of a closed contour and of two arcs together
-(:mod:`partinspect.vision.contours`)."""
+``EdgePoints.background_bound``: about two thirds of the remaining
+displacements lie within it, as within a standard uncertainty. The Type B
+of rim points in the 3D fits (:mod:`partinspect.vision.stereo`, the bound
+averaged along the edge) and, with the bound as read at each point, in the
+segmentation's test of the whole of a closed contour and of two arcs
+together (:mod:`partinspect.vision.contours`)."""
 # px: wider profiles are not step edges (a plateau of the gradient magnitude
 # on a shading ramp steeper than the thresholds); optical blur of a usable
 # image keeps step edges well below it.
@@ -266,15 +263,10 @@ def _subpixel_offset(a, b, c):
 
     The vertex of the parabola through the logarithms of the magnitudes:
     exact for a Gaussian profile, and the magnitude of a blurred edge read
-    along any line across it is close to one. On noise-free straight edges
-    formed as in a camera (a Gaussian PSF of 0.6-1.0 px, then integration
-    over the pixel's square; sigma 1) its systematic error is below 0.0022
-    px RMS at every direction and below 0.0004 px at 20 deg or more from
-    the image axes, against up to 0.022 px RMS for the plain parabola
-    through (a, b, c); it grows as the PSF narrows (0.010 px RMS near the
-    axes for a PSF of 0.4 px, where the pixel's square makes the profile
-    flat-topped).
-    ``benchmarks/bench_subpixel.py`` measures it.
+    along any line across it is close to one, so for a camera's blur its
+    systematic error is a small fraction of the plain parabola's through
+    (a, b, c). It grows as the PSF narrows, where the pixel's square makes
+    the profile flat-topped; ``benchmarks/bench_subpixel.py`` measures it.
 
     Returns
     -------
@@ -406,13 +398,11 @@ def background_gradients(gx, gy, xy, normal, strength, width, grad_noise=0.0, di
         px. Its standard deviation from image noise is
         ``W^2 sqrt(BACKGROUND_NOISE) grad_noise / h``.
     bound : ndarray, shape (N,)
-        ``W^2 |g_b - g_d| / h``, px, with the expected contribution of the
-        image noise removed in quadrature. Background structure the linear
-        model does not describe (a slope that steepens towards the edge, as
-        on a surface seen near grazing incidence; a gradient along the
-        edge) displaces points by amounts of this order; a background
-        common to both sides (one shaded face, the step's own tail) does
-        not count.
+        ``W^2 |g_b - g_d| / h``, px, less the image noise's expected part
+        in quadrature: the order of what the linear model misses (a slope
+        steepening towards the edge, as on a surface seen near grazing
+        incidence; a gradient along the edge). A background common to both
+        sides (one shaded face, the step's own tail) does not count.
     """
     n = len(xy)
     if n == 0:

@@ -236,8 +236,8 @@ def _gram_dense(a, xy, corr_length):
     R *= -1.0 / (4.0 * corr_length * corr_length)
     np.exp(R, out=R)
     # R a first, by einsum's own loop: OpenBLAS splits an (N, N) x (N, p)
-    # product over threads, which on two cores shared with other work
-    # made it several times slower than the single-threaded loop.
+    # product over threads, which on cores shared with other work is slower
+    # than the single-threaded loop.
     return a.T @ np.einsum("ij,jk->ik", R, a)
 
 
@@ -481,7 +481,8 @@ def circle_consistency(views, fit, starts=None):
     chi-square exceeds the sum of the two ellipse fits' by ``c chi2(4)``,
     with ``c`` the Satterthwaite scale of the points' correlation along the
     edge (:func:`partinspect.vision.fitting._consistency`). A left arc
-    matched to the right image's arc of another hole exceeds it by 10^4-10^6.
+    matched to the right image's arc of another hole exceeds it by orders
+    of magnitude.
 
     Parameters
     ----------
@@ -496,11 +497,10 @@ def circle_consistency(views, fit, starts=None):
     delta : float
         The 3D fit's chi-square minus the two ellipse fits'.
     p_value : float
-        Of ``delta / c`` under chi2(4). On rendered sample parts the matched
-        rims give p-values lower than uniform (most 0.003-0.5, a few to
-        1e-4: the uncorrected Type B displacements bend two free ellipses
+        Of ``delta / c`` under chi2(4). True pairs give p-values lower than
+        uniform (the uncorrected Type B displacements bend two free ellipses
         more easily than one circle), so only gross inconsistency means a
-        mismatch.
+        mismatch (:data:`partinspect.vision.stereo.MISMATCH_P`).
 
     References
     ----------

@@ -14,8 +14,8 @@ where R is the covariance of the normal errors. For independent errors
 estimate; edge points from one edge share image noise through the filter
 (see :func:`partinspect.vision.edges.edge_error_correlation`), and passing
 ``corr_length`` accounts for it (errors correlated as exp(-d^2 / (4 l^2))
-over the distance d between points), which otherwise understates the
-standard uncertainties about two-fold for sigma = 1.
+over the distance d between points), without which the standard
+uncertainties are understated.
 
 Parameter covariances are standard-uncertainty covariances (GUM); the 95 %
 intervals use the coverage factor k = 1.96 of the normal distribution.
@@ -379,7 +379,7 @@ def _consistency(r, s, n_params, trR2):
     scale = trR2 / trR
     nu = trR * trR / trR2
     # scipy.special.chdtrc is what stats.chi2.sf evaluates, without the
-    # distribution machinery's overhead (~0.5 ms a call).
+    # distribution machinery's per-call overhead.
     p = float(special.chdtrc(nu, q / scale))
     return Consistency(q, nu, scale, p, float(np.sqrt(q / trR)))
 
@@ -637,7 +637,7 @@ def ellipse_points(params, phi):
     """Points (N, 2) of the ellipse (xc, yc, a, b, theta) at phases phi."""
     xc, yc, a, b, th = params
     c, s = np.cos(th), np.sin(th)
-    phi = np.ravel(phi)  # a scalar phase gives one point, as before
+    phi = np.ravel(phi)  # a scalar phase gives one point
     u, v = a * np.cos(phi), b * np.sin(phi)
     out = np.empty((len(u), 2))
     out[:, 0] = xc + c * u - s * v
@@ -766,20 +766,15 @@ def fit_ellipse(xy, cov=None, *, corr_length=None, blur=None, max_iter=100, tol=
     """Geometric ellipse fit in parametric form (Gander, Golub & Strebel 1994).
 
     Unknowns are the centre, semi-axes, angle and one phase phi_i per point;
-    the residual of point i is the 2-vector p_i - x(phi_i). Each
-    damped Gauss-Newton step solves the normal equations
-
-        [ D    B ] [dphi]   [g_phi]
-        [ B^T  C ] [du  ] = [g_u  ]
-
-    whose phase block D is diagonal, by eliminating the phases (Schur
-    complement S = C - B^T D^-1 B, a 5x5 system) and back-substituting
-    dphi = D^-1 (g_phi - B du): O(m) per iteration for m points [2]_.
-    Levenberg-Marquardt damping keeps the steps safe far from the solution;
-    the start is the direct algebraic fit [5]_ with each phase at its
-    point's foot point. At convergence dx/dphi_i is tangent, so
-    S = sum_i w_i h_i h_i^T with h_i the derivative of the orthogonal
-    distance, which is what the covariance is computed from.
+    the residual of point i is the 2-vector p_i - x(phi_i). Each damped
+    Gauss-Newton (Levenberg-Marquardt) step eliminates the diagonal phase
+    block of the normal equations: a 5x5 Schur complement, then the phases
+    by back-substitution, O(m) per iteration for m points [2]_
+    (:func:`_lm_ellipses`). The start is the direct algebraic fit [5]_ with
+    each phase at its point's foot point. At convergence dx/dphi_i is
+    tangent, so the Schur complement is sum_i w_i h_i h_i^T with h_i the
+    derivative of the orthogonal distance, which the covariance is computed
+    from.
 
     Parameters
     ----------
@@ -981,73 +976,44 @@ def _lm_ellipses(xys, covs, starts, max_iter, tol, sigma_tol=None, max_axis=None
     """Damped Gauss-Newton of Gander et al. [2]_ on several point sets, one by one.
 
     Unknowns u = (xc, yc, a, b, theta) and one phase phi_i per point; the
-    residual rho_i = p_i - x(phi_i; u) (2-vector, weight w_i on both
-    components: the inverse variance of the point along the curve's normal
-    at phi_i). Everything is written in the ellipse's own frame (turned by
-    -theta): the weights are the same on both components, so the cost and
-    the normal equations are unchanged by the rotation, and the derivatives
-    are simpler there.
+    residual rho_i = p_i - x(phi_i; u) is weighted by w_i, the inverse
+    variance of the point along the curve's normal, and written in the
+    ellipse's own frame (same cost, simpler derivatives). The diagonal phase
+    block of the damped normal equations is eliminated: with J_i the 2 x 5
+    dense part of the residual's derivative, n_i and t_i the unit normal and
+    tangent, hn = J^T n, ht = J^T t, rn = n . rho, rt = t . rho, the 5 x 5
+    system is
 
-    The phase derivative of rho_i is j_i = |j_i| t_i, along the tangent
-    t_i; J_i (2 x 5) is its dense part. With n_i the unit normal,
-    J^T J = J^T n n^T J + J^T t t^T J, and eliminating the diagonal phase
-    block D_i = w_i |j_i|^2 (1 + lam) of the damped normal equations (the
-    Schur complement C + lam diag(C) - B^T D^-1 B of :func:`fit_ellipse`)
-    leaves the 5 x 5 system
+        (Sn + lam / (1 + lam) St + lam diag(Sn + St)) du = -(Gn + lam / (1 + lam) Gt)
 
-        S(lam) = Sn + lam / (1 + lam) St + lam diag(Sn + St)
-        rhs(lam) = -(Gn + lam / (1 + lam) Gt)
+    (Sn = sum w hn hn^T, St = sum w ht ht^T, Gn = sum w hn rn, Gt = sum w
+    ht rt) and dphi_i = -(rt_i + ht_i . du) / (|j_i| (1 + lam)), j_i the
+    phase derivative: :func:`fit_ellipse`'s Schur complement without its
+    cancellation, the two matrices serving every damping tried.
 
-    with Sn = sum w hn hn^T, St = sum w ht ht^T, Gn = sum w hn rn, Gt =
-    sum w ht rt, hn = J^T n, ht = J^T t, rn = n . rho, rt = t . rho; the
-    phases follow by back-substitution, dphi_i = -(rt_i + ht_i . du) /
-    (|j_i| (1 + lam)). This is the textbook form rearranged, without its
-    cancellation, and the two 5 x 5 matrices serve every damping tried.
+    A short arc's cost is a long, curved, nearly flat valley, where plain
+    Levenberg-Marquardt creeps by small steps. So each step v gets the
+    geodesic acceleration a / 2 [7]_ (a solves the same system with the
+    residuals' second directional derivative along v, a finite difference),
+    a step whose correction exceeds ``_kernels.ACCEL_RATIO`` / 2 of it is
+    refused, and the damping follows the gain ratio rho of the actual to
+    the predicted decrease (Nielsen's rule [8]_: times max(1/3, 1 - (2 rho
+    - 1)^3) after a success, 2, 4, 8, ... after failures), so that a
+    success does not make the next step too bold.
 
-    Two things keep the iteration short where the data fix the ellipse
-    poorly (a short arc: the cost has a long, curved, nearly flat valley,
-    in which plain Levenberg-Marquardt creeps by steps that the curvature
-    of the valley keeps small, for hundreds of iterations):
-
-    - geodesic acceleration [7]_: each step v (the damped Gauss-Newton
-      step above) gets the second-order correction a / 2, where a solves
-      the same damped system with the residuals replaced by their second
-      directional derivative along v (a finite difference of the residuals
-      at x + h v); the step follows the valley's bend instead of leaving
-      it. A correction larger than ``_kernels.ACCEL_RATIO`` / 2 of the
-      step (in the damping's scaled norm) marks the step as too long: it
-      is refused and the damping raised;
-    - the damping is updated from the gain ratio rho of the actual to the
-      predicted decrease of the cost (Nielsen's rule [8]_: lam times
-      max(1/3, 1 - (2 rho - 1)^3) after a success, times 2, 4, 8, ...
-      after successive failures), not divided by ten after every success,
-      which had each iteration try a step too bold first and be refused.
-
-    A fit stops when it has converged, on either criterion given:
-
-    - ``tol``: the accepted step moves the curve by less than ``tol``
-      times max(1, a) px (fit_ellipse's criterion);
-    - ``sigma_tol``: the undamped Gauss-Newton step from the current
-      iterate is below ``sigma_tol`` standard uncertainties in every
-      direction of parameter space: du^T Sn du <= sigma_tol^2 with du =
-      -Sn^-1 Gn (the Newton decrement, by Cauchy-Schwarz the largest
-      |c . du| / sd(c . u) over all c, with the uncertainty S^-1 of
-      independent point errors, the smaller one). It is also the decrease
-      of the cost that the linearised model still expects, so the
-      chi-square of the residuals is then settled to about sigma_tol^2:
-      the criterion of a fit that is only tested.
-
-    or when no damping up to 1e12 makes a step acceptable, after
-    ``max_iter`` steps, or (with ``max_axis``, one bound per fit) when a
-    step would take its semi-major axis beyond the bound, or further
-    beyond it: the iterate before that step is returned, the best ellipse
-    within the bound the iteration has found (or, for a fit that starts
+    A fit has converged on ``tol`` (the accepted step moves the curve by
+    less than ``tol`` max(1, a) px) or on ``sigma_tol`` (the undamped step
+    du = -Sn^-1 Gn is below ``sigma_tol`` standard uncertainties in every
+    direction, du^T Sn du <= sigma_tol^2: the chi-square is then settled,
+    all a test needs). It also stops when no damping up to 1e12 gives an
+    acceptable step, after ``max_iter`` steps, or before a step that would
+    take its semi-major axis beyond its ``max_axis`` (or further beyond):
+    the best iterate within the bound is returned (for a fit that starts
     beyond it, the start or the smallest iterate).
 
-    The iteration runs compiled (:func:`partinspect.vision._kernels.lm_ellipse`,
-    loops over the points): in numpy an iteration was a few hundred calls
-    whose overhead, not their arithmetic, took the time (the 2D chain spent
-    half its time there).
+    The iteration runs compiled
+    (:func:`partinspect.vision._kernels.lm_ellipse`): in numpy its many
+    small calls per iteration cost more in overhead than in arithmetic.
 
     Returns
     -------

@@ -10,31 +10,23 @@ the caller's script.
 
 Outcomes are the caller's: the child's return value comes back by pickle
 (the same bits), an exception raised in the child is raised again in the
-parent with its type and message (its traceback from the child attached
-as a note). Where no child can run the call (no ``os.fork`` on this
-platform, fewer than two CPUs to run on, ``fork`` refused by a resource
-limit) or its outcome cannot come back (the child was killed, the result or
-exception does not pickle), the parent makes the call itself: only slower,
-never different.
+parent (its traceback from the child attached as a note). Where no child
+can run the call (no ``os.fork``, fewer than two CPUs, ``fork`` refused by
+a resource limit) or its outcome cannot come back (the child was killed,
+the result does not pickle), the parent makes the call itself: only
+slower, never different.
 
-Fork safety: the child only computes (numpy, scipy, OpenCV) and writes one
-pipe. Worker threads of the libraries are what can hang a forked child: it
-inherits their mutexes and condition variables in whatever state they were
-but not the threads. OpenBLAS shuts its workers down before a fork itself
-(a ``pthread_atfork`` handler) and starts them again when next needed.
-OpenCV's pthreads pool has no such handler: a child that reconfigured it
-(``cv2.setNumThreads``) waited forever in ``pthread_cond_destroy`` for a
-parent's worker, and a child forked while a worker held its mutex (briefly,
-when going to sleep) would block on it. So the parent stops OpenCV's
-workers before forking (``cv2.setNumThreads(1)`` joins them) and restores
-the count when the block is left: while parent and child compute side by
-side, each runs OpenCV on one thread, which is also all the CPUs there are
-for two processes on a two-CPU machine. (OpenCV's results do not depend on
-its thread count; the stereo tests compare both paths bit for bit.)
-The child's interrupts are the parent's business: it ignores SIGINT (a
-Ctrl-C in a terminal reaches the whole process group) and the parent kills
-it when it leaves the block early, whatever the reason; on Linux it is also
-killed if the parent dies without cleaning up (``PR_SET_PDEATHSIG``).
+Fork safety: a forked child inherits the library worker threads' mutexes
+and condition variables in whatever state they were, but not the threads.
+OpenBLAS shuts its workers down around a fork itself; OpenCV's pthreads
+pool does not, and a child can block on it forever, so the parent stops
+OpenCV's workers before forking (``cv2.setNumThreads(1)`` joins them) and
+restores the count when the block is left. While parent and child compute
+side by side each runs OpenCV on one thread, all the CPUs two processes
+have on a two-CPU machine; OpenCV's results do not depend on its thread
+count. The child ignores SIGINT (a Ctrl-C reaches the whole process
+group); the parent kills it when it leaves the block early, and on Linux
+it is killed if the parent dies (``PR_SET_PDEATHSIG``).
 """
 
 import contextlib
@@ -78,8 +70,8 @@ def can_fork():
     enabled, there are 2+ CPUs and about one of them is idle.
 
     With the CPUs already busy with other work a second process only
-    shares this one's slice: on a two-CPU machine at load 3.5-4 a pair took
-    3.0 s measured side by side against 1.5 s one image after the other.
+    shares this one's slice, and the two images take longer side by side
+    than one after the other.
     """
     return ENABLED and hasattr(os, "fork") and available_cpus() >= 2 and idle_cpus() >= MIN_IDLE_CPUS
 

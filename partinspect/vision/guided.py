@@ -178,9 +178,9 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
         ``MAX_DISTANCE``) of another edge's image are not taken, as the
         segmentation keeps its points clear of other edges: that edge's
         smoothing reaches them, or they are its own (two parallel edges of
-        a face seen edge-on lie on one image line in one image; the other
-        image then pins a 3D line near either edge, and on a stress render
-        the hidden one was measured from the visible one's points).
+        a face seen edge-on lie on one image line in one image, and the
+        other image then pins a 3D line near either edge, so a hidden edge
+        could be measured from the visible one's points).
     min_points : int
         Points each image must give an edge (the matching's minimum).
 
@@ -189,9 +189,8 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
     stereo : StereoResult
         With, per edge found, the stretch's image feature appended to each
         image's features and its 3D line to ``features``; the 3D lines whose
-        image features gave points are left out (their points now belong
-        to the edges whose stretches they are); ``guided_failed`` holds
-        ``failed``'s items.
+        image features gave points are left out (those points now belong to
+        the stretches); ``guided_failed`` holds ``failed``'s items.
     found : dict of str to int
         Edge -> index of its 3D line in the returned ``features``.
     failed : dict of str to str
@@ -268,12 +267,11 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
     The segmentation keeps a line's ends clear of the other edges it can
     see (:func:`partinspect.vision.contours._crowded`), but not of an edge
     too faint to give edge points of its own, whose grey step the smoothing
-    still mixes into the line's: at the corner of a thin face seen nearly
-    edge-on (a wedge of darker grey between a bright face and the
-    background) the line's last points lay 0.2 px, 4-6 of their standard
-    uncertainties, off the true edge, and the plate's 6 mm edge line-16
-    read a straightness 5.4 u above its true 0. Once the pose is known the
-    CAD model says where every edge's image is.
+    still mixes into the line's (at the corner of a thin face seen nearly
+    edge-on, a wedge of darker grey between a bright face and the
+    background): the line's last points are displaced by several of their
+    standard uncertainties and set a short line's straightness. Once the
+    pose is known the CAD model says where every edge's image is.
 
     Parameters
     ----------
@@ -305,10 +303,9 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
 
     Notes
     -----
-    Points within ``CLEARANCE`` edge widths of another edge's image are
-    left out where they run up to an end of the line, as the segmentation
-    does with the edges it sees; inside a line they stay (an edge running
-    beside another for a stretch would lose it). Selection by position
+    Points within ``CLEARANCE`` edge widths of another edge's image are left
+    out where they run up to an end of the line, as the segmentation does
+    (:func:`partinspect.vision.contours._make_segments`): by position
     alone, never by residual.
     """
     L, R, geo = stereo.left, stereo.right, stereo.geometry

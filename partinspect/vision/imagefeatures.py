@@ -144,26 +144,18 @@ model (line / ellipse) is wrong, which the segmentation's test must see."""
 FADE_RATIO = 5.0
 """Points of an arc whose standard uncertainty across the edge exceeds this
 many times the arc's median are left out (see :func:`_unfaded` for a
-segment of lower contrast): there the edge profile has
-flattened (a weak or broad step), and the sub-pixel position follows
-whatever else is beside the edge. Where a hole's rim fades against its lit
-inner wall, the contour runs on along what remains of the step and then
-along the wall's shading, and a short arc's ellipse bends to take such a
-tail in and passes every residual test, off by up to 1 mm in 3D."""
+segment of lower contrast): there the edge profile has flattened (a weak
+or broad step), and the sub-pixel position follows whatever else is beside
+the edge. Where a hole's rim fades against its lit inner wall, the contour
+runs on along the wall's shading, and a short arc's ellipse bends to take
+such a tail in and still passes every residual test."""
 FADE_END_RATIO = 2.5
 """The same at the ends of each segment of an arc, from the end inwards
 while the points exceed this many times the arc's median: a rim fades
-towards the end of its visible stretch. (A segment whose median exceeds
-this many times the arc's is judged against its own: the plate's 10 mm
-hole has a third of its rim at four times the others' uncertainty, all
-of it "faded" against the arc's median, and a union of the rim's pieces
-dropped it whole in a third of the draws.) On rendered plates and brackets
-under six light directions (36 draws each, 5600 rim points), the rim
-points' errors against the true rim, normalised by their random and Type B
-uncertainties together, had 0.8 % beyond 3 and a largest of 7.5, up to 3 px
-off (the points beyond 2.5 times the median at ends, beyond 5 anywhere,
-RMS 1.5-2.4); without those points (6 % of them), 0.24-0.47 % and 4.4, as
-for Gaussian errors (0.27 %)."""
+towards the end of its visible stretch, and its last points there are
+displaced by more than their standard uncertainty says. A segment whose
+median itself exceeds this many times the arc's is judged against its own
+(:func:`_unfaded`)."""
 
 
 def chauvenet_z(n):
@@ -219,9 +211,8 @@ def _unfaded(std, lengths):
     median exceeds ``FADE_END_RATIO`` times it: a stretch of the rim of
     lower contrast than the rest (the rim of a hole whose inner wall is lit
     on one side), which the arc's median would drop whole, is judged
-    against its own. (Against its own median, any segment kept points at
-    a fading end: the bracket's flat wall hole kept an end point 0.95 px
-    off the rim at 2.4 times its segment's median, 2.7 times the arc's.)
+    against its own. Every other segment is judged against the arc's: its
+    own median would keep the points at a fading end.
     """
     arc_med = float(np.median(std))
     keep = np.ones(len(std), bool)
@@ -291,13 +282,11 @@ def _fit_kept(trials, corr_length):
         if t.kind == "line":
             t.fit = fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False)
         else:
-            # No smoothing-bias correction (fit_ellipse's ``blur``): on
-            # rendered parts the rims of holes are not uniform discs, and
-            # the edge points lie on the true ellipse to 0.01-0.02 px as
-            # found, while the correction pushed them 0.03-0.06 px
-            # outwards (measured against the truth). After dropping one
-            # point the previous fit is a start next to the new minimum
-            # (same minimum, fewer iterations).
+            # No smoothing-bias correction (fit_ellipse's ``blur``): the
+            # rims of holes are not uniform discs, and there it moves the
+            # points off the true ellipse rather than onto it. After
+            # dropping one point the previous fit is a start next to the
+            # new minimum (same minimum, fewer iterations).
             jobs.append((t, EllipseJob(as_points(ideal.xy, 6), ideal.cov, corr_length, None, t.start,
                                        max_axis=axis_bound(ideal.xy))))
     # Converged at fit_ellipse's pixel tolerance or once the remaining
@@ -399,27 +388,21 @@ def _mergeable(a, b, max_angle, max_offset, max_axis_ratio, limit=np.inf):
     ``limit``, the RMS the refitted union must reach to be accepted.
 
     The second is needed because a short piece of a rim fixes its own
-    ellipse poorly, and worse than its first-order uncertainty says: its
-    cost is flat along a curved valley (a rim piece of 60 points had its
-    centre 17 px off at a stated 3 px), so comparing the pieces' ellipses
+    ellipse poorly, and worse than its first-order uncertainty says (its
+    cost is flat along a curved valley), so comparing the pieces' ellipses
     refuses pieces of one rim; the points themselves tell. The geometric
     fit improves on the direct one by far less than ``MERGE_SCREEN`` in
     RMS for points of one ellipse (the direct fit is biased, not far off)
     and for points of two (both leave the misfit between them), so a union
     failing the screen would fail its test too.
 
-    Arcs of opposite polarity are tried: a hole's rim is brighter outside
-    along one stretch and darker along another, against its inner wall lit
-    on one side and in shadow on the other (see
-    ``ImageFeature.mixed_polarity``); two different rims are told apart by
-    the refit of their union, whose residuals then show the two. Lines of
-    opposite polarity are not: two pieces of one straight edge along which
-    the faces exchange brightness and two different edges that happen to
-    be collinear in this image (common in a view at grazing incidence) are
-    alike in one image, both one line within the noise (on the grazing
-    render of the sample plate in tests/test_degenerate.py two such edges,
-    12 px apart, gave a union with chi-square p = 0.52; merged, neither
-    matched, and the registration became ambiguous).
+    Arcs of opposite polarity are tried: a hole's rim against its inner
+    wall, lit on one side and in shadow on the other, changes polarity
+    along it (``ImageFeature.mixed_polarity``); the refit of a union of two
+    different rims shows the two. Lines of opposite polarity are not: two
+    different edges that happen to be collinear in one image (common in a
+    view at grazing incidence) are one line within the noise there, and
+    merged they match nothing.
     """
     if a.kind != b.kind:
         return False
@@ -520,14 +503,13 @@ def _merge_once(feats, tried):
     # displaced stretch of this one (a rim beside a second edge closer than
     # the filter resolves), barely raises it, and the outlier rejection hides
     # it further by dropping its points. A union is taken only if it keeps
-    # more than half of the points of each part. An arc most of whose points
-    # the union rejects, while the union fits the other part within the
-    # limit, is an outlier stretch of that rim: it is dropped, as its points
-    # would have been had the two been found as one piece. (On the sample
-    # renders, pieces of one edge lose at most a fifth of their points to
-    # the union, displaced stretches half or more. Lines are only not
-    # merged: a short edge parallel to a long one and within the merge
-    # offset may be an edge of its own, a chamfer's.)
+    # more than half of the points of each part: pieces of one edge lose far
+    # fewer to the union, displaced stretches about that many or more. An
+    # arc most of whose points the union rejects, while the union fits the
+    # other part within the limit, is an outlier stretch of that rim: it is
+    # dropped, as its points would have been had the two been found as one
+    # piece. Lines are only not merged: a short edge parallel to a long one
+    # and within the merge offset may be an edge of its own, a chamfer's.
     best = None
     outlier = None
     for i in range(len(feats)):
@@ -585,12 +567,10 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
         few hundredths of a pixel of systematic misfit that a ratio test
         alone would refuse. Lines get the ratio test only: two straight
         edges meeting at a shallow angle differ by a few hundredths of a
-        pixel over a long stretch, which passed ``max_misfit`` and bent
-        the merged line out of straightness by 30 um. The union must also
-        keep more than half of each part's points (see
-        :func:`_merge_once`); an arc it mostly rejects is dropped as an outlier stretch.
-        Arcs of opposite polarity are merged (``ImageFeature.mixed_polarity``),
-        lines not (see :func:`_mergeable`).
+        pixel over a long stretch, which would pass ``max_misfit`` and bend
+        the merged line out of straightness. The union must also keep more
+        than half of each part's points (:func:`_merge_once`); arcs of
+        opposite polarity are tried, lines not (:func:`_mergeable`).
 
     Returns
     -------

@@ -24,9 +24,8 @@ def read_image(path):
     image : ndarray, shape (H, W), uint8 or uint16
         Grey levels in the file's own scale (0-255 or 0-65535), integers as
         recorded: the noise estimate needs to know they were rounded (an
-        integer image's pixels carry at least the rounding error, and its
-        top value is saturation; as float32 a noise-free 8-bit image read as
-        noise 0 and the chain failed).
+        integer image's pixels carry at least the rounding error, so even a
+        noise-free one has a noise, and its top value is saturation).
     bit_depth : int
         8 or 16.
 

@@ -1,53 +1,32 @@
 """Matching of left and right image features by the epipolar constraint.
 
-The features of each image (its segments merged where they are one edge and
-refitted in ideal pixels, :mod:`partinspect.vision.imagefeatures`) are
+The features of each image (:mod:`partinspect.vision.imagefeatures`) are
 paired across the two images:
 
-- every feature spans a range of epipolar lines, its *band* (a 1-D
-  interval: the signed offset, in ideal left-image pixels at the image
-  centre, of the epipolar line through each of its points); two images of
-  one edge span the same band up to their ends' trimming, so candidates
-  must overlap [2]_;
-- their shapes must agree: the same kind; the same polarity (the grey level
-  rises in the same sense along the epipolar lines, or for arcs on the same
-  side of the ellipse; not compared for an arc merged from pieces of
-  opposite polarity); for arcs, the same 3D radius once each ellipse's
-  size is scaled by its depth (centres triangulated), to within what the
-  two ellipse fits leave uncertain (a short arc's size is known to a few
-  per cent only); for lines, similar
-  angles to the epipolar lines and a triangulated middle in front of both
-  cameras;
-- a one-to-one assignment (Hungarian algorithm) minimises the summed cost,
-  with a rejection threshold for pairs too poor to keep.
+- every feature spans a range of epipolar lines, its *band* (the signed
+  offset, in ideal left-image pixels at the image centre, of the epipolar
+  line through each of its points); two images of one edge span the same
+  band up to their ends' trimming, so candidates must overlap [2]_;
+- their shapes must agree: the same kind and polarity (not compared for an
+  arc merged from pieces of opposite polarity); for arcs, the same 3D
+  radius once each ellipse is scaled by its triangulated depth, within
+  what the two ellipse fits leave uncertain; for lines, similar angles to
+  the epipolar lines and a triangulated middle in front of both cameras;
+- a one-to-one assignment (Hungarian algorithm [3]_) minimises the summed
+  cost, with a threshold for pairs too poor to keep.
 
-Nothing is dropped silently: every feature left without a partner is
-returned with its reason. Two geometries are not measured at all, and are
-reported with the figure that rules them out rather than matched:
-
-- a line nearly parallel to the epipolar lines is *degenerate*: its
-  position along them, hence its depth, is undetermined;
-- an elliptical arc whose minor/major axis ratio is small is a circle seen
-  nearly *edge-on* (the ratio is about the cosine of the angle between the
-  line of sight and the circle's axis): the radius of curvature at the ends
-  of its major axis, b^2 / a, falls to a pixel or two, below what the edge
-  detector's first-order smoothing correction models; the two sides of the
-  ellipse crowd each other; a hole's rim is seen against its own wall,
-  whose shading changes along the thin ellipse, so only pieces of it are
-  found. Its points are then displaced by more than their uncertainty says.
-  On renders of the sample plate (1224 x 1024 px, noise 2) holes whose
-  thinner image had axis ratio 0.095 and 0.13 came out 0.096 and 0.016 mm
-  too small in diameter with U = 0.072 and 0.014 mm: false fails; from
-  0.13 (that one) to 0.18, 3 of 5 were within U. The threshold, 0.2
-  (78.5 degrees off axis), is above all of these. Thin partial arcs above
-  it can still be biased where the rim's contrast varies along them: a
-  displacement of the edge points, not a geometric degeneracy, and not
-  rejected here.
-
-A feature whose only plausible partner in the other image is degenerate or
+Every feature left without a partner is returned with its reason. Two
+geometries are reported instead of matched: a line nearly parallel to the
+epipolar lines is *degenerate* (its depth is undetermined), and a circle
+seen nearly *edge-on* (``MIN_AXIS_RATIO``) has an ellipse so thin that its
+points are displaced by more than their uncertainty says: the radius of
+curvature at the ends of the major axis, b^2 / a, falls to a pixel or two,
+below what the detector's smoothing correction models, the two sides crowd
+each other, and a rim seen against its own wall's changing shading is
+found in pieces. A feature whose only plausible partner is degenerate or
 edge-on gets that partner's reason, so both images tell the same story.
 
-All coordinates are ideal pixels (distortion removed, see
+All coordinates are ideal pixels (distortion removed,
 :mod:`partinspect.vision.ideal`); 3D points are in the rig (left camera)
 frame, mm.
 
@@ -89,28 +68,23 @@ MIN_EPIPOLAR_ANGLE = np.deg2rad(8.0)
 MIN_AXIS_RATIO = 0.2
 """Arcs whose fitted ellipse has a minor/major axis ratio below this (in
 either image) are "edge-on": the circle is seen more than arccos 0.2 = 78.5
-degrees off its axis. See the module notes for the evidence."""
+degrees off its axis, where holes' diameters come out too small by more
+than their U (see the module notes). Thin partial arcs above it can still be
+biased where the rim's contrast varies along them: a displacement of the
+edge points, not a geometric degeneracy, and not rejected here."""
 RADIUS_COVERAGE = 2.0
 """Coverage factor on the standard uncertainty of ``log(r_left / r_right)``
 that two arcs' ellipse fits leave: the ratio's tolerance in the matching
 cost is ``radius_tolerance`` widened in quadrature by this many standard
-uncertainties (:func:`_radius_scale`). A short arc's semi-major axis is
-uncertain by several per cent: the plate's 12 mm hole's bottom rim, a
-quarter of it seen through the hole (bench_plan's default pose), 5-8 % in
-the left image and 2 % in the right. It went unmatched in 12 of 50 noise
-draws (the four looked at: "features in its band disagree in ... size",
-the two views' radii 7.5-12 % apart, which with their bands' partial
-overlap cost more than ``max_cost``); in 4 of 50 with this widening."""
+uncertainties (:func:`_radius_scale`). A short arc's semi-major axis (a
+quarter of a rim seen through its hole) is uncertain by several per cent,
+beyond the fixed tolerance, which would leave such true pairs unmatched."""
 RADIUS_WIDENING_MAX = 2.0
 """The widened tolerance never exceeds this many times ``radius_tolerance``
 (a 20 % disagreement costs 1): the radius is the only shape an arc is
 matched by besides its band, and an arc too short to tell its radius
 within that would be paired on its band alone, where arcs of neighbouring
-holes overlap. Such arcs are left unmatched as before, with the reason.
-(The 25-point sliver of a rim at the right image's border in the
-degenerate-geometry tests, its ellipse's semi-major axis uncertain by
-16 %, 18 % off the left image's radius, is one: matched, its circularity
-over that sliver read 2.4 of its u.)"""
+holes overlap. Such arcs are left unmatched, with the reason."""
 
 REASONS = {
     "too_short": "too few edge points to be measured",
@@ -511,17 +485,17 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
         pair to be a candidate.
     radius_tolerance : float
         Arcs: scale of ``|log(r_left / r_right)|`` in the cost, the 3D radii
-        seen by each view (a 10 % disagreement costs 1), for exactly
-        determined ellipses; widened by what the two fits leave uncertain
-        (:data:`RADIUS_COVERAGE`, :func:`_radius_scale`).
+        seen by each view (a 10 % disagreement costs 1), widened by what
+        the two ellipse fits leave uncertain (:data:`RADIUS_COVERAGE`).
     angle_tolerance : float
         Lines: scale of the difference of the signed angles to the epipolar
         lines in the cost, rad.
     max_cost : float
         Pairs costing more are rejected.
     ambiguity_margin : float
-        A match whose best alternative assignment costs less than this more
-        is "ambiguous" and not kept.
+        A match whose best alternative assignment costs less than this more,
+        and breaks the ordering constraint (matched lines keep their order
+        along the epipolar lines) no more often, is "ambiguous" and not kept.
     depth_range : (float, float), optional
         Plausible depths of the scene, mm; default only "in front of both
         cameras".
@@ -532,20 +506,14 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
 
     Notes
     -----
-    A degenerate or edge-on feature takes part in no pair. A feature left
-    unmatched whose band holds such a feature of its kind and polarity (the
-    partner it would have had) is given the same reason, naming it.
-
-    A match whose best alternative is within ``ambiguity_margin`` is kept
-    only when the alternative breaks the ordering constraint more often
-    (matched lines keep their order along the epipolar lines).
-
-    The cost of a candidate pair is ``(1 - IoU of the bands) + shape cost``;
+    A degenerate or edge-on feature takes part in no pair; a feature left
+    unmatched whose band holds such a feature of its kind and polarity is
+    given that feature's reason, naming it. The cost of a candidate pair is ``(1 - IoU of the bands) + shape cost``;
     polarity disagreement (unless either feature is of mixed polarity), a
-    kind mismatch or a triangulated point outside
-    the depth range exclude the pair. The assignment is solved with dummy
-    rows and columns of cost ``max_cost / 2`` so that leaving both features
-    unmatched is preferred to any pair costing more than ``max_cost``.
+    kind mismatch or a triangulated point outside the depth range exclude
+    the pair. Dummy rows and columns of cost ``max_cost / 2`` make leaving
+    both features unmatched cheaper than any pair costing more than
+    ``max_cost``.
     """
     depth = depth_range if depth_range is not None else (0.0, np.inf)
     sl = _side(geo, left, "left", min_points, min_angle, min_axis_ratio)

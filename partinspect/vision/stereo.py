@@ -1,78 +1,37 @@
 """The stereo measurement chain: an image pair to 3D lines and circles with covariances.
 
 Per image: noise estimate -> sub-pixel edge points with covariances ->
-contours -> line and ellipse segments; then the points are moved to ideal
-pixels, the segments merged and matched across the images by the
-epipolar constraint, corresponding points triangulated with their error
-ellipsoids, and each matched feature fitted in 3D to the edge points of both
-images at once (:mod:`partinspect.vision.fit3d`), initialised from a PCA line
-or a plane-and-circle fit through the triangulated points.
+contours -> line and ellipse segments -> image features in ideal pixels;
+then the features are matched across the images by the epipolar
+constraint, corresponding points triangulated with their error ellipsoids,
+and each matched feature fitted in 3D to the edge points of both images at
+once (:mod:`partinspect.vision.fit3d`), started from a PCA line or a
+plane-and-circle fit through the triangulated points.
 
 Uncertainty (GUM, JCGM 100): each 3D feature's covariance is the
 first-order propagation of the edge points' covariances (sandwich form, the
-along-edge correlation of smoothed noise included). When the calibration
-carries standard uncertainties of its parameters (``calib.std``), their
-contribution is added (:mod:`partinspect.vision.calibration_uncertainty`:
-numerical sensitivities of the two-view fit, calibration parameters taken
-as uncorrelated). These parts, and the systematic one below, are kept
-separately in each :class:`Feature3D`.
+along-edge correlation of smoothed noise included), plus the calibration's
+part when ``calib.std`` is given
+(:mod:`partinspect.vision.calibration_uncertainty`, parameters taken as
+uncorrelated), plus the Type B part of rims below; :class:`Feature3D`
+keeps the three apart.
 
-Rims of holes (circles and arcs). Two systematic displacements of the edge
-points across a curved edge are handled before the 3D fit (numbers from the
-rendered sample parts at 1224 x 1024, noise 2, where the image-noise
-standard uncertainty of a hole's radius is 0.2-0.6 um, about 0.004 px):
-
-- *Curvature bias of the edge detector* (an error of ours, corrected): the
-  Gaussian smoothing moves points on a curve of curvature kappa towards its
-  centre by ``W^2 kappa / 2`` (W the width of the edge profile), and the
-  sub-pixel interpolation along a pixel axis a further
-  ``0.135 sin^2(2 phi) kappa`` (:data:`partinspect.vision.edges.CURVATURE_SAMPLING_BIAS`).
-  Uncorrected, it made the radii of holes rendered with uniformly grey
-  walls 2-9 um (13-23 u) too small; corrected
-  (:func:`partinspect.vision.correspondences.deblurred`), within +-0.5 u.
-- *The shaded inner wall beside the rim* (physical: a real camera sees it
-  too): where the wall is seen near grazing incidence (the rim points
-  whose tangent runs towards the image of the hole's axis) its shading
-  changes steeply next to the rim, and the edge point moves by up to
-  0.1-0.2 px outwards, elsewhere by a few hundredths either way. This was
-  the depth bias of hole centres (17-31 um on noiseless renders, 8-11
-  standard uncertainties, along the right camera's line of sight, since
-  the left image's rim is shaded asymmetrically) and, once the curvature
-  bias is removed, radii 6-20 um too large. It is handled as GUM asks for a recognised systematic
-  effect: corrected as far as it is known, the rest in the budget. The
-  edge detector measures the grey-level gradients 3-4 px on either side of
-  every point (``EdgePoints.background_shift`` and ``background_bound``,
-  :func:`partinspect.vision.edges.background_gradients`); the first-order
-  displacement, times ``BACKGROUND_CORRECTION`` (the detector moves
-  further than the first-order theory says, 1.05-1.4 times for a linear
-  background, 1.6-2.4 times for the square-root profile of a surface at
-  grazing incidence, which the theory reads too low), is removed, which
-  takes the RMS displacement of the rim points from 0.057 to 0.026 px. What remains is
-  given a Type B standard uncertainty (JCGM 100, 4.3.1) of
-  ``EDGE_BIAS_FACTOR`` times the bound per point, with a floor
-  ``EDGE_BIAS_FLOOR`` in quadrature: on the sample parts under three light
-  directions, 68 % of the remaining displacements are within 0.46-0.70
-  times the bound, and where the bound is near zero they are still
-  0.005 px (RMS). The displacements of neighbouring points are
-  alike, so they are taken as correlated along the edge over
-  ``EDGE_BIAS_CORR_ANGLE`` of the rim; the fit weights each point by its
-  random and systematic variance together (the points beside a steep
-  shading count less) and propagates both (:func:`fit3d._covariance`,
-  ``param_cov_systematic``). On noiseless renders of the sample parts
-  under 12 light directions the remaining errors of whole rims' centres
-  are 0.84 (plate) and 0.54 (bracket) of the stated standard
-  uncertainties (RMS over the 3 axes) and of radii 1.08 and 0.80, instead
-  of 6 and 23 with the curvature bias alone removed (one light); the
-  uncertainties grow accordingly (of a hole's depth from 2-3 um to
-  5-25 um). The random uncertainty of the
-  correction itself is a random component of its own (averaged along the
-  edge over ``BACKGROUND_SMOOTHING`` px, it is a tenth of the point's
-  variance, but correlated over 2.2 px instead of 1:
-  :func:`correction_corr_length`); part of ``param_cov_image``, it is drawn
-  by the Monte Carlo of :mod:`partinspect.vision.montecarlo` beside the
-  points' image noise; the Type B part is not. Lines are not corrected:
-  an edge between two planar faces under a directional light has uniform
-  grey on both sides.
+Rims of holes (circles and arcs). Before the 3D fit (:func:`feature_views`)
+the detector's curvature bias, an error of ours, is removed
+(:func:`partinspect.vision.correspondences.deblurred`), and so is, as far
+as it is known, the displacement by the shaded inner wall beside the rim,
+which a real camera sees too (``BACKGROUND_CORRECTION`` times the
+first-order shift read beside each point,
+:func:`partinspect.vision.edges.background_gradients`). As GUM asks for a
+recognised systematic effect, the rest is a Type B standard uncertainty
+per point (JCGM 100, 4.3.1: ``EDGE_BIAS_FACTOR`` times the shading's bound,
+``EDGE_BIAS_FLOOR`` in quadrature), correlated along the rim over
+``EDGE_BIAS_CORR_ANGLE`` (neighbouring points are displaced alike); the
+fit weights and propagates it with the random part. The correction's own
+noise is random, correlated over :func:`correction_corr_length`, and drawn
+by the Monte Carlo (:mod:`partinspect.vision.montecarlo`); the Type B part
+is not. Lines are not corrected: an edge between two planar faces under a
+directional light has uniform grey on both sides.
 
 Frames: 2D points in distorted pixels as detected, or ideal pixels where
 said; 3D geometry in the rig frame (left camera, mm).
@@ -115,15 +74,13 @@ __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_s
            "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
 # Points of arcs: the corrections and the Type B component of the module
-# notes, "Rims of holes" (the numbers there).
+# notes, "Rims of holes".
 BACKGROUND_CORRECTION = 1.4
 """Factor on ``EdgePoints.background_shift`` removed from the points of arcs.
-The detector moves 1.05-1.4 times the first-order shift for a background
-linear in the distance from the edge and 1.6-2.4 times for one rising as
-its square root (a smooth surface seen at grazing incidence beside the
-edge): synthetic straight edges, optical blur 0.3-1 px, all directions.
-1.4 centres the remaining displacement of the rim points of the rendered
-plate on zero (means of -0.002 to +0.002 px under three lights)."""
+The detector moves further than the first-order shift says, more so beside
+a surface seen at grazing incidence (a background rising as the square root
+of the distance) than beside a linear one; 1.4 centres what remains of the
+rim points' displacement on zero."""
 BACKGROUND_SMOOTHING = 2.0
 """px: the background displacement and bound of the points of an arc are
 averaged along the edge with a Gaussian of this standard deviation (the
@@ -132,38 +89,22 @@ reading over about one)."""
 MISMATCH_P = 1e-6
 """A matched pair of arcs whose 3D circle fits both images worse than their
 two ellipses by more than this chance allows
-(:func:`partinspect.vision.fit3d.circle_consistency`) is not kept: arcs of
-two different holes (a left rim matched to the right image's rim of a hole
-of similar size beside it gave p = 0, 10^6 above the ellipses). The test's
-p-values run low for true pairs (most 0.003-0.5, a few 1e-4), so only a
-gross misfit (beyond 5 sigma) counts."""
+(:func:`partinspect.vision.fit3d.circle_consistency`) is not kept: they are
+the rims of two different holes. True pairs' p-values run low (the Type B
+displacements bend two free ellipses more easily than one circle), so only
+a gross misfit, beyond 5 sigma, counts."""
 EDGE_BIAS_CORR_ANGLE = 0.2
 """Correlation length of that remainder along the edge, rad of the ellipse
 (times its semi-major axis gives px)."""
 EDGE_BIAS_FLOOR = 0.01
 """px: Type B standard uncertainty of every rim point however flat the
 shading beside it, added in quadrature to ``EDGE_BIAS_FACTOR`` times the
-bound and correlated along the edge as that. On noiseless renders (both
-sample parts, 12 light directions) the rim points whose bound is below
-0.007 px are 0.005-0.006 px off the true rim (RMS, 5500 points), 1.3-1.8
-times what their random and Type B parts said: the detector's and the
-curvature correction's own error, which no shading reading sees. Without
-it the fit leaned on those points as if exact, and over the 12 lights the
-plate's radii were within +-2u in 84 % of noiseless cases and 90-95 % at
-noise 1-4 (normalised RMS 2.0 and 1.1-1.3); with it 92 % and 95-97 %
-(1.08, 0.92-1.00). The floor is twice those points' RMS because it is set
-on the fits, where these errors average out along the rim less than the
-0.2 rad correlation says: at 0.005 px the noiseless radii were within
-+-2u in 90 % (normalised RMS 1.39), and 93 % at noise 1-2 (1.04-1.11).
-Those figures were measured on renders that carried up to 0.005 px of the
-renderer's own error along edges (fixed 2026-12-03): on the fixed renders
-(6 lights, 1224 x 1024) the rim points whose bound is below 0.007 px are
-0.0030 (plate) and 0.0041 px (bracket) off, and 68 % of the others are
-within 0.55 and 0.65 times their bound (so the factor stands); over 12
-lights the plate's normalised RMS of centres / radii is 0.79-0.82 /
-0.82-0.88 at noise 1-4 (bench_stereo), and under the default light alone
-its radii read 0.45 (0.44 with a floor of 0.005: the bound's part
-dominates). The floor was not re-fitted."""
+bound and correlated along the edge as that. It stands for the detector's
+and the curvature correction's own error, which no shading reading sees;
+without it the fit leans on the points beside flat shading as if they were
+exact. It is twice those points' RMS error because it was set on the fits,
+where these errors average out along the rim less than the correlation
+says."""
 
 
 @dataclass(frozen=True)
@@ -212,9 +153,8 @@ class Feature3D:
         ``partinspect.frames.reference_direction(normal)``; 0 and 2 pi
         for a circle.
     covariance : ndarray, shape (3, 3)
-        Covariance of ``center`` (circles) or ``point`` (lines), mm^2,
-        image noise, calibration and the systematic edge component
-        together.
+        Covariance of ``center`` (circles) or ``point`` (lines), mm^2: all
+        three parts below together.
     radius_std : float
         Standard uncertainty of the radius, mm (NaN for lines).
     axis_cov : ndarray, shape (3, 3)
@@ -231,19 +171,17 @@ class Feature3D:
     correspondences : Correspondences
         Triangulated points with their 3x3 covariances.
     param_cov_systematic : ndarray
-        The third part of ``param_cov``: the Type B component for what
-        remains of the displacement of the edge points of circles and arcs
-        by the shading beside the rim after its correction (module notes,
-        "Rims of holes"); zeros for lines.
+        The third part of ``param_cov``: the Type B component of a rim's
+        points (module notes, "Rims of holes"); zeros for lines.
     point_errors : PointErrorModel or None
         Draws of the errors of ``points`` with their correlations along the
         edge (:mod:`partinspect.vision.pointerrors`), for the form's Monte
         Carlo.
     guided : str or None
-        The edge (a CAD id) this line was measured as by
-        :func:`partinspect.vision.guided.guided_lines`: a stretch of longer
-        image lines chosen by the edge's image under the registered pose,
-        not a pair the matching made. None for the matching's features.
+        The CAD edge this line was measured as by
+        :func:`partinspect.vision.guided.guided_lines` (a stretch of longer
+        image lines chosen by the edge's image under the registered pose);
+        None for a pair the matching made.
     """
 
     kind: str
@@ -287,9 +225,8 @@ class Feature3D:
         correction (with the share it takes from the point's own) and the
         Type B rest of the shading's displacement, with the right fit's part.
         The triangulation's own ``correspondences.cov`` carries the first
-        and the last only and understated a rim point's standard
-        uncertainty 1.3-2.5 times (a plate render); for a line the two are
-        the same.
+        and the last only, too little for a rim's points; for a line the
+        two are the same.
         """
         if self.point_errors is not None:
             return self.point_errors.covariances()
@@ -449,14 +386,13 @@ def coupled_noise(xy, sigma, background_std, corr_length, length=BACKGROUND_SMOO
     chain averages the readings along the edge (weights ``W``, as
     :func:`smoothed_background`) and removes ``BACKGROUND_CORRECTION``
     times the mean, so a corrected point's error is ``d - k (W d)`` (``k``
-    the product of the two factors, -0.196) plus the correction's
-    independent rest. ``d - k (W d)`` is modelled as ``d`` plus an
-    independent smooth part, correlated as the averaged correction
+    the product of the two factors) plus the correction's independent
+    rest. ``d - k (W d)`` is modelled as ``d`` plus an independent smooth
+    part, correlated as the averaged correction
     (:func:`correction_corr_length`), whose variance makes the power at
     long wavelengths exact: there ``W d = d`` and the sum has ``(1 - k)^2``
-    times the power of ``d``. A fit over the whole edge (centre, radius)
-    sees that power; a point alone sees 1.19 times the variance of ``d``
-    where the sum has 1.25 (sigma 1 px, ``length`` 2 px).
+    times the power of ``d``. That is what a fit over the whole edge
+    (centre, radius) sees; a point alone sees a little less.
 
     Parameters
     ----------
@@ -584,12 +520,9 @@ def correction_corr_length(corr_length):
     their noise is correlated as the points' own, ``exp(-d^2 / (4 l^2))``
     with l = ``corr_length``; the Gaussian average over
     ``BACKGROUND_SMOOTHING`` px along the edge (:func:`smoothed_background`)
-    widens that to the same form with l^2 + ``BACKGROUND_SMOOTHING``^2
-    (2.2 px for l = 1). Taken as the image noise's, the correction's
-    share of a rim's radius variance came out 2-2.5 times too small in
-    standard deviation (plate, 16 noise draws: its paired effect 0.17-0.59
-    um against a stated 0.10-0.29); at this length the spread of its means
-    over stretches of 7-10 px is 1.06-1.12 times the stated.
+    widens that to the same form with l^2 + ``BACKGROUND_SMOOTHING``^2.
+    Taken as short as the image noise's, the correction's share of a rim's
+    radius variance would be understated.
     """
     return float(np.hypot(corr_length or 0.0, BACKGROUND_SMOOTHING))
 
@@ -619,10 +552,7 @@ def fit_feature(fl, fr, views, points, geo):
     An arc (part of a rim) is fitted from a second start as well, and the
     fit with the smaller chi-square kept: the circle through the
     triangulated points of a short arc can be far off, and the two-view
-    fit then stops in another minimum of its cost (a hole's far rim seen
-    over 65 degrees through the hole: from the points' circle, radius
-    8.2 mm for 6 mm and the centre 5.9 mm off, chi-square 231; from the
-    second start 6.01 mm, 0.1 mm off, chi-square 151). The second start
+    fit then stops in another minimum of its cost. The second start
     takes the centre and radius from the two images' ellipses as the
     matching compares them (:func:`partinspect.vision.matching.arc_circle`;
     ``geo`` the pair's EpipolarGeometry) and the normal from the points.
@@ -692,8 +622,8 @@ def corrected_correspondences(fl, fr, views, corr, geo, corr_length):
 
     Those are the triangulated points the form is judged on. The 3D fit
     itself is started from the correspondences as found (``corr``): a
-    start from the corrected ones sent a short arc of a washer to another
-    local minimum. Lines, and arcs left with fewer than 6 corrected
+    start from the corrected ones can send a short arc to another local
+    minimum. Lines, and arcs left with fewer than 6 corrected
     correspondences, keep ``corr``.
     """
     if fl.kind != "arc":
@@ -718,18 +648,12 @@ def as_fitted(f, view, corr_length):
     ``MAX_OUTLIER_FRACTION`` of them; the feature keeps all its points
     (they still say where the right image sees the edge). Where a hole seen
     very obliquely has its rim fade at an ellipse's tip, the contour can run
-    on there through points up to 1 px off the rim whose Type B bound is
-    0.1-0.15 px; the image fit, which judges residuals by the image noise
-    alone and scales its threshold by their spread, keeps them, and they
-    bent the right ellipse by up to 0.6 px: on a NIST part's 4 mm hole seen
-    at an axis ratio of 0.2 (the stress run's render 3 of ftc_09) the
-    circularity read 0.198 mm for a true 0, 10 u off; with the worst point
-    left out 0.056 mm, 3.5 u. The weights stay the image noise's, so the
-    fit's covariance stays the random part the point errors' model
-    (:mod:`partinspect.vision.pointerrors`) draws. On the sample parts'
-    half-size renders (``bench_plan``, 50 draws) no point is left out; on
-    the full-size plate example the 12 mm hole's circularity moves from
-    0.0064 to 0.0062 mm (U 0.011 mm).
+    on there through points off the rim by more than their whole standard
+    uncertainty; the image fit, which judges residuals by the image
+    noise alone and scales its threshold by their spread, keeps them, and
+    they bend the right ellipse on which every partner lies. The weights
+    stay the image noise's, so the fit's covariance stays the random part
+    the point errors' model (:mod:`partinspect.vision.pointerrors`) draws.
     """
     if f.kind != "arc":
         return f
@@ -757,13 +681,12 @@ def _point_errors(fl, corr, view):
     length) and the Type B rest of a rim's shading displacement
     (``view.bias``, over its own length), as the 3D fit models them. Where
     the residuals scatter significantly more from point to point than that
-    noise predicts (:func:`~partinspect.vision.pointerrors.short_scale_ratio` above 1 by more than twice
-    its standard error: on a very clean image the sub-pixel estimator's own
-    ripple, 0.003-0.012 px depending on the edge's direction, is as large
-    as the noise), the random part is scaled up to what the residuals show:
-    a Type A evaluation of the scatter the form is judged against. It is
-    never scaled down: a ratio below 1 may hide structure longer than the
-    differences see.
+    noise predicts (:func:`~partinspect.vision.pointerrors.short_scale_ratio`
+    above 1 by more than twice its standard error: on a very clean image the
+    sub-pixel estimator's own ripple is as large as the noise), the random
+    part is scaled up to what the residuals show: a Type A evaluation of the
+    scatter the form is judged against. It is never scaled down: a ratio
+    below 1 may hide structure longer than the differences see.
     """
     sigma = np.asarray(view.sigma, float) * np.ones(len(fl.ideal.xy))
     ratio, se = short_scale_ratio(fl.fit.residuals, sigma, fl.ideal.xy, view.corr_length)

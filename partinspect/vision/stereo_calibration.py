@@ -2,26 +2,22 @@
 
 The chain is Zhang's [1]_: detect a planar board of known geometry in every
 left/right image pair, calibrate each camera on its own views
-(``cv2.calibrateCameraExtended``), then the rig (``cv2.stereoCalibrateExtended``
-with the intrinsics held fixed), reject outlier views and repeat. Every
-parameter gets a standard uncertainty (GUM, JCGM 100):
+(``cv2.calibrateCameraExtended``), then the rig
+(``cv2.stereoCalibrateExtended``), reject outlier views and repeat. Standard
+uncertainties (GUM, JCGM 100 [4]_): of the intrinsics, the diagonal of
+``sigma^2 (J^T J)^-1`` that ``calibrateCameraExtended`` returns; of the
+extrinsics (rotation vector of R, and T), first-order back-propagation of
+the image noise through the stereo least-squares problem [2]_, *including*
+the uncertainty of the intrinsics it was solved with (a sandwich
+covariance, :func:`extrinsic_covariance`).
 
-- intrinsics: the diagonal of ``sigma^2 (J^T J)^-1`` that
-  ``calibrateCameraExtended`` returns for each camera's own problem;
-- extrinsics (rotation vector of R, and T): first-order back-propagation of
-  the image noise through the stereo least-squares problem [2]_, *including*
-  the uncertainty of the intrinsics it was solved with (a sandwich
-  covariance, see :func:`extrinsic_covariance`).
-
-Why the intrinsics are held fixed in the stereo step (``CALIB_FIX_INTRINSIC``):
-the written intrinsics then are exactly the single-camera estimates whose
-standard uncertainties ``calibrateCameraExtended`` reports, so every number in
-calibration.yaml is paired with the uncertainty of *that* number; a poorly
-seen corner of one camera cannot leak into the other camera's lens model
-through R and T; and it is what the OpenCV documentation [3]_ recommends when
-each camera is well calibrated on its own. The price, a slightly less
-efficient R and T than a joint fit, is paid for honestly: the covariance of R
-and T accounts for the intrinsics' errors.
+The intrinsics are held fixed in the stereo step (``CALIB_FIX_INTRINSIC``,
+as the OpenCV documentation [3]_ recommends for cameras well calibrated on
+their own): every intrinsic written to calibration.yaml is then the
+estimate whose standard uncertainty is reported, and one camera's poorly
+seen corners cannot leak into the other's lens model through R and T. The
+price, a slightly less efficient R and T, is paid for honestly in their
+covariance.
 
 Frames and units: the rig frame is the left camera's OpenCV frame;
 ``X_right = R @ X_left + T``; lengths in the board's unit (mm when the square
@@ -305,10 +301,10 @@ def _subpix_half_window(corners, cols, rows):
     """Half-size of the cornerSubPix window for a detected grid, px.
 
     The window must not reach the neighbouring corners, or cornerSubPix pulls
-    the corner towards them: stereo_calib.cpp's fixed (11, 11) half-window is
-    23 px wide, more than the 22 px squares of OpenCV's own left02.jpg, whose
-    error it triples. 0.4 of the smallest corner spacing keeps every
-    neighbour outside; 10 px is enough for any blur.
+    the corner towards them: stereo_calib.cpp's fixed (11, 11) half-window,
+    23 px wide, is wider than the squares of OpenCV's own sample images.
+    0.4 of the smallest corner spacing keeps every neighbour outside; 10 px
+    is enough for any blur.
     """
     g = corners.reshape(rows, cols, 2)
     d = min(
