@@ -73,6 +73,7 @@ class Inputs:
     resolved: object
     characteristics: list
     hint: np.ndarray | None
+    calib_file: Path | None = None
 
 
 @dataclass
@@ -84,6 +85,7 @@ class Measured:
     seen: dict
     adaptive: dict
     uncertainty: dict
+    calibration: object = None
 
 
 def run_inspection(part, images, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
@@ -132,7 +134,9 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     from partinspect.results import figure_data
 
     inputs = load_inputs(part, images, out, tolerances, pose_hint, progress)
-    m = measure(inputs, progress)
+    check, first = check_calibration(inputs, progress)
+    m = measure(inputs, progress, first)
+    m.calibration = check
     if uncertainty == "montecarlo":
         m = with_monte_carlo(inputs, m, draws, progress)
     report, features = evaluate(inputs, m, progress)
@@ -173,21 +177,60 @@ def load_inputs(part, images, out, tolerances, pose_hint, progress):
     if tol_path is not None:
         progress(f"reading tolerances {tol_path.name}")
     resolved, characteristics = load_characteristics(inv, tol_path)
-    return Inputs(part, images, tol_path, calib, left, right, bit_depth, shape, inv, resolved, characteristics, hint)
+    calib_file = next((images / n for n in CALIBRATION_NAMES if (images / n).is_file()), None)
+    return Inputs(part, images, tol_path, calib, left, right, bit_depth, shape, inv, resolved, characteristics, hint,
+                  calib_file)
 
 
-def measure(inputs, progress):
-    """Adaptive rounds of the stereo chain, each registered and settled; the best round."""
-    from partinspect.adaptive import measure_adaptively
-    from partinspect.vision.posed import merged_stereo
+def check_calibration(inputs, progress):
+    """The stated calibration checked against this pair (epipolar tangency of matched circles).
+
+    A significant drift is corrected (``inputs.calib`` becomes the corrected
+    rig, its uncertainty carried); one beyond what a run can correct is an
+    input error. Returns the check and the stereo result of the adaptive
+    loop's first round when the calibration stood, so it is not measured twice.
+    """
+    from partinspect.adaptive import DEFAULTS
+    from partinspect.vision.epipolar_drift import check_calibration as check, matched_arcs
+
+    progress("checking the calibration against the images")
+    stereo = _stereo_round(inputs, DEFAULTS, progress)
+    result = check(inputs.calib, matched_arcs(stereo))
+    if result.verdict == "invalid":
+        d = result.drift
+        raise InputError(inputs.calib_file or inputs.images,
+                         f"the calibration does not fit these images: their epipolar lines are {d.shift:+.2f} px "
+                         f"(u {d.u:.2f} px) off, more than a run corrects; recalibrate the rig")
+    progress(result.summary())
+    if result.calib is inputs.calib:
+        return result, stereo
+    inputs.calib = result.calib
+    return result, None
+
+
+def _stereo_round(inputs, params, progress):
     from partinspect.vision.stereo import measure_stereo
 
+    return measure_stereo(
+        inputs.left, inputs.right, inputs.calib, sigma=params["sigma"], progress=progress,
+        edge_options={"k_low": params["k_low"], "k_high": params["k_high"]},
+        match_options={"min_points": params["min_points"]},
+    )
+
+
+def measure(inputs, progress, first=None):
+    """Adaptive rounds of the stereo chain, each registered and settled; the best round.
+
+    ``first``: the stereo result of the default round, if already measured
+    with ``inputs.calib``.
+    """
+    from partinspect.adaptive import DEFAULTS, measure_adaptively
+    from partinspect.vision.posed import merged_stereo
+
+    done = {tuple(sorted(DEFAULTS.items())): first} if first is not None else {}
+
     def run_round(params):
-        stereo = measure_stereo(
-            inputs.left, inputs.right, inputs.calib, sigma=params["sigma"], progress=progress,
-            edge_options={"k_low": params["k_low"], "k_high": params["k_high"]},
-            match_options={"min_points": params["min_points"]},
-        )
+        stereo = done.pop(tuple(sorted(params.items())), None) or _stereo_round(inputs, params, progress)
         progress(f"registering {len(stereo.features)} measured features to the CAD model")
         try:
             registration = _register(stereo, inputs, inputs.hint)
@@ -251,7 +294,7 @@ def with_monte_carlo(inputs, m, draws, progress):
     registration = _register(stereo, inputs, inputs.hint)
     info = {"method": "Monte Carlo (JCGM 101)", "draws": draws, "seed": 0, "coverage_factor": 2.0,
             "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None}
-    return Measured(stereo, registration, m.seen, m.adaptive, info)
+    return Measured(stereo, registration, m.seen, m.adaptive, info, m.calibration)
 
 
 def evaluate(inputs, m, progress):
@@ -280,12 +323,12 @@ def evaluate(inputs, m, progress):
         if c["measured"] is None:
             c["reason"] = "not measured: " + "; ".join(f"{fid}: {why[fid]}" for fid in c["features"] if fid in why)
     images = inputs.images
-    calib_file = next((images / n for n in CALIBRATION_NAMES if (images / n).is_file()), None)
     report = assemble_report(
         part=inputs.part.name,
         verdict=verdict(decisions),
-        inputs=input_entries(inputs.part, images / IMAGE_NAMES[0], images / IMAGE_NAMES[1], calib_file,
+        inputs=input_entries(inputs.part, images / IMAGE_NAMES[0], images / IMAGE_NAMES[1], inputs.calib_file,
                              inputs.tol_path),
+        calibration=None if m.calibration is None else m.calibration.to_dict(),
         image={"width": inputs.left.shape[1], "height": inputs.left.shape[0], "bit_depth": inputs.bit_depth},
         tolerances={"file": None if inputs.tol_path is None else str(inputs.tol_path),
                     "general": inputs.resolved.general, "decision_rule": inputs.resolved.decision_rule},

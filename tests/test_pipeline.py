@@ -307,3 +307,45 @@ def test_collinear_edges_either_side_of_a_slot_are_each_measured(slotted, tmp_pa
     seen = {f["id"] for f in truth["features"] if f["visible_both"]}
     assert all(f["measured"] is not None for f in report["features"] if f["id"] in seen)
     assert not any("runs on past it" in (f.get("reason") or "") for f in report["features"])
+
+
+def _drifted_copy(workdir, dy):
+    """The plate's pair with the stated calibration's right principal point moved by ``dy`` px (the rig drifted)."""
+    from dataclasses import replace
+
+    from partinspect.vision.calibration import read_calibration, write_calibration
+
+    calib = read_calibration(workdir / "images")
+    K2 = calib.K2.copy()
+    K2[1, 2] += dy
+    write_calibration(workdir / "images" / "calibration.yaml", replace(calib, K2=K2))
+    return workdir
+
+
+def test_a_drifted_rig_is_found_corrected_and_said(workdir, tmp_path, plate):
+    """Half a pixel of drift across the epipolar lines: every circle is still measured (before, the two
+    images' arcs were 'not one circle' and all ten were lost), the drift is estimated within 0.02 px,
+    and the report says what was corrected."""
+    _drifted_copy(workdir, 0.5)
+    out = tmp_path / "out"
+    code = main([str(workdir / "part.step"), str(workdir / "images"), "-o", str(out), "-q"])
+    report = json.loads((out / "report.json").read_text())
+    jsonschema.validate(report, SCHEMA)
+    check = report["calibration_check"]
+    assert check["verdict"] == "drifted" and check["tangencies"] >= 6
+    assert abs(check["epipolar_residual_px"] - 0.5) < 0.02
+    assert check["correction_deg"] != 0 and check["correction_std_deg"] > 0
+    truth = json.loads((plate.parent / "truth.json").read_text())
+    seen = {f["id"] for f in truth["features"] if f["visible_both"]}
+    by_id = {f["id"]: f for f in report["features"]}
+    assert all(by_id[i]["measured"] is not None for i in seen)
+    assert code in (0, 3) and "fail" not in {c["decision"] for c in report["characteristics"]}
+
+
+def test_a_rig_drifted_beyond_correction_is_refused(workdir, tmp_path, capsys):
+    _drifted_copy(workdir, 4.0)
+    out = tmp_path / "out"
+    assert main([str(workdir / "part.step"), str(workdir / "images"), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "calibration.yaml" in err[0] and "recalibrate" in err[0], err
+    assert not out.exists() or not any(out.iterdir())

@@ -70,7 +70,7 @@ def mat(m, digits=15):
 
 
 def assemble_report(*, part, verdict, inputs, image, tolerances, uncertainty, adaptive, registration, features,
-                    characteristics, not_inspected, skipped_edges):
+                    characteristics, not_inspected, skipped_edges, calibration=None):
     """report.json (schema report/1) from its parts, with the summary counted.
 
     Parameters
@@ -86,6 +86,9 @@ def assemble_report(*, part, verdict, inputs, image, tolerances, uncertainty, ad
     tolerances, uncertainty, adaptive, registration : dict
         The spec used, how uncertainties were obtained, the adaptive rounds,
         the registration entry.
+    calibration : dict, optional
+        The calibration checked against the images (its epipolar residual,
+        verdict and any correction); left out when not checked.
     features, characteristics, not_inspected : list of dict
     skipped_edges : dict
         Edges of the model that are neither lines nor circles, by kind.
@@ -105,6 +108,7 @@ def assemble_report(*, part, verdict, inputs, image, tolerances, uncertainty, ad
         "tolerances": tolerances,
         "uncertainty": uncertainty,
         "adaptive": adaptive,
+        **({"calibration_check": calibration} if calibration is not None else {}),
         "registration": registration,
         "features": features,
         "characteristics": characteristics,
