@@ -1,0 +1,189 @@
+"""A drifted rig: the sample parts inspected with a stated calibration that no longer fits the images.
+
+The bundled pairs (``examples/*/images``, rendered with the exact rig of
+their ``calibration.yaml``) are inspected with that calibration moved as a
+rig drifts after calibrating:
+
+- ``shift``: the right camera's principal point moved down by ``d`` px,
+  which moves every epipolar line across itself by about ``d`` px (the
+  drift the run corrects);
+- ``roll``: the right camera turned about its optical axis so that points
+  at the image's side edges move by ``d`` px across the epipolar lines
+  (a drift that varies over the image, which the run does not correct).
+
+For every drift level the benchmark prints, beside the exact calibration's
+row from the same run: features measured (of the CAD edges) and circles
+measured; the true epipolar residual (median over the visible edges of the
+true partners' band offset difference under the stated calibration) and
+the run's estimate with its u and verdict; per characteristic type the
+share of true values within +-U (the claim: 95.45 %) and the RMS of
+(measured - true) / u; and false accepts (a pass whose true value lies
+outside the limits).
+
+Usage::
+
+    python3 benchmarks/bench_drift.py                         # plate and bracket, both kinds, 0-2 px
+    python3 benchmarks/bench_drift.py --parts plate --kinds shift --levels 0,0.5,2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def stated_calibration(calib, kind, d):
+    """The calibration as stated after the rig drifted by ``d`` px of ``kind``."""
+    import cv2
+
+    if kind == "shift":
+        K2 = np.array(calib.K2, float)
+        K2[1, 2] += d
+        return replace(calib, K2=K2)
+    if kind == "roll":
+        w = calib.image_size[0]
+        Q = cv2.Rodrigues(np.array([0.0, 0.0, d / (0.5 * w)]))[0]
+        return replace(calib, R=Q @ np.asarray(calib.R, float), T=Q @ np.asarray(calib.T, float).ravel())
+    raise ValueError(kind)
+
+
+def true_residual(true_calib, stated, truth):
+    """Median over the visible edges of right minus left band offset of true partners under ``stated``, px."""
+    from partinspect.cad.edge_sampling import sample_edge
+    from partinspect.vision.calibration import project_points
+    from partinspect.vision.matching import epipolar_geometry
+
+    geo = epipolar_geometry(stated)
+    P = np.asarray(truth["part_to_camera"], float)
+    out = []
+    for f in truth["features"]:
+        if not f["visible_both"]:
+            continue
+        g = {k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in f["rendered"].items()}
+        X = sample_edge(f["kind"], g)[0] @ P[:3, :3].T + P[:3, 3]
+        zero = np.zeros(5)
+        x = project_points(X, true_calib.K1, zero, np.eye(3), np.zeros(3))
+        y = project_points(X, true_calib.K2, zero, np.asarray(true_calib.R, float), np.asarray(true_calib.T, float).ravel())
+        ok = np.isfinite(x).all(1) & np.isfinite(y).all(1)
+        out.append(geo.band_right(y[ok]) - geo.band_left(x[ok]))
+    return float(np.median(np.concatenate(out)))
+
+
+def true_value(c, truth):
+    """The characteristic's true value on the nominal render (None where this benchmark cannot tell it)."""
+    feats = {f["id"]: f for f in truth["features"]}
+    t = c["type"]
+    f = feats.get(c["features"][0]) if c.get("features") else None
+    if t == "diameter":
+        return 2.0 * f["rendered"]["radius"]
+    if t == "radius":
+        return f["rendered"]["radius"]
+    if t in ("straightness", "circularity", "position", "profile"):
+        return 0.0
+    if t in ("distance", "angle"):
+        return c["nominal"]
+    return None
+
+
+def inspect(part, images, stated, work):
+    """run_inspection on a copy of the pair with the stated calibration; (report or None, message)."""
+    from partinspect.errors import InputError
+    from partinspect.pipeline import run_inspection
+    from partinspect.vision.calibration import write_calibration
+
+    folder = work / "images"
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    for name in ("left.png", "right.png"):
+        shutil.copy(images / name, folder / name)
+    write_calibration(folder / "calibration.yaml", stated)
+    try:
+        return run_inspection(part, folder, work / "out").report, ""
+    except InputError as e:
+        return None, str(e)
+
+
+def row(report, truth, true_res):
+    """One table row's numbers from a report."""
+    out = {"true_res": true_res}
+    if report is None:
+        return out
+    feats = report["features"]
+    out["features"] = sum(f["measured"] is not None for f in feats)
+    out["circles"] = sum(f["measured"] is not None and f["kind"] != "line" for f in feats)
+    cc = report.get("calibration_check", {})
+    out.update(est=cc.get("epipolar_residual_px"), u=cc.get("standard_uncertainty_px"), verdict=cc.get("verdict"))
+    cover, z = defaultdict(list), defaultdict(list)
+    false_accepts = 0
+    for c in report["characteristics"]:
+        tv = true_value(c, truth)
+        if tv is None or c["measured"] is None:
+            continue
+        cover[c["type"]].append(abs(c["measured"] - tv) <= c["expanded_uncertainty"])
+        z[c["type"]].append((c["measured"] - tv) / c["standard_uncertainty"])
+        lo, up = c.get("lower_limit"), c.get("upper_limit")
+        outside = (lo is not None and tv < lo) or (up is not None and tv > up)
+        false_accepts += int(c["decision"] == "pass" and outside)
+    out["cover"] = {t: (sum(v), len(v)) for t, v in cover.items()}
+    out["z_rms"] = {t: float(np.sqrt(np.mean(np.square(v)))) for t, v in z.items()}
+    out["false_accepts"] = false_accepts
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--parts", default="plate,bracket")
+    ap.add_argument("--kinds", default="shift,roll")
+    ap.add_argument("--levels", default="0,0.25,0.5,1,2")
+    args = ap.parse_args()
+    from partinspect.vision.calibration import read_calibration
+
+    levels = [float(v) for v in args.levels.split(",")]
+    pooled = defaultdict(lambda: defaultdict(list))
+    with tempfile.TemporaryDirectory() as tmp:
+        for part in args.parts.split(","):
+            ex = ROOT / "examples" / part
+            truth = json.loads((ex / "truth.json").read_text())
+            calib = read_calibration(ex / "images")
+            for kind in args.kinds.split(","):
+                print(f"\n== {part}, drift {kind}")
+                print(f"{'drift px':>8} {'true res':>9} {'estimate':>9} {'u':>7} {'verdict':>12} {'features':>8} "
+                      f"{'circles':>7} {'false acc':>9} {'s':>5}  coverage / z RMS per type")
+                for d in levels:
+                    stated = stated_calibration(calib, kind, d)
+                    t0 = time.perf_counter()
+                    report, message = inspect(ex / "part.step", ex / "images", stated, Path(tmp) / f"{part}-{kind}-{d}")
+                    r = row(report, truth, true_residual(calib, stated, truth))
+                    dt = time.perf_counter() - t0
+                    if report is None:
+                        print(f"{d:8.2f} {r['true_res']:9.3f}   run stopped: {message}")
+                        continue
+                    types = ", ".join(f"{t} {a}/{n} ({r['z_rms'][t]:.2f})" for t, (a, n) in sorted(r["cover"].items()))
+                    est = "-" if r["est"] is None else f"{r['est']:9.3f}"
+                    u = "-" if r["u"] is None else f"{r['u']:7.3f}"
+                    print(f"{d:8.2f} {r['true_res']:9.3f} {est:>9} {u:>7} {r['verdict'] or '-':>12} "
+                          f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types}")
+                    for t, (a, n) in r["cover"].items():
+                        pooled[(kind, d > 0)][t].append((a, n))
+    print("\n== pooled over parts (drifted levels only)")
+    for (kind, drifted), types in sorted(pooled.items()):
+        if not drifted:
+            continue
+        parts = ", ".join(f"{t} {100 * sum(a for a, _ in v) / max(1, sum(n for _, n in v)):.1f} % of "
+                          f"{sum(n for _, n in v)}" for t, v in sorted(types.items()))
+        print(f"{kind}: {parts}")
+
+
+if __name__ == "__main__":
+    main()
