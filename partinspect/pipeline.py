@@ -199,8 +199,8 @@ def check_calibration(inputs, progress):
     if result.verdict == "invalid":
         d = result.drift
         raise InputError(inputs.calib_file or inputs.images,
-                         f"the calibration does not fit these images: their epipolar lines are {d.shift:+.2f} px "
-                         f"(u {d.u:.2f} px) off, more than a run corrects; recalibrate the rig")
+                         f"the calibration does not fit these images: their epipolar lines are {d.shift:+.2f} px off "
+                         f"(u {d.u:.2f} px), more than a run corrects; recalibrate the rig")
     progress(result.summary())
     if result.calib is inputs.calib:
         return result, stereo

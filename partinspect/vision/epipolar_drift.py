@@ -15,10 +15,12 @@ lines; its standard uncertainty is the weighted mean's, enlarged by the
 Birge ratio where the residuals scatter more than their fits say (the
 drift is then not one shift across the image). It is compared with what
 the stated calibration's own standard uncertainties let the residual be.
-The drift that shifts every epipolar line alike is a rotation of the
-right camera about the baseline: that rotation, fitted to the residuals,
-corrects the rig, and its uncertainty is added to the calibration's
-(Type B, about the baseline), so what the correction leaves uncertain is
+Two turns of the right camera about its centre move the epipolar lines
+across themselves: about the baseline, alike everywhere, and about its
+optical axis, in proportion to the distance along them. Fitted to the
+residuals (weighted least squares; the second only where six or more
+tangencies are seen), they correct the rig, and their covariance is added
+to the calibration's (Type B), so what the correction leaves uncertain is
 carried into every 3D result.
 
 Pixels are ideal (undistorted) pixel coordinates; angles in radians.
@@ -39,20 +41,34 @@ import numpy as np
 
 from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.psd import covariance_factor
+from partinspect.vision.stereo import EDGE_BIAS_FLOOR
 
 __all__ = ["TANGENT_REACH", "MIN_SIGNIFICANCE", "DriftEstimate", "tangent_offsets", "tangency_residuals",
-           "estimate_drift", "rotated_about_baseline", "residual_per_radian", "predicted_residual_std",
-           "MAX_DRIFT", "CalibrationCheck", "check_calibration", "matched_arcs"]
+           "estimate_drift", "drift_axes", "rotated_right_camera", "fit_drift", "predicted_residual_std",
+           "MAX_DRIFT", "OUTLIER_Z", "CalibrationCheck", "check_calibration", "consistent_tangencies", "matched_arcs"]
 
 TANGENT_REACH = 2.0
 """px: a tangency is read only where the feature's own edge points come
 this close to the fitted ellipse's tangent point; elsewhere the tangent
 is the fit's extrapolation, not an observation."""
 
-MIN_SIGNIFICANCE = 2.0
-"""The rig is corrected when the estimated drift exceeds this many of its
-standard uncertainties (a coverage factor of 2): a smaller one is not
-told apart from zero by this pair."""
+MIN_SIGNIFICANCE = 3.0
+"""The rig is corrected when the estimated turn exceeds this many of its
+standard uncertainties. Not 2: the rims' tangents carry small systematic
+displacements of their own (shading beside a hole's wall), and a
+correction made at the 5 % chance level would move an exact rig in one
+run of twenty; 3 leaves that to 0.3 %, and a drift that loses features
+(0.05 px and more) stands well above it."""
+
+MIN_ROLL_TANGENCIES = 6
+"""The roll is fitted only from this many tangencies on: with fewer, a
+slope across the image is read from the rims' own scatter."""
+
+OUTLIER_Z = 3.0
+"""A tangency whose residual lies further than this many robust standard
+deviations (1.4826 MAD, combined with its own) from the others is left
+out: a rim's tangent point beside an occluding edge or a shading step
+reads a tangent that is not the circle's."""
 
 _PHASES = 1440
 
@@ -145,8 +161,9 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
     Returns
     -------
     residuals, variances : ndarray, shape (n,)
-        Right minus left band offset of each tangency, px, and its variance
-        from the two fits, px^2.
+        Right minus left band offset of each tangency, px, and its variance,
+        px^2: the two fits' and, for each image, the rims' Type B edge
+        displacement (:data:`partinspect.vision.stereo.EDGE_BIAS_FLOOR`).
     select : list of (int, int)
         Which tangencies they are.
     """
@@ -170,8 +187,10 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
                     continue
             elif not (_observed(fl.ideal.xy, fl.fit.params, tl[k]) and _observed(fr.ideal.xy, fr.fit.params, tr[k])):
                 continue
+            # The fits' noise, and in each image the rim's Type B edge
+            # displacement the fits do not carry (EDGE_BIAS_FLOOR).
             v = (_offset_variance(band_left, fl.fit.params, fl.fit.cov, tl[k])
-                 + _offset_variance(band_right, fr.fit.params, fr.fit.cov, tr[k]))
+                 + _offset_variance(band_right, fr.fit.params, fr.fit.cov, tr[k]) + 2 * EDGE_BIAS_FLOOR**2)
             if np.isfinite(v) and v > 0:
                 res.append(orr[k] - ol[k])
                 var.append(v)
@@ -195,7 +214,9 @@ class DriftEstimate:
         sqrt(chi-square / (n - 1)) of the residuals about the mean (1 when
         n < 2): above 1, they scatter more than their fits say.
     residuals : ndarray, shape (n,)
-        px.
+        px, every tangency read (the ones left out too).
+    outliers : int
+        Tangencies left out (:data:`OUTLIER_Z`).
     """
 
     shift: float
@@ -203,6 +224,7 @@ class DriftEstimate:
     n: int
     birge: float
     residuals: np.ndarray
+    outliers: int = 0
 
     @property
     def significant(self):
@@ -222,31 +244,64 @@ def estimate_drift(residuals, variances):
     -------
     DriftEstimate
     """
-    r, v = np.asarray(residuals, float), np.asarray(variances, float)
-    if len(r) == 0:
-        return DriftEstimate(0.0, float("inf"), 0, 1.0, r)
+    r_all, v_all = np.asarray(residuals, float), np.asarray(variances, float)
+    if len(r_all) == 0:
+        return DriftEstimate(0.0, float("inf"), 0, 1.0, r_all)
+    keep = consistent_tangencies(r_all, v_all)
+    r, v = r_all[keep], v_all[keep]
     w = 1.0 / v
     mean = float(np.sum(w * r) / np.sum(w))
     u = float(np.sqrt(1.0 / np.sum(w)))
     birge = float(np.sqrt(np.sum(w * (r - mean) ** 2) / (len(r) - 1))) if len(r) > 1 else 1.0
-    return DriftEstimate(mean, u * max(1.0, birge), len(r), birge, r)
+    return DriftEstimate(mean, u * max(1.0, birge), len(r), birge, r_all, int((~keep).sum()))
 
 
-def rotated_about_baseline(calib, angle, angle_std=0.0):
-    """The calibration with the right camera turned about the baseline.
+def consistent_tangencies(deviations, variances):
+    """Which tangencies agree with the others, boolean (n,); all of them when fewer than four.
+
+    A deviation (a residual, or what a fit leaves of it) is kept within
+    ``OUTLIER_Z`` times its robust standard deviation about the median:
+    1.4826 times the median absolute deviation, in quadrature with its own
+    standard uncertainty.
+    """
+    d, v = np.asarray(deviations, float), np.asarray(variances, float)
+    if len(d) < 4:
+        return np.ones(len(d), bool)
+    off = np.abs(d - np.median(d))
+    return off <= OUTLIER_Z * np.hypot(1.4826 * np.median(off), np.sqrt(v))
+
+
+def drift_axes(calib):
+    """Axes of the two turns of the right camera that move the epipolar lines across themselves.
+
+    Returns
+    -------
+    ndarray, shape (2, 3)
+        Unit axes in the right camera's frame: the baseline ``T / |T|`` (every
+        epipolar plane turns about it alike), and the optical axis made
+        orthogonal to it (a roll: the lines move in proportion to the distance
+        along them).
+    """
+    T = np.asarray(calib.T, float).ravel()
+    b = T / np.linalg.norm(T)
+    z = np.array([0.0, 0.0, 1.0]) - b[2] * b
+    return np.array([b, z / np.linalg.norm(z)])
+
+
+def rotated_right_camera(calib, rotation, rotation_cov=None):
+    """The calibration with the right camera turned about its centre.
 
     Parameters
     ----------
     calib : StereoCalibration
-    angle : float
-        rad, right-handed about the baseline direction ``T / |T|`` in the
-        right camera's frame: it turns every epipolar plane about the
-        baseline alike, so it moves the epipolar lines across themselves and
-        leaves ``T`` as it is.
-    angle_std : float
-        Standard uncertainty of ``angle``, rad: added in quadrature to the
-        rotation's standard uncertainties along the baseline's components
-        (the calibration states independent per-parameter uncertainties).
+    rotation : array_like, shape (3,)
+        Rotation vector, rad, in the right camera's frame: ``X_right`` becomes
+        ``Q X_right``, so ``R`` becomes ``Q R`` and ``T`` becomes ``Q T``.
+    rotation_cov : array_like, shape (3, 3), optional
+        Its covariance, rad^2: added to the stated standard uncertainties of
+        the rotation vector and of ``T`` (through ``T``'s first-order change
+        ``w x T``), each in quadrature on its diagonal (the calibration states
+        independent per-parameter uncertainties).
 
     Returns
     -------
@@ -254,27 +309,62 @@ def rotated_about_baseline(calib, angle, angle_std=0.0):
     """
     import cv2
 
+    Q = cv2.Rodrigues(np.asarray(rotation, float).reshape(3, 1))[0]
     T = np.asarray(calib.T, float).ravel()
-    axis = T / np.linalg.norm(T)
-    Q = cv2.Rodrigues(axis * float(angle))[0]
     std = dict(calib.std)
-    if angle_std > 0:
+    if rotation_cov is not None:
+        C = np.asarray(rotation_cov, float)
         ext = np.zeros(6) if "extrinsics" not in std else np.array(std["extrinsics"], float).ravel().copy()
-        ext[:3] = np.sqrt(ext[:3] ** 2 + (axis * angle_std) ** 2)
+        ext[:3] = np.sqrt(ext[:3] ** 2 + np.clip(np.diag(C), 0, None))
+        S = np.array([[0.0, T[2], -T[1]], [-T[2], 0.0, T[0]], [T[1], -T[0], 0.0]])  # w x T = S w
+        ext[3:] = np.sqrt(ext[3:] ** 2 + np.clip(np.diag(S @ C @ S.T), 0, None))
         std["extrinsics"] = ext
-    return replace(calib, R=Q @ np.asarray(calib.R, float), std=std)
+    return replace(calib, R=Q @ np.asarray(calib.R, float), T=Q @ T, std=std)
 
 
-def residual_per_radian(calib, pairs, h=1e-5):
-    """d(mean tangency residual)/d(rotation about the baseline), px/rad, by a central difference."""
+def fit_drift(calib, pairs, h=1e-5):
+    """The turns of the right camera (:func:`drift_axes`) that bring the tangency residuals to zero.
+
+    Weighted least squares on the residuals' central-difference Jacobian;
+    only the turn about the baseline when fewer than
+    ``MIN_ROLL_TANGENCIES`` tangencies are seen. The covariance is the fit's, enlarged by the squared Birge ratio
+    of what the turns leave where that exceeds 1.
+
+    Returns
+    -------
+    rotation : ndarray, shape (3,)
+        Rotation vector, rad, right camera's frame.
+    cov : ndarray, shape (3, 3)
+        Its covariance, rad^2.
+    birge : float
+        Of the residuals after the turns (1 when nothing is left to judge).
+    """
     geo = epipolar_geometry(calib)
-    _, _, select = tangency_residuals(geo, pairs)
-    means = []
-    for sign in (1.0, -1.0):
-        moved = epipolar_geometry(rotated_about_baseline(calib, sign * h))
-        r, v, _ = tangency_residuals(moved, pairs, select, geo.ref_left)
-        means.append(estimate_drift(r, v).shift)
-    return (means[0] - means[1]) / (2 * h)
+    r, v, select = tangency_residuals(geo, pairs)
+    keep = consistent_tangencies(r, v)
+    r, v, select = r[keep], v[keep], [s for s, k in zip(select, keep) if k]
+    axes = drift_axes(calib)[: 2 if len(r) >= MIN_ROLL_TANGENCIES else 1]
+    J = np.empty((len(r), len(axes)))
+    for k, axis in enumerate(axes):
+        side = []
+        for sign in (1.0, -1.0):
+            moved = epipolar_geometry(rotated_right_camera(calib, sign * h * axis))
+            side.append(tangency_residuals(moved, pairs, select, geo.ref_left)[0])
+        J[:, k] = (side[0] - side[1]) / (2 * h)
+    w = 1.0 / v
+    A = (J * w[:, None]).T @ J
+    theta = -np.linalg.solve(A, J.T @ (w * r))
+    left = r + J @ theta
+    again = consistent_tangencies(left, v)  # a roll spreads the residuals: judged after the turns too
+    if not again.all() and again.sum() > len(axes):
+        J, r, w = J[again], r[again], w[again]
+        A = (J * w[:, None]).T @ J
+        theta = -np.linalg.solve(A, J.T @ (w * r))
+        left = r + J @ theta
+    dof = len(r) - len(axes)
+    birge = float(np.sqrt(np.sum(w * left**2) / dof)) if dof > 0 else 1.0
+    cov_theta = np.linalg.inv(A) * max(1.0, birge) ** 2
+    return theta @ axes, axes.T @ cov_theta @ axes, birge
 
 
 def predicted_residual_std(calib, pairs):
@@ -319,11 +409,13 @@ class CalibrationCheck:
         Before any correction.
     predicted : float
         Standard deviation of the drift the stated uncertainties allow, px.
-    correction : float
-        Rotation of the right camera about the baseline applied, rad (0:
-        none).
-    correction_std : float
-        Its standard uncertainty, rad, added to the calibration's.
+    correction : ndarray, shape (3,)
+        Rotation vector of the right camera's turn applied, rad, right
+        camera's frame (zeros: none).
+    correction_cov : ndarray, shape (3, 3)
+        Its covariance, rad^2, added to the calibration's.
+    birge_after : float
+        Birge ratio of the residuals the correction leaves (1 without one).
     calib : StereoCalibration
         The calibration to measure with (corrected where the drift was
         significant).
@@ -332,9 +424,14 @@ class CalibrationCheck:
     verdict: str
     drift: DriftEstimate
     predicted: float
-    correction: float
-    correction_std: float
+    correction: np.ndarray
+    correction_cov: np.ndarray
+    birge_after: float
     calib: object
+
+    @property
+    def corrected(self):
+        return bool(np.any(self.correction))
 
     def to_dict(self):
         """report.json's "calibration_check" (px and degrees)."""
@@ -345,13 +442,16 @@ class CalibrationCheck:
             "verdict": self.verdict,
             "method": "epipolar tangency of matched circles (right minus left band offset)",
             "tangencies": d.n,
+            "tangencies_left_out": d.outliers,
             "epipolar_residual_px": round(d.shift, 4) if measured else None,
             "standard_uncertainty_px": round(d.u, 4) if measured else None,
             "birge_ratio": round(d.birge, 3) if measured else None,
             "predicted_std_px": round(self.predicted, 4),
             "ratio_to_allowed": round(abs(d.shift) / bound, 3) if measured and bound > 0 else None,
-            "correction_deg": round(float(np.degrees(self.correction)), 6),
-            "correction_std_deg": round(float(np.degrees(self.correction_std)), 6),
+            "correction_deg": round(float(np.degrees(np.linalg.norm(self.correction))), 6),
+            "correction_std_deg": round(float(np.degrees(np.sqrt(np.trace(self.correction_cov)))), 6),
+            "correction_rotation_vector_deg": [round(float(v), 6) for v in np.degrees(self.correction)],
+            "birge_ratio_after": round(self.birge_after, 3),
         }
 
     def summary(self):
@@ -361,10 +461,27 @@ class CalibrationCheck:
             return "calibration not checked: no circle's epipolar tangencies seen in both images"
         text = (f"calibration {self.verdict}: epipolar residual {d.shift:+.3f} px (u {d.u:.3f} px, "
                 f"{d.n} tangencies; stated calibration allows {self.predicted:.3f} px)")
-        if self.correction:
-            text += (f"; right camera turned {np.degrees(self.correction):+.5f} deg about the baseline "
-                     f"(u {np.degrees(self.correction_std):.5f} deg, carried)")
+        if self.corrected:
+            text += (f"; right camera turned {np.degrees(np.linalg.norm(self.correction)):.5f} deg "
+                     f"(u {np.degrees(np.sqrt(np.trace(self.correction_cov))):.5f} deg, carried)")
         return text
+
+
+def _within_stated(calib, rotation, cov):
+    """Whether a turn of the right camera lies within what the calibration's stated uncertainty allows.
+
+    Along each of :func:`drift_axes`, the turn is compared with
+    ``MIN_SIGNIFICANCE`` times its own standard uncertainty combined with
+    the stated rotation uncertainty along that axis (the stated rotation
+    vector's standard uncertainties, independent as stated; none stated:
+    nothing but the turn's own uncertainty is allowed).
+    """
+    stated = np.asarray(calib.std.get("extrinsics", np.zeros(6)), float).ravel()[:3]
+    for axis in drift_axes(calib):
+        allowed = np.hypot(np.sqrt(np.sum((axis * stated) ** 2)), np.sqrt(max(axis @ cov @ axis, 0.0)))
+        if abs(axis @ rotation) > MIN_SIGNIFICANCE * allowed:
+            return False
+    return True
 
 
 def check_calibration(calib, pairs):
@@ -384,19 +501,21 @@ def check_calibration(calib, pairs):
     geo = epipolar_geometry(calib)
     r, v, _ = tangency_residuals(geo, pairs)
     drift = estimate_drift(r, v)
+    none = np.zeros(3), np.zeros((3, 3))
     if drift.n == 0:
-        return CalibrationCheck("not checked", drift, 0.0, 0.0, 0.0, calib)
+        return CalibrationCheck("not checked", drift, 0.0, *none, 1.0, calib)
     predicted = predicted_residual_std(calib, pairs)
-    if abs(drift.shift) > MAX_DRIFT:
-        return CalibrationCheck("invalid", drift, predicted, 0.0, 0.0, calib)
-    allowed = MIN_SIGNIFICANCE * float(np.hypot(predicted, drift.u))
-    verdict = "consistent" if abs(drift.shift) <= allowed else "drifted"
-    if not drift.significant:
-        return CalibrationCheck(verdict, drift, predicted, 0.0, 0.0, calib)
-    slope = residual_per_radian(calib, pairs)
-    angle, angle_std = -drift.shift / slope, drift.u / abs(slope)
-    return CalibrationCheck(verdict, drift, predicted, angle, angle_std,
-                            rotated_about_baseline(calib, angle, angle_std))
+    # Beyond the matcher's reach on the whole (a roll may put a few tangents further).
+    if abs(drift.shift) > MAX_DRIFT or np.percentile(np.abs(drift.residuals), 75) > MAX_DRIFT:
+        return CalibrationCheck("invalid", drift, predicted, *none, 1.0, calib)
+    rotation, cov, birge = fit_drift(calib, pairs)
+    # Significant: some turn exceeds MIN_SIGNIFICANCE of its standard uncertainty.
+    w, V = np.linalg.eigh(cov)
+    z = np.abs(V.T @ rotation) / np.sqrt(np.where(w > 0, w, np.inf))
+    if not np.any(z > MIN_SIGNIFICANCE):
+        return CalibrationCheck("consistent", drift, predicted, *none, 1.0, calib)
+    verdict = "consistent" if _within_stated(calib, rotation, cov) else "drifted"
+    return CalibrationCheck(verdict, drift, predicted, rotation, cov, birge, rotated_right_camera(calib, rotation, cov))
 
 
 def matched_arcs(stereo):
