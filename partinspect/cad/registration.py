@@ -31,6 +31,7 @@ import numpy as np
 
 from partinspect.cad.pose_refine import pose_error, pose_matrix, solve_pose
 from partinspect.cad.pose_search import (
+    MATCH_GATE,
     RegistrationError,
     axis_cov,
     cad_arrays,
@@ -49,6 +50,7 @@ __all__ = [
     "register",
     "rig_params",
     "AMBIGUITY_RATIO",
+    "model_symmetry",
 ]
 
 AMBIGUITY_RATIO = 2.0
@@ -171,6 +173,11 @@ class Registration:
         CAD id -> (chi-square, residuals) of the matched features left out of
         the pose fit as inconsistent with the others (``OUTLIER_P``); empty
         when datums are named.
+    symmetry : str
+        Where other poses explain the features as well and the CAD model maps
+        onto itself under the turns between them (a bolt circle, a square
+        plate), which those turns are: any of the poses gives the same
+        characteristics, and the best is taken. Empty otherwise.
     """
 
     part_to_camera: np.ndarray
@@ -184,6 +191,7 @@ class Registration:
     dof: int
     n_hypotheses: int = 0
     outliers: dict = field(default_factory=dict)
+    symmetry: str = ""
     _circles: tuple = field(default=(), repr=False)
     _lines: tuple = field(default=(), repr=False)
     _fit: object = field(default=None, repr=False)
@@ -388,13 +396,13 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
     datum_set = _datum_set(datums, inventory)
     hyps = initial_poses(meas, cad, circles, lines, pose_hint)
     results = _refined(distinct_best(meas, cad, hyps), circles, lines, meas, cad, datum_set)
-    _check_unambiguous(results, cad)
+    symmetry = _check_unambiguous(results, cad)
     r = results[0]
     if datum_set is None:
         # Only the chosen pose: leaving features out of the competing
         # hypotheses could make a wrong one fit as well as the right one.
         r = solve_pose(r["T"], circles, lines, meas, cad, None, exclude_outliers=True)
-    return _registration(r, cad, circles, lines, len(hyps))
+    return _registration(r, cad, circles, lines, len(hyps), symmetry)
 
 
 def _datum_set(datums, inventory):
@@ -427,27 +435,94 @@ def _refined(poses, circles, lines, meas, cad, datum_set):
 
 
 def _check_unambiguous(results, cad):
-    """Raise when a second distinct pose explains as many features about as well as the best."""
+    """Raise when a second distinct pose explains as many features about as well as the best.
+
+    Unless the CAD model maps onto itself under the turn between the two
+    poses (:func:`model_symmetry`): then both give the same characteristics
+    and the best is kept. Returns what was said of such turns ("" if none).
+    """
     first = results[0]
+    turns = []
     for other in results[1:]:
         if other["score"] < first["score"]:
             break
         if same_pose(first["T"][:3, :3], first["T"][:3, 3], other["T"][:3, :3], other["T"][:3, 3]):
             continue
-        if other["chi2"] <= AMBIGUITY_RATIO * first["chi2"] + 10.0 * max(1, first["dof"]) ** 0.5:
-            e = pose_error(other["T"], first["T"])
-            # how far the part's features move between the two poses, not its (arbitrary) origin
-            pts = np.r_[cad.centers, cad.starts]
-            shift = np.linalg.norm((pts @ (other["T"][:3, :3] - first["T"][:3, :3]).T) + other["T"][:3, 3] - first["T"][:3, 3], axis=1).max()
-            raise RegistrationError(
-                f"alignment is ambiguous: two poses {np.rad2deg(np.linalg.norm(e[:3])):.1f} degrees apart "
-                f"(features moved by up to {shift:.1f} mm) explain the "
-                f"{first['score']} matched features equally well (chi-square {first['chi2']:.3g} vs "
-                f"{other['chi2']:.3g}); the part looks symmetric to the measured features"
-            )
+        if other["chi2"] > AMBIGUITY_RATIO * first["chi2"] + 10.0 * max(1, first["dof"]) ** 0.5:
+            continue
+        turn = model_symmetry(cad, np.linalg.inv(first["T"]) @ other["T"])
+        if turn is not None:
+            if turn not in turns:
+                turns.append(turn)
+            continue
+        e = pose_error(other["T"], first["T"])
+        # how far the part's features move between the two poses, not its (arbitrary) origin
+        pts = np.r_[cad.centers, cad.starts]
+        shift = np.linalg.norm((pts @ (other["T"][:3, :3] - first["T"][:3, :3]).T) + other["T"][:3, 3] - first["T"][:3, 3], axis=1).max()
+        raise RegistrationError(
+            f"alignment is ambiguous: two poses {np.rad2deg(np.linalg.norm(e[:3])):.1f} degrees apart "
+            f"(features moved by up to {shift:.1f} mm) explain the "
+            f"{first['score']} matched features equally well (chi-square {first['chi2']:.3g} vs "
+            f"{other['chi2']:.3g}); the part looks symmetric to the measured features"
+        )
+    if not turns:
+        return ""
+    return ("the CAD model maps onto itself under " + ", ".join(turns) + ": the poses those turns relate explain "
+            "the features equally well and give the same characteristics; the best fitting one was taken")
 
 
-def _registration(r, cad, circles, lines, n_hypotheses):
+def model_symmetry(cad, S, tol=MATCH_GATE):
+    """The turn ``S`` (part frame to part frame) as words if it maps every CAD edge onto one, else None.
+
+    Parameters
+    ----------
+    cad : CadArrays
+    S : ndarray, shape (4, 4)
+        ``inv(T_best) @ T_other`` of two registered poses: the part moved by
+        it is seen by the second pose as the part by the first.
+    tol : float
+        mm: how far a moved edge may lie from its counterpart (the two poses
+        are estimates; ``MATCH_GATE`` is what registration itself accepts).
+
+    Returns
+    -------
+    str or None
+        E.g. "a turn of 60.0 deg about (0.000, 0.000, 1.000) through (45.0, 45.0, 6.0)".
+    """
+    R, t = S[:3, :3], S[:3, 3]
+    c = cad.centers @ R.T + t
+    n = cad.normals @ R.T
+    for k in range(len(c)):
+        d = np.linalg.norm(cad.centers - c[k], axis=1)
+        same = (d < tol) & (np.abs(cad.radii - cad.radii[k]) < tol) & (np.abs(np.einsum("ij,j->i", cad.normals, n[k])) > 0.999)
+        if not same.any():
+            return None
+    a = cad.starts @ R.T + t
+    b = (cad.starts + cad.dirs * cad.lengths[:, None]) @ R.T + t
+    ends = cad.starts + cad.dirs * cad.lengths[:, None]
+    for k in range(len(a)):
+        fwd = np.maximum(np.linalg.norm(cad.starts - a[k], axis=1), np.linalg.norm(ends - b[k], axis=1))
+        back = np.maximum(np.linalg.norm(cad.starts - b[k], axis=1), np.linalg.norm(ends - a[k], axis=1))
+        if not (np.minimum(fwd, back) < tol).any():
+            return None
+    from scipy.spatial.transform import Rotation
+
+    from partinspect.cad.features import canonical_direction
+
+    rv = Rotation.from_matrix(R).as_rotvec()
+    angle = float(np.linalg.norm(rv))
+    # A turn by a about -n is one by -a about n: the axis is named by its sign-free direction.
+    axis = canonical_direction(rv) if angle > 0 else np.array([0.0, 0.0, 1.0])
+    # A point on the axis: the least-squares solution of (I - R) p = t within the plane normal to the axis.
+    p = np.linalg.lstsq(np.eye(3) - R, t, rcond=None)[0]
+    p -= (p @ axis) * axis
+    p = np.where(np.abs(p) < 0.05, 0.0, p)  # no "-0.0" in the words
+    axis = np.where(np.abs(axis) < 5e-4, 0.0, axis)
+    return (f"a turn of {np.degrees(angle):.1f} deg about ({axis[0]:.3f}, {axis[1]:.3f}, {axis[2]:.3f}) "
+            f"through ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f})")
+
+
+def _registration(r, cad, circles, lines, n_hypotheses, symmetry=""):
     """The :class:`Registration` of a refined pose (:func:`~partinspect.cad.pose_refine.solve_pose`'s result)."""
     return Registration(
         part_to_camera=r["T"],
@@ -461,6 +536,7 @@ def _registration(r, cad, circles, lines, n_hypotheses):
         dof=r["dof"],
         n_hypotheses=n_hypotheses,
         outliers=r["outliers"],
+        symmetry=symmetry,
         _circles=circles,
         _lines=lines,
         _fit={"J": r["J"], "rows": r["rows"]},

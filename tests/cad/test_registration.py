@@ -161,11 +161,38 @@ def _square_plate():
     return cq.Workplane("XY").box(60, 60, 8, centered=(True, True, False)).faces(">Z").workplane().rarray(30, 30, 2, 2).hole(8).val()
 
 
-def test_symmetric_part_is_ambiguous():
+def test_a_symmetric_model_is_registered_and_says_so():
+    """A square plate with a 2 x 2 hole pattern maps onto itself under quarter turns: every
+    such pose gives the same characteristics, so one is taken and the turns are named
+    (it used to stop as ambiguous)."""
     shape = _square_plate()
     inv = inventory(shape)
     T = default_pose(shape, default_rig())
     m = measure_features(inv, T, facing_feature_ids(inv, T), np.random.default_rng(8), n_points=0)
+    reg = register(m.circles, m.lines, inv)
+    assert reg.symmetry.startswith("the CAD model maps onto itself under a turn of")
+    # The pose taken is the true one, or the true one moved by a symmetry of the model
+    # (quarter turns about its axis, half turns about the mid-plane's axes).
+    from partinspect.cad.pose_search import cad_arrays
+    from partinspect.cad.registration import model_symmetry
+
+    S = np.linalg.inv(T) @ reg.part_to_camera
+    assert np.allclose(S, np.eye(4), atol=1e-3) or model_symmetry(cad_arrays(inv), S, tol=0.05) is not None
+    assert reg.weighted_rms < 2
+
+
+def test_symmetric_measured_features_of_an_unsymmetric_model_are_ambiguous():
+    """The same plate with a small clocking hole that is not measured: the model is not
+    symmetric, the measured features are, and only the clocking hole could tell."""
+    import cadquery as cq
+
+    shape = (cq.Workplane("XY").box(60, 60, 8, centered=(True, True, False)).faces(">Z").workplane()
+             .rarray(30, 30, 2, 2).hole(8).faces(">Z").workplane().center(20, 0).hole(2).val())
+    inv = inventory(shape)
+    T = default_pose(shape, default_rig())
+    clocking = [f.id for f in inv.features if f.kind == "circle" and abs(f.radius - 1.0) < 1e-6]
+    ids = [i for i in facing_feature_ids(inv, T) if i not in clocking]
+    m = measure_features(inv, T, ids, np.random.default_rng(8), n_points=0)
     with pytest.raises(RegistrationError, match="alignment is ambiguous") as info:
         register(m.circles, m.lines, inv)
     assert isinstance(info.value, InputError)
