@@ -117,6 +117,9 @@ def _render_parser():
         "circle-2.center=0.1,0,0 (mm; repeatable)",
     )
     p.add_argument("--distortion", action="store_true", help="render through a realistic lens distortion")
+    p.add_argument("--calib-error", metavar="SEED", type=int, default=None,
+                   help="write calibration.yaml as a board calibration of the rig states it (seeded), not the exact rig; "
+                   "truth.json keeps the true rig")
     p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
@@ -363,6 +366,7 @@ def _run_render(args):
         deviations=args.deviate,
         distortion=args.distortion,
         image_size=size,
+        calib_error=args.calib_error,
         progress=progress,
     )
     if not args.quiet:

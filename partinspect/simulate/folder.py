@@ -60,6 +60,7 @@ def render_to_folder(
     deviations=(),
     distortion=False,
     image_size=(2448, 2048),
+    calib_error=None,
     progress=None,
 ):
     """Render a stereo pair of a STEP part and write it with its ground truth.
@@ -89,6 +90,11 @@ def render_to_folder(
         Render through the rig's realistic lens distortion.
     image_size : (int, int)
         ``(width, height)``; the field of view is the same at every size.
+    calib_error : int or None
+        None: ``calibration.yaml`` is the true rig. A seed: the images are
+        made by the true rig, but ``calibration.yaml`` is what a board
+        session calibrates it to (:func:`partinspect.simulate.calibration.simulated_calibration`),
+        with its stated uncertainties; truth.json keeps the true rig.
     progress : callable or None
         ``progress(message)`` at each stage.
 
@@ -128,10 +134,14 @@ def render_to_folder(
 
     say("computing the ground truth")
     settings = _settings(step_path, rig, noise, seed, distortion, stats, len(mesh.faces))
+    stated = rig
+    if calib_error is not None:
+        say("calibrating the rig as a board session would")
+        stated, settings["calibration_error"] = _stated_calibration(rig, calib_error)
     truth = make_truth(inv, devs, rs, rig, part_to_camera, settings)
 
     say(f"writing {out_dir}")
-    _write(out_dir, left, right, rig, truth)
+    _write(out_dir, left, right, stated, truth)
     return truth
 
 
@@ -187,6 +197,24 @@ def _settings(step_path, rig, noise, seed, distortion, stats, triangles):
             "triangles": int(triangles),
         },
     }
+
+
+def _stated_calibration(rig, seed):
+    """The calibration a board session states for ``rig``, and what truth.json says of it."""
+    from partinspect.simulate.calibration import CORNER_NOISE, N_VIEWS, calibration_board, simulated_calibration
+
+    board = calibration_board(rig)
+    stated = simulated_calibration(rig, np.random.default_rng([seed, 7919]), board=board)
+    note = {
+        "seed": int(seed),
+        "method": "a chessboard in several poses, corners projected by the true rig with noise, calibrated as "
+                  "inspect calibrate does; calibration.yaml is that result, the true rig is below",
+        "views": N_VIEWS,
+        "corner_noise_px": CORNER_NOISE,
+        "board": f"{board.cols}x{board.rows} inner corners, {float(board.square)} mm squares",
+        "true_rig": {name: np.asarray(getattr(rig, name), float).tolist() for name in ("K1", "D1", "K2", "D2", "R", "T")},
+    }
+    return stated, note
 
 
 def _write(out_dir, left, right, rig, truth):

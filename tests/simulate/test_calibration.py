@@ -1,0 +1,49 @@
+"""A stated calibration made as a board session makes it: off the true rig by what it states, and no more."""
+
+import json
+
+import numpy as np
+
+from partinspect.cli import main
+from partinspect.poses import fixation_point
+from partinspect.simulate.calibration import simulated_calibration
+from partinspect.simulate.rig import default_rig
+from partinspect.vision.calibration import project_points, read_calibration, undistort_points
+from partinspect.vision.matching import epipolar_geometry
+
+
+def _epipolar_residuals(true, stated, rng):
+    """Band offset differences of true correspondences of points about the working distance, under ``stated``, px."""
+    X = fixation_point(true) + rng.uniform(-40.0, 40.0, (300, 3))
+    ideal = []
+    for i, (K, D) in enumerate(((stated.K1, stated.D1), (stated.K2, stated.D2))):
+        xn = undistort_points(project_points(X, *true.camera(i)), K, D)
+        ideal.append(xn @ K[:2, :2].T + K[:2, 2])
+    g = epipolar_geometry(stated)
+    return g.band_right(ideal[1]) - g.band_left(ideal[0])
+
+
+def test_its_errors_are_what_it_states_and_its_epipolar_geometry_stays_close():
+    rig = default_rig()
+    z = []
+    for seed in range(5):
+        c = simulated_calibration(rig, np.random.default_rng(seed))
+        for K, Kt, std in ((c.K1, rig.K1, c.std["intrinsics1"]), (c.K2, rig.K2, c.std["intrinsics2"])):
+            err = np.array([K[0, 0] - Kt[0, 0], K[1, 1] - Kt[1, 1], K[0, 2] - Kt[0, 2], K[1, 2] - Kt[1, 2]])
+            z.extend(err / std[:4])
+        # Focal lengths and principal points off by pixels, yet the epipolar geometry within a tenth of one:
+        # a calibration's errors are correlated, which independent draws per parameter would not be.
+        assert np.median(np.abs(_epipolar_residuals(rig, c, np.random.default_rng(9)))) < 0.1
+    rms = float(np.sqrt(np.mean(np.square(z))))
+    assert 0.4 < rms < 2.0, rms
+
+
+def test_render_writes_the_calibrated_rig_and_keeps_the_true_one(tmp_path, repo):
+    out = tmp_path / "render"
+    assert main(["render", str(repo / "examples" / "plate" / "part.step"), str(out), "--size", "612x512",
+                 "--calib-error", "4", "-q"]) == 0
+    stated = read_calibration(out / "images")
+    note = json.loads((out / "truth.json").read_text())["calibration_error"]
+    true_K1 = np.array(note["true_rig"]["K1"])
+    assert note["seed"] == 4 and stated.std["intrinsics1"][0] > 0
+    assert abs(stated.K1[0, 0] - true_K1[0, 0]) > 1e-3 and abs(stated.K1[0, 0] - true_K1[0, 0]) < 6 * stated.std["intrinsics1"][0]
