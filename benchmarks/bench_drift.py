@@ -39,6 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
+# Beside this file: the stress run's rule for a render's true values.
+from bench_stress import true_value
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -77,22 +80,6 @@ def true_residual(true_calib, stated, truth):
         ok = np.isfinite(x).all(1) & np.isfinite(y).all(1)
         out.append(geo.band_right(y[ok]) - geo.band_left(x[ok]))
     return float(np.median(np.concatenate(out)))
-
-
-def true_value(c, truth):
-    """The characteristic's true value on the nominal render (None where this benchmark cannot tell it)."""
-    feats = {f["id"]: f for f in truth["features"]}
-    t = c["type"]
-    f = feats.get(c["features"][0]) if c.get("features") else None
-    if t == "diameter":
-        return 2.0 * f["rendered"]["radius"]
-    if t == "radius":
-        return f["rendered"]["radius"]
-    if t in ("straightness", "circularity", "position", "profile"):
-        return 0.0
-    if t in ("distance", "angle"):
-        return c["nominal"]
-    return None
 
 
 def inspect(part, images, stated, work):

@@ -28,9 +28,14 @@ def reference_direction(normal):
     """
     n = np.asarray(normal, dtype=float)
     n = n / np.linalg.norm(n)
-    e = np.array([1.0, 0.0, 0.0]) if abs(n[0]) <= 0.9 else np.array([0.0, 1.0, 0.0])
+    e = _world_axis(n)
     x = e - (e @ n) * n
     return x / np.linalg.norm(x)
+
+
+def _world_axis(n):
+    """The world axis a frame about ``n`` starts from: x, or y where ``|n[0]| > 0.9``."""
+    return np.array([1.0, 0.0, 0.0]) if abs(n[0]) <= 0.9 else np.array([0.0, 1.0, 0.0])
 
 
 def orthonormal_frame(normal):
@@ -64,7 +69,6 @@ def plane_basis(d):
     minimal covariances.
     """
     d = np.asarray(d, dtype=float)
-    e = np.array([1.0, 0.0, 0.0]) if abs(d[0]) <= 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(d, e)
+    e1 = np.cross(d, _world_axis(d))
     e1 /= np.linalg.norm(e1)
     return np.stack([e1, np.cross(d, e1)], 1)

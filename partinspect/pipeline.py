@@ -135,8 +135,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
 
     inputs = load_inputs(part, images, out, tolerances, pose_hint, progress)
     check, first = check_calibration(inputs, progress)
-    m = measure(inputs, progress, first)
-    m.calibration = check
+    m = measure(inputs, progress, check, first)
     if uncertainty == "montecarlo":
         m = with_monte_carlo(inputs, m, draws, progress)
     report, features = evaluate(inputs, m, progress)
@@ -218,9 +217,10 @@ def _stereo_round(inputs, params, progress):
     )
 
 
-def measure(inputs, progress, first=None):
+def measure(inputs, progress, calibration=None, first=None):
     """Adaptive rounds of the stereo chain, each registered and settled; the best round.
 
+    ``calibration``: the calibration check the rounds were measured after;
     ``first``: the stereo result of the default round, if already measured
     with ``inputs.calib``.
     """
@@ -246,7 +246,7 @@ def measure(inputs, progress, first=None):
 
     best, log, advice = measure_adaptively(run_round, progress=progress, merge=merge)
     return Measured(best.stereo, best.registration, best.visibility, {"rounds": log, "advice": advice},
-                    {"method": "first-order propagation (JCGM 100)", "coverage_factor": 2.0})
+                    {"method": "first-order propagation (JCGM 100)", "coverage_factor": 2.0}, calibration)
 
 
 def settle(inputs, stereo, registration, progress):

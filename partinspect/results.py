@@ -54,7 +54,7 @@ def registration_entry(reg):
         "rotation_std_deg": vec(np.degrees(std[:3]), 9),
         "translation_std": vec(std[3:], 9),
         "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
-        **({"symmetry": reg.symmetry} if getattr(reg, "symmetry", "") else {}),
+        **({"symmetry": reg.symmetry} if reg.symmetry else {}),
     }
 
 

@@ -497,9 +497,8 @@ def model_symmetry(cad, S, tol=MATCH_GATE):
         same = (d < tol) & (np.abs(cad.radii - cad.radii[k]) < tol) & (np.abs(np.einsum("ij,j->i", cad.normals, n[k])) > 0.999)
         if not same.any():
             return None
-    a = cad.starts @ R.T + t
-    b = (cad.starts + cad.dirs * cad.lengths[:, None]) @ R.T + t
     ends = cad.starts + cad.dirs * cad.lengths[:, None]
+    a, b = cad.starts @ R.T + t, ends @ R.T + t
     for k in range(len(a)):
         fwd = np.maximum(np.linalg.norm(cad.starts - a[k], axis=1), np.linalg.norm(ends - b[k], axis=1))
         back = np.maximum(np.linalg.norm(cad.starts - b[k], axis=1), np.linalg.norm(ends - a[k], axis=1))

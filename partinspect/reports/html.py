@@ -132,7 +132,7 @@ def tolerance_bar(c, width=150, height=22):
 
 
 def _when(created):
-    """'2026-11-22 10:00:00 UTC+00:00' from an ISO timestamp; the text as given if it is not one."""
+    """'YYYY-MM-DD hh:mm:ss UTC+hh:mm' from an ISO timestamp; the text as given if it is not one."""
     if not created:
         return "–"
     try:

@@ -226,11 +226,6 @@ class DriftEstimate:
     residuals: np.ndarray
     outliers: int = 0
 
-    @property
-    def significant(self):
-        """Whether the drift is told apart from zero (``MIN_SIGNIFICANCE`` standard uncertainties)."""
-        return self.n > 0 and abs(self.shift) > MIN_SIGNIFICANCE * self.u
-
 
 def estimate_drift(residuals, variances):
     """Weighted mean of the tangency residuals with its uncertainty (Birge-enlarged).
@@ -322,13 +317,15 @@ def rotated_right_camera(calib, rotation, rotation_cov=None):
     return replace(calib, R=Q @ np.asarray(calib.R, float), T=Q @ T, std=std)
 
 
-def fit_drift(calib, pairs, h=1e-5):
+def fit_drift(calib, pairs, tangencies=None, h=1e-5):
     """The turns of the right camera (:func:`drift_axes`) that bring the tangency residuals to zero.
 
     Weighted least squares on the residuals' central-difference Jacobian;
     only the turn about the baseline when fewer than
-    ``MIN_ROLL_TANGENCIES`` tangencies are seen. The covariance is the fit's, enlarged by the squared Birge ratio
-    of what the turns leave where that exceeds 1.
+    ``MIN_ROLL_TANGENCIES`` tangencies are seen. The covariance is the
+    fit's, enlarged by the squared Birge ratio of what the turns leave where
+    that exceeds 1. ``tangencies``: :func:`tangency_residuals` under
+    ``calib``, if already read.
 
     Returns
     -------
@@ -340,7 +337,7 @@ def fit_drift(calib, pairs, h=1e-5):
         Of the residuals after the turns (1 when nothing is left to judge).
     """
     geo = epipolar_geometry(calib)
-    r, v, select = tangency_residuals(geo, pairs)
+    r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
     keep = consistent_tangencies(r, v)
     r, v, select = r[keep], v[keep], [s for s, k in zip(select, keep) if k]
     axes = drift_axes(calib)[: 2 if len(r) >= MIN_ROLL_TANGENCIES else 1]
@@ -352,32 +349,35 @@ def fit_drift(calib, pairs, h=1e-5):
             side.append(tangency_residuals(moved, pairs, select, geo.ref_left)[0])
         J[:, k] = (side[0] - side[1]) / (2 * h)
     w = 1.0 / v
-    A = (J * w[:, None]).T @ J
-    theta = -np.linalg.solve(A, J.T @ (w * r))
-    left = r + J @ theta
+    A, theta, left = _weighted_fit(J, r, w)
     again = consistent_tangencies(left, v)  # a roll spreads the residuals: judged after the turns too
     if not again.all() and again.sum() > len(axes):
         J, r, w = J[again], r[again], w[again]
-        A = (J * w[:, None]).T @ J
-        theta = -np.linalg.solve(A, J.T @ (w * r))
-        left = r + J @ theta
+        A, theta, left = _weighted_fit(J, r, w)
     dof = len(r) - len(axes)
     birge = float(np.sqrt(np.sum(w * left**2) / dof)) if dof > 0 else 1.0
     cov_theta = np.linalg.inv(A) * max(1.0, birge) ** 2
     return theta @ axes, axes.T @ cov_theta @ axes, birge
 
 
-def predicted_residual_std(calib, pairs):
+def _weighted_fit(J, r, w):
+    """Normal matrix, step and what is left of ``r`` after ``min sum w (r + J theta)^2``."""
+    A = (J * w[:, None]).T @ J
+    theta = -np.linalg.solve(A, J.T @ (w * r))
+    return A, theta, r + J @ theta
+
+
+def predicted_residual_std(calib, pairs, tangencies=None):
     """Standard deviation of the mean tangency residual that the calibration's stated uncertainties allow, px.
 
     Each parameter with a stated standard uncertainty is moved by it in
     turn (first order, parameters independent as stated); 0 when the
-    calibration states none.
+    calibration states none. ``tangencies`` as :func:`fit_drift`'s.
     """
     from partinspect.vision.calibration_uncertainty import calibration_parameters, perturbed_calibration
 
     geo = epipolar_geometry(calib)
-    r, v, select = tangency_residuals(geo, pairs)
+    r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
     base = estimate_drift(r, v).shift
     total = 0.0
     for group, k, s in calibration_parameters(calib):
@@ -498,17 +498,16 @@ def check_calibration(calib, pairs):
     -------
     CalibrationCheck
     """
-    geo = epipolar_geometry(calib)
-    r, v, _ = tangency_residuals(geo, pairs)
-    drift = estimate_drift(r, v)
+    tangencies = tangency_residuals(epipolar_geometry(calib), pairs)
+    drift = estimate_drift(*tangencies[:2])
     none = np.zeros(3), np.zeros((3, 3))
     if drift.n == 0:
         return CalibrationCheck("not checked", drift, 0.0, *none, 1.0, calib)
-    predicted = predicted_residual_std(calib, pairs)
+    predicted = predicted_residual_std(calib, pairs, tangencies)
     # Beyond the matcher's reach on the whole (a roll may put a few tangents further).
     if abs(drift.shift) > MAX_DRIFT or np.percentile(np.abs(drift.residuals), 75) > MAX_DRIFT:
         return CalibrationCheck("invalid", drift, predicted, *none, 1.0, calib)
-    rotation, cov, birge = fit_drift(calib, pairs)
+    rotation, cov, birge = fit_drift(calib, pairs, tangencies)
     # Significant: some turn exceeds MIN_SIGNIFICANCE of its standard uncertainty.
     w, V = np.linalg.eigh(cov)
     z = np.abs(V.T @ rotation) / np.sqrt(np.where(w > 0, w, np.inf))
