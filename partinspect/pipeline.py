@@ -225,6 +225,7 @@ def measure(inputs, progress, calibration=None, first=None):
     with ``inputs.calib``.
     """
     from partinspect.adaptive import DEFAULTS, measure_adaptively
+    from partinspect.vision.calibration_uncertainty import budget_entry
     from partinspect.vision.posed import merged_stereo
 
     done = {tuple(sorted(DEFAULTS.items())): first} if first is not None else {}
@@ -246,7 +247,8 @@ def measure(inputs, progress, calibration=None, first=None):
 
     best, log, advice = measure_adaptively(run_round, progress=progress, merge=merge)
     return Measured(best.stereo, best.registration, best.visibility, {"rounds": log, "advice": advice},
-                    {"method": "first-order propagation (JCGM 100)", "coverage_factor": 2.0}, calibration)
+                    {"method": "first-order propagation (JCGM 100)", "coverage_factor": 2.0,
+                     "calibration": budget_entry(inputs.calib)}, calibration)
 
 
 def settle(inputs, stereo, registration, progress):
@@ -292,8 +294,10 @@ def with_monte_carlo(inputs, m, draws, progress):
     progress(f"Monte Carlo: {draws} draws for each of {len(m.stereo.features)} features")
     stereo, ratios = with_monte_carlo_covariances(m.stereo, inputs.calib, draws)
     registration = _register(stereo, inputs, inputs.hint)
-    info = {"method": "Monte Carlo (JCGM 101)", "draws": draws, "seed": 0, "coverage_factor": 2.0,
-            "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None}
+    info = {"method": "Monte Carlo (JCGM 101) of the image noise; the calibration's part first order",
+            "draws": draws, "seed": 0, "coverage_factor": 2.0,
+            "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None,
+            "calibration": m.uncertainty["calibration"]}
     return Measured(stereo, registration, m.seen, m.adaptive, info, m.calibration)
 
 

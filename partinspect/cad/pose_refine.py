@@ -13,17 +13,34 @@ feature's own covariance, so that poorly known depth pulls the fit little:
 Radii carry no pose information. Pose: ``T_hat = T_true @ D(xi)``,
 ``D(xi) = [[Rot(w), v], [0, 1]]``, ``xi = (w, v)``: a rotation vector (rad)
 and a translation (mm) in the part frame. Its covariance is ``(J^T J)^-1``
-with ``J`` the whitened Jacobian, i.e. ``(J^T Sigma^-1 J)^-1`` [1]_, first
-order and not scaled by the chi-square, which is reported instead so that
-a model mismatch is seen rather than hidden in an inflated covariance.
+with ``J`` the whitened Jacobian, i.e. ``(J^T Sigma^-1 J)^-1`` [1]_ (plus
+the calibration's part, below), first order and not scaled by the
+chi-square, which is reported instead so that a model mismatch is seen
+rather than hidden in an inflated covariance.
 Without named datums, features whose residuals are beyond chance
 (``OUTLIER_P``) are left out, worst first, at most a quarter of them (a
 robust best fit).
 
-Neglected correlations: inside one circle fit (centre, normal, radius),
-between a line's point and direction (zero at the data centroid, where the
-fitter puts the point), and between features through the stereo
-calibration (the vision side's budget) [2]_.
+The stereo calibration's error is one error shared by every feature
+(:attr:`partinspect.vision.stereo.Feature3D.calibration_response`, ``G``,
+a feature's response to the calibration's q principal directions of
+uncertainty). Most of it moves every feature alike, as a rigid motion
+would, and the pose is meant to take that up: the part frame is the one
+the datum features establish, as measured. So each feature is weighted
+by its own covariance less that shared part, and the shared part is
+carried, not weighted: the whitened residuals' covariance is
+``I + U U^T`` with ``U`` the stacked ``-S M^T G``, and the pose's
+covariance is the sandwich ``A + H H^T``, ``A = (J^T J)^-1``,
+``H = -A J^T U`` [2]_. The chi-square and each feature's outlier test
+are taken against the residuals' covariance so formed (what the pose
+cannot take up of the calibration's error, ``V = (I - J A J^T) U``, added
+to the unit covariance), so that a calibration's shared error does not
+read as a misfit.
+
+Neglected correlations: inside one circle fit (between centre and normal
+in the whitening; the radius carries no pose information), and between a
+line's point and direction (zero at the data centroid, where the fitter
+puts the point).
 
 References
 ----------
@@ -42,6 +59,9 @@ from partinspect.cad.pose_search import RegistrationError, axis_cov, match, unit
 from partinspect.frames import plane_basis
 
 __all__ = [
+    "calibration_response",
+    "decorrelator",
+    "calibration_left",
     "refine_pose",
     "solve_pose",
     "pose_error",
@@ -113,18 +133,47 @@ def pose_error(T_est, T_true):
 # residual model and Gauss-Newton
 
 
+def calibration_response(kind, rec):
+    """A record's responses to the calibration's principal directions, shape (7, q) or (6, q).
+
+    ``calibration_response`` of a :class:`partinspect.vision.stereo.Feature3D`;
+    q = 0 for a record without one.
+    """
+    G = getattr(rec, "calibration_response", None)
+    return np.zeros((7 if kind == "circle" else 6, 0)) if G is None else np.asarray(G, float)
+
+
+def decorrelator(U):
+    """``x -> (I + U U^T)^-1/2 x`` for x of shape (n,) or (n, k).
+
+    With ``U^T U = Q diag(l) Q^T``, ``(I + U U^T)^-1/2 = I + U Q diag(c) Q^T U^T``,
+    ``c = (1/sqrt(1 + l) - 1) / l`` (-1/2 at l = 0), computed without
+    forming the n x n matrix.
+    """
+    if U.shape[1] == 0:
+        return lambda x: x
+    lam, Q = np.linalg.eigh(U.T @ U)
+    lam = np.clip(lam, 0.0, None)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(lam > 1e-300, (1.0 / np.sqrt(1.0 + lam) - 1.0) / lam, -0.5)
+    W = U @ (Q * c) @ Q.T
+    return lambda x: x + W @ (U.T @ x)
+
+
 class _Problem:
     """Whitened residuals of matched features as a function of a pose."""
 
     def __init__(self, circles, lines, circ_match, line_match, cad):
-        self.items = []  # (kind, index, n_rows, M, L)
+        self.items = []  # (kind, index, n_rows, M, L, G)
+        blocks = []  # (rows of -S M^T G) per feature, in row order
         cc, cn, cS, cE, cSn, cm, nm = [], [], [], [], [], [], []
         for i, k in sorted(circ_match.items()):
             rec = circles[i]
-            S, L = _whitener(rec.covariance)
+            G = calibration_response("circle", rec)
+            S, L = _whitener(np.asarray(rec.covariance, float) - G[:3] @ G[:3].T)
             n = unit(rec.normal)
             E = plane_basis(n)
-            Sn, Ln = _whitener(E.T @ axis_cov(rec) @ E)
+            Sn, Ln = _whitener(E.T @ (axis_cov(rec) - G[3:6] @ G[3:6].T) @ E)
             cc.append(cad.centers[k])
             cn.append(cad.normals[k])
             cS.append(S)
@@ -135,17 +184,20 @@ class _Problem:
             M = np.zeros((7, 5))
             M[:3, :3] = np.eye(3)
             M[3:6, 3:5] = E
-            Lb = np.zeros((5, 5))
+            Lb, Sb = np.zeros((5, 5)), np.zeros((5, 5))
             Lb[:3, :3], Lb[3:, 3:] = L, Ln
-            self.items.append(("circle", i, 5, M, Lb))
+            Sb[:3, :3], Sb[3:, 3:] = S, Sn
+            self.items.append(("circle", i, 5, M, Lb, G))
+            blocks.append(-Sb @ M.T @ G)
         lp, ld, lS, lE, pm, dm = [], [], [], [], [], []
         for j, l in sorted(line_match.items()):
             rec = lines[j]
+            G = calibration_response("line", rec)
             d = unit(rec.direction)
             E = plane_basis(d)
             C4 = np.zeros((4, 4))
-            C4[:2, :2] = E.T @ np.asarray(rec.covariance, float) @ E
-            C4[2:, 2:] = E.T @ axis_cov(rec) @ E
+            C4[:2, :2] = E.T @ (np.asarray(rec.covariance, float) - G[:3] @ G[:3].T) @ E
+            C4[2:, 2:] = E.T @ (axis_cov(rec) - G[3:6] @ G[3:6].T) @ E
             S, L = _whitener(C4)
             lp.append(cad.starts[l])
             ld.append(cad.dirs[l])
@@ -156,7 +208,8 @@ class _Problem:
             M = np.zeros((6, 4))
             M[:3, :2] = E
             M[3:6, 2:] = E
-            self.items.append(("line", j, 4, M, L))
+            self.items.append(("line", j, 4, M, L, G))
+            blocks.append(-S @ M.T @ G)
         arr = lambda x, s: np.array(x, float).reshape(s)  # noqa: E731
         self.cc, self.cn, self.cS = arr(cc, (-1, 3)), arr(cn, (-1, 3)), arr(cS, (-1, 3, 3))
         self.cE, self.cSn, self.cm, self.nm = arr(cE, (-1, 3, 2)), arr(cSn, (-1, 2, 2)), arr(cm, (-1, 3)), arr(nm, (-1, 3))
@@ -165,6 +218,8 @@ class _Problem:
         self.n_res = 5 * len(self.cc) + 4 * len(self.lp)
         self.csign = np.ones(len(self.cc))
         self.lsign = np.ones(len(self.lp))
+        q = max((b.shape[1] for b in blocks), default=0)
+        self.U = np.vstack([np.pad(b, ((0, 0), (0, q - b.shape[1]))) for b in blocks]) if blocks else np.zeros((0, 0))
 
     def fix_signs(self, T):
         R = T[:3, :3]
@@ -292,13 +347,25 @@ def _refine(T, circles, lines, meas, cad, datum_set, left_out):
     return T, circ, lin, fc, fl, problem, J, r
 
 
-def _worst(problem, r):
-    """(chance, kind, measured index, chi-square, residuals) of the feature with the least likely residuals."""
+def calibration_left(J, U):
+    """``V = (I - J (J^T J)^-1 J^T) U``: the calibration's shared error in the whitened residuals that the pose cannot take up."""
+    if U.shape[1] == 0:
+        return U
+    return U - J @ np.linalg.solve(J.T @ J, J.T @ U)
+
+
+def _worst(problem, r, V):
+    """(chance, kind, measured index, chi-square, residuals) of the feature with the least likely residuals.
+
+    A feature's residuals are judged against their covariance ``I + V_f V_f^T``
+    (:func:`calibration_left`).
+    """
     from scipy import stats
 
     worst, start = None, 0
-    for kind, index, n, _, _ in problem.items:
-        c2 = float(r[start:start + n] @ r[start:start + n])
+    for kind, index, n, *_ in problem.items:
+        rf, Vf = r[start:start + n], V[start:start + n]
+        c2 = float(rf @ np.linalg.solve(np.eye(n) + Vf @ Vf.T, rf))
         start += n
         p = stats.chi2.sf(c2, n)
         if worst is None or p < worst[0]:
@@ -328,8 +395,12 @@ def solve_pose(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
     Returns
     -------
     dict
-        ``T`` (refined pose), ``cov`` (6x6 pose covariance), ``J`` (whitened
-        Jacobian), ``rows`` ((kind, index) -> (rows of J, M, L)), ``chi2``,
+        ``T`` (refined pose), ``cov`` (6x6 pose covariance, the calibration's
+        part included), ``J`` (whitened Jacobian), ``JA`` (``J (J^T J)^-1``:
+        the pose's sensitivity to the whitened residuals is ``-JA^T``),
+        ``U`` (the whitened residuals' calibration part, rows of J by q),
+        ``rows`` ((kind, index) -> (rows of J, M, L)), ``chi2`` (against the
+        residuals' covariance, :func:`calibration_left`),
         ``dof``, ``rms`` (mm), ``circ`` / ``lin`` (measured index -> CAD
         index, under the final pose), ``score``, ``datums`` (CAD ids),
         ``outliers`` (CAD id -> (chi-square, residuals)).
@@ -344,7 +415,7 @@ def solve_pose(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
     T, circ, lin, fc, fl, problem, J, r = _refine(T, circles, lines, meas, cad, datum_set, left_out)
     limit = (len(fc) + len(fl)) // 4
     while exclude_outliers and len(left_out) < limit:
-        p, kind, index, c2, n = _worst(problem, r)  # the refinement needs 6 residuals: there is one
+        p, kind, index, c2, n = _worst(problem, r, calibration_left(J, problem.U))  # needs 6 residuals: there is one
         if p >= OUTLIER_P:
             break
         trial = {**left_out, (kind, index): (c2, n)}
@@ -357,10 +428,14 @@ def solve_pose(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
     circ2, lin2, _ = match(meas, cad, T[:3, :3], T[:3, 3])
     if (circ2, lin2) != (circ, lin):
         circ, lin = circ2, lin2  # final assignment under the final pose
-    cov = np.linalg.inv(J.T @ J)
-    cov = 0.5 * (cov + cov.T)
+    A = np.linalg.inv(J.T @ J)
+    A = 0.5 * (A + A.T)
+    H = -A @ (J.T @ problem.U)
+    cov = A + H @ H.T
+    V = calibration_left(J, problem.U)
+    chi2 = float(np.sum(decorrelator(V)(r) ** 2))
     rows, start = {}, 0
-    for kind, index, n, M, L in problem.items:
+    for kind, index, n, M, L, _ in problem.items:
         rows[(kind, index)] = (slice(start, start + n), M, L)
         start += n
     raw = problem.residuals(T, raw=True)
@@ -369,8 +444,10 @@ def solve_pose(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
         "T": T,
         "cov": cov,
         "J": J,
+        "JA": J @ A,
+        "U": problem.U,
         "rows": rows,
-        "chi2": float(r @ r),
+        "chi2": chi2,
         "dof": int(r.size - 6),
         "rms": float(np.sqrt(np.mean(raw**2))) if raw.size else 0.0,
         "circ": circ,

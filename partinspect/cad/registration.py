@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from partinspect.cad.pose_refine import pose_error, pose_matrix, solve_pose
+from partinspect.cad.pose_refine import calibration_response, pose_error, pose_matrix, solve_pose
 from partinspect.cad.pose_search import (
     MATCH_GATE,
     RegistrationError,
@@ -76,8 +76,9 @@ class PartFeature:
         Part frame, mm.
     param_cov : ndarray, shape (7, 7) or (6, 6)
         First-order covariance of ``params``: the measurement's own,
-        rotated, plus the pose's, plus (datum features) their
-        cross-covariance with the pose estimate.
+        rotated, plus the pose's, plus their cross-covariance with the pose
+        estimate (datum features, and every feature through the
+        calibration's shared error).
     pose_jacobian : ndarray, shape (7, 6) or (6, 6)
         d params / d xi (``xi`` as in :mod:`partinspect.cad.pose_refine`).
     start, end : ndarray, shape (3,) or None
@@ -232,8 +233,10 @@ class Registration:
         part-frame ``p = A m + B xi`` (``A`` the inverse rotation, ``B`` from
         ``X_hat = X - w x X - v``), so
         ``Cov p = A C A^T + B S B^T + A K B^T + B K^T A^T`` where ``S`` is
-        ``pose_cov`` and ``K = Cov(m, xi)``, non-zero only for datum
-        features (the pose was estimated from them, JCGM 100 5.2).
+        ``pose_cov`` and ``K = Cov(m, xi)``: non-zero for datum features
+        (the pose was estimated from them, JCGM 100 5.2) and, through the
+        calibration's error that all features share, for every feature
+        measured with a calibration that states its uncertainty.
         """
         return [self._part_feature("circle", i) for i in range(len(self._circles))] + [
             self._part_feature("line", j) for j in range(len(self._lines))
@@ -249,11 +252,17 @@ class Registration:
         Returns
         -------
         ndarray, shape (len(a.params), len(b.params))
-            ``B_a S B_b^T`` plus the datum-pose cross terms; the
-            measurement errors of two different features are independent.
+            ``B_a S B_b^T`` plus the feature-pose cross terms and, for two
+            different features, ``A_a G_a G_b^T A_b^T``: their image noise is
+            independent, the calibration's error they share.
         """
         S = self.pose_cov
         out = a.pose_jacobian @ S @ b.pose_jacobian.T
+        if (a.kind, a.index) != (b.kind, b.index):
+            Ga = calibration_response(a.kind, self.measured_feature(a.kind, a.index))
+            Gb = calibration_response(b.kind, self.measured_feature(b.kind, b.index))
+            if Ga.shape[1] and Ga.shape[1] == Gb.shape[1]:
+                out = out + self._rig_to_part(a.kind) @ Ga @ Gb.T @ self._rig_to_part(b.kind).T
         Ka, Kb = self._pose_cross(a.kind, a.index), self._pose_cross(b.kind, b.index)
         Aa, Ab = self._rig_to_part(a.kind), self._rig_to_part(b.kind)
         if Ka is not None:
@@ -275,12 +284,25 @@ class Registration:
         return A
 
     def _pose_cross(self, kind, index):
-        """Cov(measured rig params, xi) for a datum feature, else None."""
+        """Cov(measured rig params, xi): from the feature's own rows for a datum, and through the calibration's error.
+
+        ``xi = -JA^T r`` (:func:`~partinspect.cad.pose_refine.solve_pose`) and
+        ``Cov(m, r)`` is ``-M L`` on the feature's own rows plus ``G U^T``,
+        so ``K = M L JA[rows] - G U^T JA``. None when both are absent.
+        """
         fit = self._fit
-        if fit is None or (kind, index) not in fit["rows"]:
+        if fit is None:
             return None
-        rows, M, L = fit["rows"][(kind, index)]
-        return M @ L @ fit["J"][rows] @ self.pose_cov
+        G = calibration_response(kind, self.measured_feature(kind, index))
+        JA, U = fit["JA"], fit["U"]
+        K = None
+        if (kind, index) in fit["rows"]:
+            rows, M, L = fit["rows"][(kind, index)]
+            K = M @ L @ JA[rows]
+        if G.shape[1] and U.shape[1] == G.shape[1]:
+            shared = -G @ (U.T @ JA)
+            K = shared if K is None else K + shared
+        return K
 
     def _part_feature(self, kind, index):
         rec = (self._circles if kind == "circle" else self._lines)[index]
@@ -314,7 +336,8 @@ class Registration:
                 Bp = np.concatenate([_skew_many(points), np.broadcast_to(-np.eye(3), (len(points), 3, 3))], axis=2)
                 point_covs = R.T @ pc @ R + Bp @ self.pose_cov @ np.swapaxes(Bp, 1, 2)
         cad = self.assignment.get(kind, {}).get(index)
-        return PartFeature(kind, index, cad, K is not None, p, cov, B, start, end, points, point_covs)
+        datum = self._fit is not None and (kind, index) in self._fit["rows"]
+        return PartFeature(kind, index, cad, datum, p, cov, B, start, end, points, point_covs)
 
 
 def _skew(v):
@@ -538,5 +561,5 @@ def _registration(r, cad, circles, lines, n_hypotheses, symmetry=""):
         symmetry=symmetry,
         _circles=circles,
         _lines=lines,
-        _fit={"J": r["J"], "rows": r["rows"]},
+        _fit={"JA": r["JA"], "U": r["U"], "rows": r["rows"]},
     )

@@ -637,7 +637,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     FeaturePrediction
     """
     from partinspect.cad.edge_sampling import feature_geometry
-    from partinspect.vision.calibration_uncertainty import calibration_covariance, calibration_parameters
+    from partinspect.vision.calibration_uncertainty import calibration_responses
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
     from partinspect.vision.stereo import corrected_correspondences, feature_views, fit_feature, make_feature3d
@@ -683,10 +683,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         corr = corrected_correspondences(fl, fr, fviews, corr, geo, model.sigma)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return FeaturePrediction(status="failed", reason=f"{fid}: 3D fit failed ({exc})", **base)
-    n = 6 if kind2 == "line" else 7
-    cal = calibration_covariance(fit, kind2, partial(feature_views, fl, fr, model.sigma), calib) \
-        if calibration_parameters(calib) \
-        else np.zeros((n, n))
+    cal = calibration_responses(fit, kind2, partial(feature_views, fl, fr, model.sigma), calib)
     if not model.systematic and fit.param_cov_systematic is not None:
         # The chain weights a rim's points by their Type B part too (the
         # points beside a steep shading count less), which widens its

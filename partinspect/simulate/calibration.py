@@ -9,9 +9,9 @@ the true rig, its corners projected through the true cameras (lens model
 included) with Gaussian detection noise, and the same calibration
 ``inspect calibrate`` runs (:func:`partinspect.vision.stereo_calibration.calibrate_camera`,
 :func:`~partinspect.vision.stereo_calibration.calibrate_pair`,
-:func:`~partinspect.vision.stereo_calibration.extrinsic_covariance`). The
-result states its standard uncertainties, and is off the true rig by one
-draw of what they describe.
+:func:`~partinspect.vision.stereo_calibration.parameter_covariance`). The
+result states its parameters' covariance, and is off the true rig by one
+draw of what it describes.
 
 Frames: the left camera is the rig frame; mm, radians.
 
@@ -23,8 +23,8 @@ References
 
 import numpy as np
 
-from partinspect.vision.calibration import StereoCalibration, project_points
-from partinspect.vision.stereo_calibration import Board, calibrate_camera, calibrate_pair, extrinsic_covariance
+from partinspect.vision.calibration import StereoCalibration, project_points, validate_calibration
+from partinspect.vision.stereo_calibration import Board, calibrate_camera, calibrate_pair, parameter_covariance
 
 __all__ = ["CORNER_NOISE", "N_VIEWS", "calibration_board", "board_views", "simulated_calibration"]
 
@@ -109,7 +109,7 @@ def simulated_calibration(rig, rng, *, n_views=N_VIEWS, corner_noise=CORNER_NOIS
     Returns
     -------
     StereoCalibration
-        With ``std`` (intrinsics of both cameras, extrinsics), as
+        With ``cov`` and ``std`` (intrinsics of both cameras, extrinsics), as
         ``inspect calibrate`` writes it.
     """
     board = board or calibration_board(rig)
@@ -122,7 +122,6 @@ def simulated_calibration(rig, rng, *, n_views=N_VIEWS, corner_noise=CORNER_NOIS
     cam1 = calibrate_camera(objs, left, size)
     cam2 = calibrate_camera(objs, right, size)
     pair = calibrate_pair(objs, left, right, size, cam1, cam2)
-    cov = extrinsic_covariance(objs, cam1, cam2, pair)
-    std = {"intrinsics1": cam1["std"], "intrinsics2": cam2["std"],
-           "extrinsics": np.sqrt(np.clip(np.diag(cov), 0.0, None))}
-    return StereoCalibration(size, cam1["K"], cam1["D"], cam2["K"], cam2["D"], pair["R"], pair["T"], std)
+    cov = parameter_covariance(objs, cam1, cam2, pair)
+    return validate_calibration(
+        StereoCalibration(size, cam1["K"], cam1["D"], cam2["K"], cam2["D"], pair["R"], pair["T"], cov=cov))

@@ -45,6 +45,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
 
@@ -365,13 +366,18 @@ def measured_angle(fa, fb):
 
 
 def _stacked(recs):
-    """Rig-frame parameter vectors, block covariance and rebuild info of measured records.
+    """Rig-frame parameter vectors, joint covariance and rebuild info of measured records.
 
     ``recs``: ``(kind, record, (x, C))`` with ``x``, ``C`` the record's
     stacked rig-frame parameters and their covariance, as
-    ``Registration.measured_params`` gives them.
+    ``Registration.measured_params`` gives them. Two records' image noise
+    is independent; the calibration's error they share gives the
+    off-diagonal blocks ``G_a G_b^T``
+    (:func:`partinspect.cad.pose_refine.calibration_response`), so that a
+    distance between two features is not charged for the calibration's
+    error that moves both alike.
     """
-    xs, covs, info = [], [], []
+    xs, covs, info, responses = [], [], [], []
     for kind, rec, (x, C) in recs:
         if kind == "circle":
             info.append((kind, None))
@@ -380,8 +386,11 @@ def _stacked(recs):
             info.append((kind, (float((np.asarray(rec.start, float) - p) @ d), float((np.asarray(rec.end, float) - p) @ d))))
         xs.append(np.asarray(x, float))
         covs.append(C)
+        responses.append(calibration_response(kind, rec))
     sizes = [len(x) for x in xs]
-    cov = np.zeros((sum(sizes), sum(sizes)))
+    q = {G.shape[1] for G in responses}
+    G = np.vstack(responses) if len(q) == 1 else np.zeros((sum(sizes), 0))
+    cov = G @ G.T
     o = 0
     for C in covs:
         cov[o : o + len(C), o : o + len(C)] = C

@@ -75,6 +75,14 @@ class StereoCalibration:
         calibrateCameraExtended order (fx, fy, cx, cy, then the distortion
         coefficients), ``"extrinsics"`` as (rx, ry, rz, tx, ty, tz): the
         rotation vector of R in radians, then T in mm.
+    cov : ndarray, shape (n, n) or None
+        Optional covariance of all those parameters together, in the order
+        intrinsics1, intrinsics2, extrinsics (n = 14 + len(D1) + len(D2)):
+        a calibration's errors are correlated (a focal length's error comes
+        with a matching translation's), and the epipolar geometry, which
+        stereo matching depends on, is far better known than independent
+        per-parameter uncertainties suggest. When given, ``std`` is the
+        square root of its diagonal.
     """
 
     image_size: tuple[int, int] | None
@@ -85,6 +93,7 @@ class StereoCalibration:
     R: np.ndarray
     T: np.ndarray
     std: dict = field(default_factory=dict)
+    cov: np.ndarray | None = None
 
     def camera(self, index):
         """Return ``(K, D, R, t)`` of camera 0 (left) or 1 (right).
@@ -400,7 +409,53 @@ def validate_calibration(calib, path=None):
         if not np.all(np.isfinite(a)) or np.any(a < 0):
             _fail(path, f"std_{key} must be finite and non-negative")
         std[key] = a
-    return StereoCalibration(size, K1, D1, K2, D2, R, T, std)
+    cov = None if calib.cov is None else _check_cov(path, calib.cov, lengths, std)
+    if cov is not None:
+        std = _std_of(cov, lengths)
+    return StereoCalibration(size, K1, D1, K2, D2, R, T, std, cov)
+
+
+COV_TOLERANCE = 1e-3
+"""Relative: how far a stated covariance may be from symmetric and
+positive semi-definite (rounding in a written file), and its diagonal from
+the stated standard deviations."""
+
+
+def _std_of(cov, lengths):
+    """The standard deviations on a covariance's diagonal, split by parameter group."""
+    s, out, at = np.sqrt(np.clip(np.diag(cov), 0.0, None)), {}, 0
+    for key, n in lengths.items():
+        out[key] = s[at : at + n]
+        at += n
+    return out
+
+
+def _check_cov(path, cov, lengths, std):
+    """A stated covariance checked: its size, finite, symmetric, positive semi-definite, agreeing with std."""
+    n = sum(lengths.values())
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (n, n):
+        got = "x".join(str(k) for k in cov.shape) or "a scalar"
+        _fail(path, f"covariance must be {n}x{n} (intrinsics1, intrinsics2, extrinsics in order), got {got}")
+    if not np.all(np.isfinite(cov)):
+        _fail(path, "covariance contains NaN or infinite values")
+    if np.any(np.diag(cov) < 0):
+        _fail(path, "covariance has a negative variance on its diagonal")
+    # A parameter held fixed in the calibration has variance 0 and no covariance.
+    d = np.sqrt(np.diag(cov))
+    free = d > 0
+    if np.any(cov[~free] != 0):
+        _fail(path, "covariance has a parameter with zero variance but non-zero covariance")
+    corr = cov[np.ix_(free, free)] / np.outer(d[free], d[free])
+    if np.abs(corr - corr.T).max(initial=0.0) > COV_TOLERANCE:
+        _fail(path, "covariance is not symmetric")
+    low = float(np.linalg.eigvalsh(0.5 * (corr + corr.T)).min(initial=0.0)) if free.any() else 0.0
+    if low < -COV_TOLERANCE:
+        _fail(path, f"covariance is not positive semi-definite (its correlation matrix has eigenvalue {low:.3g})")
+    for key, s in _std_of(cov, lengths).items():
+        if key in std and np.any(np.abs(std[key] - s) > COV_TOLERANCE * s):
+            _fail(path, f"std_{key} disagrees with the square root of the covariance's diagonal")
+    return 0.5 * (cov + cov.T)
 
 
 def check_image_size(calib, size, path):
@@ -492,9 +547,10 @@ def _read_yaml(path):
             value = _read_node(fs, path, key, required=False)
             if value is not None:
                 std[name] = value
+        cov = _read_node(fs, path, "covariance", required=False)
     finally:
         fs.release()
-    calib = StereoCalibration((w, h), raw["K1"], raw["D1"], raw["K2"], raw["D2"], raw["R"], raw["T"], std)
+    calib = StereoCalibration((w, h), raw["K1"], raw["D1"], raw["K2"], raw["D2"], raw["R"], raw["T"], std, cov)
     return validate_calibration(calib, path)
 
 
@@ -526,7 +582,7 @@ def read_calibration(path):
         Either a ``calibration.yaml`` file (DESIGN.md's format: an OpenCV
         FileStorage with ``image_width``, ``image_height``, ``K1``, ``D1``,
         ``K2``, ``D2``, ``R``, ``T`` and optional ``std_intrinsics1``,
-        ``std_intrinsics2``, ``std_extrinsics``), or a folder holding
+        ``std_intrinsics2``, ``std_extrinsics`` and ``covariance``), or a folder holding
         ``calibration.yaml`` or OpenCV stereo_calib's ``intrinsics.yml``
         (``M1``, ``D1``, ``M2``, ``D2``) plus ``extrinsics.yml`` (``R``,
         ``T``; their length unit is whatever square size the calibration
@@ -590,6 +646,8 @@ def write_calibration(path, calib):
         for key, name in _STD_KEYS.items():
             if name in calib.std:
                 fs.write(key, np.asarray(calib.std[name], dtype=np.float64).reshape(1, -1))
+        if calib.cov is not None:
+            fs.write("covariance", np.asarray(calib.cov, dtype=np.float64))
         fs.release()
         os.chmod(tmp, 0o644)  # mkstemp makes it private; a calibration is meant to be shared
         os.replace(tmp, path)

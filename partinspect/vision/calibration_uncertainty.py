@@ -9,10 +9,15 @@ circle. Its sensitivity to each parameter is found numerically, by central
 differences at +-1 standard uncertainty: the edge points are mapped again
 with the moved parameter, the cameras rebuilt, and one Gauss-Newton step of
 the two-view fit (:mod:`partinspect.vision.fit3d`) taken from its solution,
-which is the fit's first-order response. With the parameters taken as
-uncorrelated, the covariance is the sum of the responses' outer products,
-the law of propagation of uncertainty [1]_ (a Monte Carlo of the same
-inputs, :mod:`partinspect.vision.montecarlo`, checks it [2]_).
+which is the fit's first-order response. The parameters are moved along
+the principal directions of their stated covariance
+(:func:`uncertainty_directions`), each by its standard deviation, so that
+the sum of the responses' outer products is the law of propagation of
+uncertainty for correlated inputs [1]_ (a Monte Carlo of the same inputs,
+:mod:`partinspect.vision.montecarlo`, checks it [2]_). A calibration that
+states only per-parameter standard uncertainties is taken as uncorrelated;
+that overstates what depends on the epipolar geometry, which a
+calibration's correlated errors leave far better known.
 
 Units: calibration parameters as OpenCV's (px for fx, fy, cx, cy; the
 distortion coefficients unitless; rad for the rotation vector, mm for the
@@ -22,7 +27,7 @@ for directions and normals.
 References
 ----------
 .. [1] JCGM 100:2008, Evaluation of measurement data -- Guide to the
-       expression of uncertainty in measurement, section 5.1.2.
+       expression of uncertainty in measurement, sections 5.1.2 and 5.2.2.
 .. [2] JCGM 101:2008, Evaluation of measurement data -- Supplement 1 to the
        GUM: propagation of distributions using a Monte Carlo method.
 """
@@ -34,7 +39,18 @@ import numpy as np
 
 from partinspect.vision.fit3d import minimal_residuals
 
-__all__ = ["calibration_parameters", "perturbed_calibration", "calibration_covariance"]
+__all__ = [
+    "calibration_parameters",
+    "stated_covariance",
+    "uncertainty_directions",
+    "perturbed_calibration",
+    "with_extrinsic_covariance",
+    "calibration_responses",
+    "calibration_covariance",
+    "budget_entry",
+]
+
+_GROUPS = ("intrinsics1", "intrinsics2", "extrinsics")
 
 
 def calibration_parameters(calib):
@@ -48,12 +64,99 @@ def calibration_parameters(calib):
         rz, tx, ty, tz).
     """
     out = []
-    for group in ("intrinsics1", "intrinsics2", "extrinsics"):
+    for group in _GROUPS:
         std = np.asarray(calib.std.get(group, ()), float).ravel()
         for k, s in enumerate(std):
             if s > 0:
                 out.append((group, k, float(s)))
     return out
+
+
+def stated_covariance(calib):
+    """The covariance the calibration states for its parameters with std > 0.
+
+    Returns
+    -------
+    labels : list of (str, int)
+        ``(group, index)`` as :func:`calibration_parameters`.
+    cov : ndarray, shape (n, n)
+        ``calib.cov`` restricted to them, or the squared standard
+        uncertainties on the diagonal when the calibration states no
+        covariance.
+    """
+    params = calibration_parameters(calib)
+    labels = [(g, k) for g, k, _ in params]
+    if calib.cov is None:
+        return labels, np.diag([s * s for _, _, s in params])
+    at = {}
+    for group in _GROUPS:
+        for k in range(np.asarray(calib.std.get(group, ()), float).size):
+            at[(group, k)] = len(at)
+    idx = [at[lab] for lab in labels]
+    return labels, np.asarray(calib.cov, float)[np.ix_(idx, idx)]
+
+
+def _full_covariance(calib):
+    """``calib.cov``, or the squared standard uncertainties on the diagonal (zeros where none is stated)."""
+    if calib.cov is not None:
+        return np.array(calib.cov, float)
+    sizes = (4 + np.size(calib.D1), 4 + np.size(calib.D2), 6)
+    var = [np.asarray(calib.std.get(g, np.zeros(n)), float).ravel() ** 2 for g, n in zip(_GROUPS, sizes)]
+    return np.diag(np.concatenate(var))
+
+
+def with_extrinsic_covariance(calib, cov_rt):
+    """The calibration with a covariance added to that of its (rotation vector, T).
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+    cov_rt : ndarray, shape (6, 6)
+        rad and mm, order (rx, ry, rz, tx, ty, tz).
+
+    Returns
+    -------
+    StereoCalibration
+        With ``cov`` (the stated one, or the stated standard uncertainties
+        as a diagonal, plus ``cov_rt`` on the extrinsics' block) and ``std``
+        its diagonal's square root.
+    """
+    from partinspect.vision.calibration import validate_calibration
+
+    C = _full_covariance(calib)
+    C[-6:, -6:] += cov_rt
+    return validate_calibration(replace(calib, std={}, cov=C))
+
+
+def uncertainty_directions(calib, rtol=1e-12):
+    """Parameter shifts whose outer products sum to the stated covariance.
+
+    The covariance is scaled to a correlation matrix first (its parameters
+    mix px, rad and mm), decomposed ``C = S V W V^T S``, and each principal
+    direction returned scaled by its standard deviation, ``S v_j
+    sqrt(w_j)``: moving the calibration along each in turn and adding the
+    outer products of a result's responses is the law of propagation for
+    correlated inputs (JCGM 100, 5.2.2), and ``sum_j z_j d_j`` with
+    independent standard normal ``z_j`` is a draw from the covariance.
+    Directions whose variance is below ``rtol`` of the largest carry
+    nothing and are left out.
+
+    Returns
+    -------
+    list of dict
+        Each ``{(group, index): shift}``, as :func:`perturbed_calibration`
+        takes it; empty when the calibration states no uncertainty.
+    """
+    labels, C = stated_covariance(calib)
+    if not labels:
+        return []
+    if calib.cov is None:
+        return [{lab: float(np.sqrt(c))} for lab, c in zip(labels, np.diag(C))]
+    s = np.sqrt(np.diag(C))
+    w, V = np.linalg.eigh(C / np.outer(s, s))
+    keep = w > rtol * w.max()
+    D = (s[:, None] * V[:, keep]) * np.sqrt(w[keep])
+    return [dict(zip(labels, col)) for col in D.T]
 
 
 def perturbed_calibration(calib, deltas):
@@ -81,8 +184,8 @@ def perturbed_calibration(calib, deltas):
     return replace(calib, K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T)
 
 
-def calibration_covariance(fit, kind, views, calib):
-    """Covariance of a 3D feature's parameters due to the calibration's uncertainty.
+def calibration_responses(fit, kind, views, calib):
+    """First-order responses of a 3D feature's parameters to the calibration's uncertainty.
 
     Parameters
     ----------
@@ -97,39 +200,70 @@ def calibration_covariance(fit, kind, views, calib):
         features, :func:`partinspect.vision.stereo.feature_views` with the
         two features and their correlation length bound).
     calib : StereoCalibration
-        With ``std``.
+        With ``std``, and ``cov`` where it states one.
 
     Returns
     -------
-    ndarray, shape (6, 6) or (7, 7)
-        Of (point, direction) or (center, normal, radius); zeros when the
-        calibration has no standard uncertainties.
+    ndarray, shape (6, q) or (7, q)
+        Column j: the change of (point, direction) or (center, normal,
+        radius) when the calibration moves along the j-th of its q
+        :func:`uncertainty_directions` (q = 0 when it states none). The
+        feature's calibration covariance is ``G G^T``; two features measured
+        with the same calibration share its error, and their
+        cross-covariance is ``G_a G_b^T``.
 
     Notes
     -----
-    For each parameter p_k with standard uncertainty u_k the fit's
+    Along each direction d_j of :func:`uncertainty_directions` the fit's
     minimal parameters respond, to first order, by one Gauss-Newton step
     from the solution: ``d theta = -(J^T J)^-1 J^T d r`` with ``d r`` the
-    change of the weighted residuals when p_k moves; central differences at
-    +-u_k give ``c_k u_k`` directly, and ``sum_k (c_k u_k)(c_k u_k)^T`` is
-    the law of propagation for uncorrelated inputs (JCGM 100, 5.1.2).
+    change of the weighted residuals when the calibration moves by d_j;
+    central differences at +-d_j give the response ``g_j`` directly, and
+    ``sum_j g_j g_j^T = G C G^T`` is the law of propagation (JCGM 100,
+    5.2.2).
     """
-    params = calibration_parameters(calib)
-    views0 = views(calib)
-    res0, theta0, M = minimal_residuals(fit, kind, views0)
-    n = M.shape[0]
-    if not params:
-        return np.zeros((n, n))
+    directions = uncertainty_directions(calib)
+    if not directions:
+        return np.zeros((6 if kind == "line" else 7, 0))
+    res0, theta0, M = minimal_residuals(fit, kind, views(calib))
     h = 1e-6 * np.maximum(1.0, np.abs(theta0))
     J = np.stack([(res0(theta0 + e) - res0(theta0 - e)) / (2 * s) for e, s in zip(np.diag(h), h)], 1)
     pinv = np.linalg.pinv(J)
     cols = []
-    for group, k, s in params:
+    for d in directions:
         r = []
         for sign in (1.0, -1.0):
-            cal = perturbed_calibration(calib, {(group, k): sign * s})
+            cal = perturbed_calibration(calib, {lab: sign * v for lab, v in d.items()})
             res, _, _ = minimal_residuals(fit, kind, views(cal, remap=True))
             r.append(res(theta0))
         cols.append(-pinv @ (0.5 * (r[0] - r[1])))
-    G = M @ np.stack(cols, 1)
+    return M @ np.stack(cols, 1)
+
+
+def calibration_covariance(fit, kind, views, calib):
+    """Covariance of a 3D feature's parameters due to the calibration's uncertainty.
+
+    ``G G^T`` of :func:`calibration_responses` (same parameters); shape
+    (6, 6) or (7, 7), zeros when the calibration states no uncertainty.
+    """
+    G = calibration_responses(fit, kind, views, calib)
     return G @ G.T
+
+
+def budget_entry(calib):
+    """report.json's ``uncertainty.calibration``: how the calibration's uncertainty enters the budget.
+
+    Returns
+    -------
+    dict
+        ``stated``: "covariance" (its parameters' full covariance, carried
+        with the error all features share), "standard uncertainties" (taken
+        as independent: every result that depends on the epipolar geometry
+        is overstated) or "none" (the budget is incomplete: the
+        calibration's error is in no stated uncertainty); ``parameters``:
+        how many have a stated uncertainty; ``complete``: whether the
+        budget holds the calibration as a calibration states it.
+    """
+    n = len(calibration_parameters(calib))
+    stated = "none" if n == 0 else ("covariance" if calib.cov is not None else "standard uncertainties")
+    return {"stated": stated, "parameters": n, "complete": stated == "covariance"}

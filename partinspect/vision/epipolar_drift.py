@@ -39,6 +39,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from partinspect.vision.calibration_uncertainty import stated_covariance, with_extrinsic_covariance
 from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.psd import covariance_factor
 from partinspect.vision.stereo import EDGE_BIAS_FLOOR
@@ -293,10 +294,9 @@ def rotated_right_camera(calib, rotation, rotation_cov=None):
         Rotation vector, rad, in the right camera's frame: ``X_right`` becomes
         ``Q X_right``, so ``R`` becomes ``Q R`` and ``T`` becomes ``Q T``.
     rotation_cov : array_like, shape (3, 3), optional
-        Its covariance, rad^2: added to the stated standard uncertainties of
-        the rotation vector and of ``T`` (through ``T``'s first-order change
-        ``w x T``), each in quadrature on its diagonal (the calibration states
-        independent per-parameter uncertainties).
+        Its covariance, rad^2: carried to the rotation vector of ``R`` and to
+        ``T`` to first order (``d rvec / d w`` numerically, ``d T = w x T``)
+        and added to the calibration's stated covariance.
 
     Returns
     -------
@@ -306,15 +306,19 @@ def rotated_right_camera(calib, rotation, rotation_cov=None):
 
     Q = cv2.Rodrigues(np.asarray(rotation, float).reshape(3, 1))[0]
     T = np.asarray(calib.T, float).ravel()
-    std = dict(calib.std)
-    if rotation_cov is not None:
-        C = np.asarray(rotation_cov, float)
-        ext = np.zeros(6) if "extrinsics" not in std else np.array(std["extrinsics"], float).ravel().copy()
-        ext[:3] = np.sqrt(ext[:3] ** 2 + np.clip(np.diag(C), 0, None))
-        S = np.array([[0.0, T[2], -T[1]], [-T[2], 0.0, T[0]], [T[1], -T[0], 0.0]])  # w x T = S w
-        ext[3:] = np.sqrt(ext[3:] ** 2 + np.clip(np.diag(S @ C @ S.T), 0, None))
-        std["extrinsics"] = ext
-    return replace(calib, R=Q @ np.asarray(calib.R, float), T=Q @ T, std=std)
+    turned = replace(calib, R=Q @ np.asarray(calib.R, float), T=Q @ T)
+    if rotation_cov is None:
+        return turned
+    J = np.zeros((6, 3))
+    r0 = cv2.Rodrigues(turned.R)[0].ravel()
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1e-7
+        J[:3, k] = (cv2.Rodrigues(cv2.Rodrigues(e)[0] @ turned.R)[0].ravel() - r0) / 1e-7
+    J[3:] = np.array([[0.0, T[2], -T[1]], [-T[2], 0.0, T[0]], [T[1], -T[0], 0.0]])  # w x T = J w
+    w, V = np.linalg.eigh(np.asarray(rotation_cov, float))
+    F = J @ (V * np.sqrt(np.clip(w, 0.0, None)))  # a factor keeps the sum's diagonal non-negative
+    return with_extrinsic_covariance(turned, F @ F.T)
 
 
 def fit_drift(calib, pairs, tangencies=None, h=1e-5):
@@ -370,18 +374,19 @@ def _weighted_fit(J, r, w):
 def predicted_residual_std(calib, pairs, tangencies=None):
     """Standard deviation of the mean tangency residual that the calibration's stated uncertainties allow, px.
 
-    Each parameter with a stated standard uncertainty is moved by it in
-    turn (first order, parameters independent as stated); 0 when the
-    calibration states none. ``tangencies`` as :func:`fit_drift`'s.
+    The calibration is moved along each principal direction of its stated
+    covariance in turn (first order; independent parameters where it
+    states only standard uncertainties); 0 when it states none.
+    ``tangencies`` as :func:`fit_drift`'s.
     """
-    from partinspect.vision.calibration_uncertainty import calibration_parameters, perturbed_calibration
+    from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
 
     geo = epipolar_geometry(calib)
     r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
     base = estimate_drift(r, v).shift
     total = 0.0
-    for group, k, s in calibration_parameters(calib):
-        moved = perturbed_calibration(calib, {(group, k): s})
+    for d in uncertainty_directions(calib):
+        moved = perturbed_calibration(calib, d)
         r, v, _ = tangency_residuals(epipolar_geometry(moved), pairs, select, geo.ref_left)
         total += (estimate_drift(r, v).shift - base) ** 2
     return float(np.sqrt(total))
@@ -467,18 +472,29 @@ class CalibrationCheck:
         return text
 
 
-def _within_stated(calib, rotation, cov):
-    """Whether a turn of the right camera lies within what the calibration's stated uncertainty allows.
+def _within_stated(calib, rotation, cov, drift, predicted):
+    """Whether a drift lies within what the calibration's stated uncertainty allows.
 
-    Along each of :func:`drift_axes`, the turn is compared with
+    The mean epipolar residual is compared with ``MIN_SIGNIFICANCE`` times
+    its standard uncertainty combined with the one the stated calibration
+    predicts (:func:`predicted_residual_std`: its full covariance where it
+    states one); and the turn along each of :func:`drift_axes` with
     ``MIN_SIGNIFICANCE`` times its own standard uncertainty combined with
-    the stated rotation uncertainty along that axis (the stated rotation
-    vector's standard uncertainties, independent as stated; none stated:
-    nothing but the turn's own uncertainty is allowed).
+    the stated rotation's along that axis (a roll leaves the mean residual
+    unchanged). Nothing stated: nothing but the measurement's own
+    uncertainty is allowed.
     """
-    stated = np.asarray(calib.std.get("extrinsics", np.zeros(6)), float).ravel()[:3]
+    if abs(drift.shift) > MIN_SIGNIFICANCE * np.hypot(predicted, drift.u):
+        return False
+    labels, C = stated_covariance(calib)
+    idx = [labels.index(("extrinsics", k)) if ("extrinsics", k) in labels else None for k in range(3)]
+    stated = np.zeros((3, 3))
+    for a, i in enumerate(idx):
+        for b, j in enumerate(idx):
+            if i is not None and j is not None:
+                stated[a, b] = C[i, j]
     for axis in drift_axes(calib):
-        allowed = np.hypot(np.sqrt(np.sum((axis * stated) ** 2)), np.sqrt(max(axis @ cov @ axis, 0.0)))
+        allowed = np.sqrt(max(axis @ stated @ axis, 0.0) + max(axis @ cov @ axis, 0.0))
         if abs(axis @ rotation) > MIN_SIGNIFICANCE * allowed:
             return False
     return True
@@ -513,7 +529,7 @@ def check_calibration(calib, pairs):
     z = np.abs(V.T @ rotation) / np.sqrt(np.where(w > 0, w, np.inf))
     if not np.any(z > MIN_SIGNIFICANCE):
         return CalibrationCheck("consistent", drift, predicted, *none, 1.0, calib)
-    verdict = "consistent" if _within_stated(calib, rotation, cov) else "drifted"
+    verdict = "consistent" if _within_stated(calib, rotation, cov, drift, predicted) else "drifted"
     return CalibrationCheck(verdict, drift, predicted, rotation, cov, birge, rotated_right_camera(calib, rotation, cov))
 
 

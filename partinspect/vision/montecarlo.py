@@ -28,7 +28,7 @@ import numpy as np
 
 from partinspect.vision.fit3d import fit_circle_3d, fit_line_3d
 from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
-from partinspect.vision.calibration_uncertainty import calibration_parameters, perturbed_calibration
+from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
 from partinspect.vision.stereo import correction_corr_length, coupled_noise, feature_views
 
 __all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors", "with_monte_carlo_covariances"]
@@ -54,8 +54,8 @@ class MonteCarloFeature:
         Their covariance (the Monte Carlo covariance).
     cov_first_order : ndarray
         The first-order covariance of the same inputs, for comparison:
-        ``Feature3D.param_cov`` less its systematic (Type B) part, i.e.
-        image noise plus the calibration when it has standard uncertainties.
+        ``Feature3D.param_cov`` less its systematic (Type B) part, and less
+        its calibration part unless the calibration is drawn.
     std_ratio : ndarray
         ``sqrt(diag(cov_mc) / diag(cov_first_order))`` (NaN where the
         first-order variance is zero).
@@ -133,7 +133,7 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
     list of MonteCarloFeature
     """
     rng = np.random.default_rng(seed)
-    cal_params = calibration_parameters(calib) if calibration else []
+    directions = uncertainty_directions(calib) if calibration else []
     out = []
     for k in range(len(result.features)) if features is None else features:
         f3 = result.features[k]
@@ -165,8 +165,8 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
         samples = []
         for t in range(draws):
             cal = calib
-            if cal_params:
-                cal = perturbed_calibration(calib, {(g, i): s * rng.standard_normal() for g, i, s in cal_params})
+            if directions:
+                cal = perturbed_calibration(calib, _calibration_draw(directions, rng))
             fl_t, fr_t = (f if c is None else replace(f, background_offset=c[t])
                           for f, c in ((fl, corrections[0]), (fr, corrections[1])))
             views = feature_views(fl_t, fr_t, corr_length, cal, uv=(fl.uv + noises[0][t], fr.uv + noises[1][t]))
@@ -185,6 +185,8 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
         # left out of the comparison.
         sys_cov = getattr(f3, "param_cov_systematic", None)
         fo = f3.param_cov if sys_cov is None else f3.param_cov - sys_cov
+        if not calibration:
+            fo = fo - f3.param_cov_calibration
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.sqrt(np.diag(cov) / np.diag(fo))
         out.append(MonteCarloFeature(int(k), f3.kind, len(samples), samples, samples.mean(axis=0), cov, fo, ratio))
@@ -195,20 +197,34 @@ def with_monte_carlo_covariances(stereo, calib, draws):
     """The stereo result with Monte Carlo covariances in place of the first-order ones.
 
     Returns the new result and the ratios of Monte Carlo to first-order
-    standard uncertainties of the random inputs over all parameters (for
-    the report). The systematic (Type B) covariance of a feature is not
-    sampled and is added to the Monte Carlo covariance unchanged.
+    standard uncertainties of the image noise's part over all parameters
+    (for the report). The image noise is drawn; the calibration's part
+    stays first order (``G G^T`` of the feature's ``calibration_response``),
+    for the calibration's error is one error shared by every feature, and
+    the registration and the characteristics need it as that
+    (:func:`monte_carlo` with ``calibration=True`` checks its first order
+    feature by feature); the systematic (Type B) part is not sampled and
+    is added unchanged.
     """
     from dataclasses import replace
 
     feats, ratios = list(stereo.features), []
-    for mc in monte_carlo(stereo, calib, draws=draws, seed=0):
+    for mc in monte_carlo(stereo, calib, draws=draws, seed=0, calibration=False):
         f = feats[mc.feature]
-        C = 0.5 * (mc.cov_mc + mc.cov_mc.T)
-        # The draws cover the random inputs only; the Type B part (rim shading) is added as it was.
+        C = 0.5 * (mc.cov_mc + mc.cov_mc.T) + f.param_cov_calibration
+        # The draws cover the image noise only; the Type B part (rim shading) is added as it was.
         if getattr(f, "param_cov_systematic", None) is not None:
             C = C + f.param_cov_systematic
         extra = {"radius_std": float(np.sqrt(C[6, 6]))} if f.kind != "line" else {}
         feats[mc.feature] = replace(f, param_cov=C, covariance=C[:3, :3], axis_cov=C[3:6, 3:6], **extra)
         ratios.extend(r for r in mc.std_ratio if np.isfinite(r))
     return replace(stereo, features=tuple(feats)), np.array(ratios)
+
+
+def _calibration_draw(directions, rng):
+    """One draw of the calibration's parameter shifts: ``sum_j z_j d_j``, z standard normal."""
+    draw = {}
+    for d, z in zip(directions, rng.standard_normal(len(directions))):
+        for lab, v in d.items():
+            draw[lab] = draw.get(lab, 0.0) + z * v
+    return draw

@@ -61,7 +61,7 @@ from partinspect.vision.edges import (BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FA
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.frames import orthonormal_frame, plane_basis
-from partinspect.vision.calibration_uncertainty import calibration_covariance, calibration_parameters
+from partinspect.vision.calibration_uncertainty import calibration_responses, uncertainty_directions
 from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d, minimal_residuals
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import MAX_OUTLIER_FRACTION, ImageFeature, chauvenet_z, image_features
@@ -182,6 +182,13 @@ class Feature3D:
         :func:`partinspect.vision.guided.guided_lines` (a stretch of longer
         image lines chosen by the edge's image under the registered pose);
         None for a pair the matching made.
+    calibration_response : ndarray, shape (7, q) or (6, q), or None
+        The parameters' first-order responses to the calibration's q
+        principal directions of uncertainty
+        (:func:`partinspect.vision.calibration_uncertainty.calibration_responses`):
+        ``param_cov_calibration`` is ``G G^T``, and two features measured
+        with one calibration have the cross-covariance ``G_a G_b^T``, for
+        the calibration's error is one error shared by all of them.
     """
 
     kind: str
@@ -207,6 +214,7 @@ class Feature3D:
     param_cov_systematic: np.ndarray | None = None
     point_errors: object = None
     guided: str | None = None
+    calibration_response: np.ndarray | None = None
 
     @property
     def points(self):
@@ -704,7 +712,7 @@ def _point_errors(fl, corr, view):
     return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)))
 
 
-def make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
+def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view):
     """The :class:`Feature3D` record of a matched pair's two-view fit.
 
     Parameters
@@ -717,10 +725,10 @@ def make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
         Their two-view fit.
     corr : Correspondences
         Their triangulated points (the form is judged on them).
-    cal_cov : ndarray, shape (6, 6) or (7, 7)
-        The calibration's part of the parameters' covariance
-        (:func:`partinspect.vision.calibration_uncertainty.calibration_covariance`;
-        zeros without it).
+    cal_response : ndarray, shape (6, q) or (7, q)
+        The parameters' responses to the calibration's uncertainty
+        (:func:`partinspect.vision.calibration_uncertainty.calibration_responses`;
+        q = 0 without it).
     geo : EpipolarGeometry
     view : View
         The left view of the fit (:func:`feature_views`): the points'
@@ -730,12 +738,14 @@ def make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
     -------
     Feature3D
         The covariance is the fit's image-noise and systematic parts plus
-        ``cal_cov``, each also kept apart. A circle or arc is a "circle"
+        the calibration's ``G G^T``, each also kept apart. A circle or arc is a "circle"
         when the edge points of either image, back-projected onto its
         plane, cover at least 300 degrees of it.
     """
     kind = fl.kind
     img_cov, sys_cov = _image_param_cov(fit, kind)
+    G = np.asarray(cal_response, float)
+    cal_cov = G @ G.T
     total = img_cov + cal_cov + sys_cov
     errors = _point_errors(fl, corr, view)
     if kind == "line":
@@ -744,7 +754,7 @@ def make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
                          fit.point + t.min() * fit.direction, fit.point + t.max() * fit.direction,
                          None, None, float("nan"), float("nan"), float("nan"),
                          total[:3, :3], float("nan"), total[3:, 3:], total, img_cov, cal_cov, fit, corr, sys_cov,
-                         errors)
+                         errors, calibration_response=G)
     # The fit used each image's own edge points, so the rim it measured is
     # what either image sees; the correspondences cover only what both do.
     pts = np.vstack([_on_plane(fl.ideal.xy, geo.K1, np.eye(3), np.zeros(3), fit.center, fit.normal),
@@ -755,7 +765,7 @@ def make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, view):
         a0, a1 = 0.0, 2 * np.pi
     return Feature3D(kind3, match.left, match.right, None, None, None, None, fit.center, fit.normal,
                      float(fit.radius), a0, a1, total[:3, :3], float(np.sqrt(total[6, 6])), total[3:6, 3:6],
-                     total, img_cov, cal_cov, fit, corr, sys_cov, errors)
+                     total, img_cov, cal_cov, fit, corr, sys_cov, errors, calibration_response=G)
 
 
 def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_options=None, edge_options=None,
@@ -819,7 +829,7 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
             failed.append((m, why))
         else:
             feats.append(f3)
-    return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), bool(calibration_parameters(calib)))
+    return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), bool(uncertainty_directions(calib)))
 
 
 def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
@@ -858,8 +868,5 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
-    if calibration_parameters(calib):
-        cal_cov = calibration_covariance(fit, fl.kind, partial(feature_views, fl, fr, corr_length), calib)
-    else:
-        cal_cov = np.zeros((6, 6) if fl.kind == "line" else (7, 7))
-    return make_feature3d(match, fl, fr, fit, corr, cal_cov, geo, views[0]), None
+    G = calibration_responses(fit, fl.kind, partial(feature_views, fl, fr, corr_length), calib)
+    return make_feature3d(match, fl, fr, fit, corr, G, geo, views[0]), None

@@ -8,8 +8,8 @@ uncertainties (GUM, JCGM 100 [4]_): of the intrinsics, the diagonal of
 ``sigma^2 (J^T J)^-1`` that ``calibrateCameraExtended`` returns; of the
 extrinsics (rotation vector of R, and T), first-order back-propagation of
 the image noise through the stereo least-squares problem [2]_, *including*
-the uncertainty of the intrinsics it was solved with (a sandwich
-covariance, :func:`extrinsic_covariance`).
+the uncertainty of the intrinsics it was solved with, and the covariance
+of all of them together (a sandwich covariance, :func:`parameter_covariance`).
 
 The intrinsics are held fixed in the stereo step (``CALIB_FIX_INTRINSIC``,
 as the OpenCV documentation [3]_ recommends for cameras well calibrated on
@@ -43,13 +43,13 @@ References
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from partinspect.errors import InputError
-from partinspect.vision.calibration import StereoCalibration, undistort_points
+from partinspect.vision.calibration import StereoCalibration, undistort_points, validate_calibration
 
 __all__ = [
     "Board",
@@ -63,7 +63,7 @@ __all__ = [
     "calibrate_camera",
     "calibrate_pair",
     "camera_jacobian",
-    "extrinsic_covariance",
+    "parameter_covariance",
     "epipolar_distances",
     "calibrate_stereo",
 ]
@@ -161,7 +161,7 @@ class StereoCalibrationResult:
     Attributes
     ----------
     calibration : StereoCalibration
-        With ``std`` entries ``intrinsics1``, ``intrinsics2``, ``extrinsics``.
+        With ``std`` entries ``intrinsics1``, ``intrinsics2``, ``extrinsics`` and their joint ``cov``.
     views : list of View
         Every pair found, used or rejected, in name order.
     board : Board
@@ -173,8 +173,6 @@ class StereoCalibrationResult:
         Mean corner-to-epipolar-line distance over both images, px
         (half of the ``average epipolar err`` that stereo_calib.cpp prints,
         which sums the two images' distances).
-    extrinsic_covariance : ndarray, shape (6, 6)
-        Covariance of (rotation vector of R, T); rad and board units.
     """
 
     calibration: StereoCalibration
@@ -184,7 +182,6 @@ class StereoCalibrationResult:
     rms_left: float
     rms_right: float
     epipolar_error: float
-    extrinsic_covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
     @property
     def used(self):
@@ -607,22 +604,27 @@ def _stereo_jacobian(obj, rvecs, tvecs, rvec, T, K1, D1, K2, D2):
     return J_phi, J_theta
 
 
-def extrinsic_covariance(obj, cam1, cam2, pair):
-    """Covariance of (rotation vector of R, T) from first-order back-propagation.
+def parameter_covariance(obj, cam1, cam2, pair):
+    """Covariance of all the rig's parameters together, by first-order back-propagation.
 
-    The stereo step solves ``min_phi |y - f(theta_hat, phi)|^2`` for the board
-    poses and (R, T) = phi, with the intrinsics theta_hat fixed at the
-    single-camera estimates, themselves linear (to first order) in the same
-    image noise: ``d theta = A dy`` with ``A`` the rows of
-    ``(J_c^T J_c)^-1 J_c^T`` of each camera's own problem. Then
+    Each camera's problem gives its intrinsics theta linear (to first order)
+    in the image noise: ``d theta = A dy`` with ``A`` the intrinsics' rows of
+    ``(J_c^T J_c)^-1 J_c^T``. The stereo step solves
+    ``min_phi |y - f(theta_hat, phi)|^2`` for the board poses and (R, T) =
+    phi with theta_hat fixed, so
 
         d phi = B dy,   B = (J_phi^T J_phi)^-1 J_phi^T (I - J_theta A),
-        Cov(phi) = B Sigma B^T,
 
-    with ``Sigma`` diagonal: each camera's residual variance sigma^2 (sum of
+    and with ``G = [A; B_RT]`` (B_RT: the rows of R and T)
+
+        Cov(theta1, theta2, R, T) = G Sigma G^T,
+
+    ``Sigma`` diagonal: each camera's residual variance sigma^2 (sum of
     squares over degrees of freedom of its own calibration) on its rows.
-    This is H&Z's back-propagation [2]_ in sandwich form; it reduces to
-    ``sigma^2 (J_phi^T J_phi)^-1`` when the intrinsics are exact.
+    This is H&Z's back-propagation [2]_ in sandwich form. The off-diagonal
+    blocks matter: R and T absorb much of the intrinsics' error (the
+    ``-J_theta A`` term), so the epipolar geometry is known far better than
+    independent per-parameter uncertainties say.
 
     Parameters
     ----------
@@ -635,8 +637,9 @@ def extrinsic_covariance(obj, cam1, cam2, pair):
 
     Returns
     -------
-    cov : ndarray, shape (6, 6)
-        Rad and board units; order (rx, ry, rz, tx, ty, tz).
+    cov : ndarray, shape (n1 + n2 + 6, n1 + n2 + 6)
+        Order: (fx, fy, cx, cy, D...) of each camera, then (rx, ry, rz, tx,
+        ty, tz); px, unitless, rad and board units.
     """
     import cv2
 
@@ -652,9 +655,10 @@ def extrinsic_covariance(obj, cam1, cam2, pair):
         Jc = _mono_jacobian(obj, cam["rvecs"], cam["tvecs"], cam["K"], cam["D"])
         A[cols, rows] = np.linalg.lstsq(Jc, np.eye(Jc.shape[0]), rcond=None)[0][: cols.stop - cols.start]
     B = np.linalg.solve(J_phi.T @ J_phi, J_phi.T @ (np.eye(2 * m) - J_theta @ A))
+    G = np.vstack([A, B[-6:]])
     sigma2 = np.concatenate([np.full(m, cam1["sigma2"]), np.full(m, cam2["sigma2"])])
-    cov = (B * sigma2) @ B.T
-    return cov[-6:, -6:]
+    cov = (G * sigma2) @ G.T
+    return 0.5 * (cov + cov.T)
 
 
 # ---------------------------------------------------------------- epipolar
@@ -763,13 +767,9 @@ def calibrate_stereo(folder, board, progress=None):
         if len(usable()) < MIN_VIEWS:
             raise InputError(folder, f"fewer than {MIN_VIEWS} consistent image pairs: " + _reasons(views))
 
-    cov = extrinsic_covariance(obj, cam1, cam2, pair)
-    std = {
-        "intrinsics1": cam1["std"],
-        "intrinsics2": cam2["std"],
-        "extrinsics": np.sqrt(np.clip(np.diag(cov), 0, None)),
-    }
-    calib = StereoCalibration(size, cam1["K"], cam1["D"], cam2["K"], cam2["D"], pair["R"], pair["T"], std)
+    cov = parameter_covariance(obj, cam1, cam2, pair)
+    calib = validate_calibration(
+        StereoCalibration(size, cam1["K"], cam1["D"], cam2["K"], cam2["D"], pair["R"], pair["T"], cov=cov))
     d_all = []
     for v, errs in zip(used, pair["per_view"]):
         dl, dr = epipolar_distances(v.left_points, v.right_points, calib)
@@ -784,7 +784,6 @@ def calibrate_stereo(folder, board, progress=None):
         rms_left=cam1["rms"],
         rms_right=cam2["rms"],
         epipolar_error=float(np.mean(np.concatenate(d_all))),
-        extrinsic_covariance=cov,
     )
 
 

@@ -1,6 +1,7 @@
 """A stated calibration made as a board session makes it: off the true rig by what it states, and no more."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 
@@ -38,6 +39,38 @@ def test_its_errors_are_what_it_states_and_its_epipolar_geometry_stays_close():
     assert 0.4 < rms < 2.0, rms
 
 
+def _parameters(c):
+    """A calibration's parameters in its covariance's order."""
+    import cv2
+
+    K = lambda K: K[[0, 1, 0, 1], [0, 1, 2, 2]]  # noqa: E731
+    return np.concatenate([K(c.K1), c.D1, K(c.K2), c.D2, cv2.Rodrigues(c.R)[0].ravel(), c.T])
+
+
+def test_its_stated_covariance_describes_its_errors_and_its_epipolar_geometry():
+    from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
+
+    rig = default_rig()
+    m2, ratio, ratio_independent = [], [], []
+    for seed in range(4):
+        c = simulated_calibration(rig, np.random.default_rng(seed))
+        e = _parameters(c) - _parameters(rig)
+        m2.append(e @ np.linalg.solve(c.cov, e))
+        # The spread of the epipolar residual the stated uncertainty predicts, against the residual found.
+        found = _epipolar_residuals(rig, c, np.random.default_rng(9))
+        for cal, out in ((c, ratio), (replace(c, cov=None), ratio_independent)):
+            base = _epipolar_residuals(c, c, np.random.default_rng(9))
+            var = sum((_epipolar_residuals(c, perturbed_calibration(cal, d), np.random.default_rng(9)) - base) ** 2
+                      for d in uncertainty_directions(cal))
+            out.append(np.sqrt(np.mean(found**2) / np.mean(var)))
+    # 24 parameters: the squared Mahalanobis distance of the errors averages 24 (chi-square, 4 draws: 13-38 at 99 %).
+    assert 13 < np.mean(m2) < 38, m2
+    # With the covariance the epipolar residual is stated at its size; taken as independent it is overstated
+    # by two orders of magnitude.
+    assert 0.4 < np.median(ratio) < 2.5, ratio
+    assert max(ratio_independent) < 0.02, ratio_independent
+
+
 def test_render_writes_the_calibrated_rig_and_keeps_the_true_one(tmp_path, repo):
     out = tmp_path / "render"
     assert main(["render", str(repo / "examples" / "plate" / "part.step"), str(out), "--size", "612x512",
@@ -45,5 +78,5 @@ def test_render_writes_the_calibrated_rig_and_keeps_the_true_one(tmp_path, repo)
     stated = read_calibration(out / "images")
     note = json.loads((out / "truth.json").read_text())["calibration_error"]
     true_K1 = np.array(note["true_rig"]["K1"])
-    assert note["seed"] == 4 and stated.std["intrinsics1"][0] > 0
+    assert note["seed"] == 4 and stated.std["intrinsics1"][0] > 0 and stated.cov.shape == (24, 24)
     assert abs(stated.K1[0, 0] - true_K1[0, 0]) > 1e-3 and abs(stated.K1[0, 0] - true_K1[0, 0]) < 6 * stated.std["intrinsics1"][0]

@@ -111,6 +111,23 @@ def test_write_read_round_trip_is_lossless(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["calibration.yaml"]
 
 
+def _covariance(n, seed=0):
+    """A positive-definite covariance of n parameters with strong correlations and mixed scales."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n)) + 3 * np.outer(rng.normal(size=n), rng.normal(size=n))
+    s = 10.0 ** rng.uniform(-5, 0, n)
+    return (A @ A.T / n) * np.outer(s, s)
+
+
+def test_covariance_round_trip_sets_the_standard_uncertainties(tmp_path):
+    cov = _covariance(9 + 12 + 6)  # D1 has 5 coefficients, D2 8
+    write_calibration(tmp_path / "calibration.yaml", make_calib(std={}, cov=cov))
+    back = read_calibration(tmp_path / "calibration.yaml")
+    np.testing.assert_array_equal(back.cov, cov)
+    np.testing.assert_allclose(back.std["intrinsics2"], np.sqrt(np.diag(cov))[9:21])
+    np.testing.assert_allclose(back.std["extrinsics"], np.sqrt(np.diag(cov))[21:])
+
+
 def test_reads_opencv_stereo_calib_pair(tmp_path):
     calib = make_calib()
     fs = cv2.FileStorage(str(tmp_path / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
@@ -148,6 +165,12 @@ BAD = {
     "bad distortion": (dict(D1=np.zeros(6)), "D1 must have 4, 5, 8, 12 or 14"),
     "negative std": (dict(std={"extrinsics": [-1, 0, 0, 0, 0, 0]}), "non-negative"),
     "bad size": (dict(image_size=(0, 10)), "image size"),
+    "covariance size": (dict(cov=np.eye(24)), "covariance must be 27x27"),
+    "covariance not positive": (dict(std={}, cov=np.diag(np.r_[1.0, -1.0, np.ones(25)])), "negative variance"),
+    "covariance indefinite": (dict(std={}, cov=np.eye(27) + 0.9 * (np.eye(27, k=1) + np.eye(27, k=-1))),
+                              "not positive semi-definite"),
+    "covariance asymmetric": (dict(std={}, cov=np.eye(27) + 0.5 * np.eye(27, k=1)), "not symmetric"),
+    "covariance against std": (dict(std={"extrinsics": np.ones(6)}, cov=4 * np.eye(27)), "std_extrinsics disagrees"),
 }
 
 
@@ -164,6 +187,8 @@ def test_bad_calibration_is_one_clear_error(tmp_path, case):
         fs.write(name, np.atleast_2d(np.asarray(getattr(calib, name), dtype=float)))
     for k, v in calib.std.items():
         fs.write("std_" + k, np.atleast_2d(np.asarray(v, dtype=float)))
+    if calib.cov is not None:
+        fs.write("covariance", np.asarray(calib.cov, dtype=float))
     fs.release()
     with pytest.raises(InputError) as err:
         read_calibration(path)

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 
 from partinspect.vision.montecarlo import correlated_normal_errors, monte_carlo
-from tests.vision.test_stereo import CAL_STD, measured
+from tests.vision.test_stereo import measured
 from partinspect.vision.stereo import measure_stereo
 from tests.vision import stereo_scenes as S
 
@@ -50,8 +50,13 @@ def test_first_order_agrees_with_monte_carlo_image_noise():
 
 
 def test_first_order_agrees_with_monte_carlo_with_calibration():
+    # A calibration's full covariance, as a board session states it: correlated parameters,
+    # so both the principal directions of the first order and the draws are tried.
+    from partinspect.simulate.calibration import simulated_calibration
+    from partinspect.vision.calibration import validate_calibration
+
     rig, _ = measured(0)
-    cal = replace(rig, std=CAL_STD)
+    cal = validate_calibration(replace(rig, std={}, cov=simulated_calibration(rig, np.random.default_rng(3)).cov))
     _, _, L, R = S.render("plate", 2.0, 0)
     res = measure_stereo(L, R, cal)
     mc = monte_carlo(res, cal, _pick(res), draws=100, seed=2)
