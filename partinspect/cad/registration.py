@@ -359,7 +359,8 @@ def rig_params(kind, rec):
     Circles ``(center, normal, radius)`` (7,), lines ``(point, direction)``
     (6,). A record's own ``param_cov`` of that shape (stereo Feature3D) is
     used whole, with the correlations inside the fit; otherwise the blocks
-    are assembled and those correlations are neglected.
+    are assembled and those correlations are neglected, but for the
+    calibration's part, which its responses give whole.
     """
     n = 7 if kind == "circle" else 6
     if kind == "circle":
@@ -374,7 +375,12 @@ def rig_params(kind, rec):
     C[3:6, 3:6] = axis_cov(rec)
     if kind == "circle":
         C[6, 6] = float(rec.radius_std) ** 2
-    return m, C
+    # The calibration's shared error correlates the blocks too: its part is known whole.
+    G = calibration_response(kind, rec)
+    block = np.zeros((n, n), bool)
+    for sl in (slice(0, 3), slice(3, 6), slice(6, n)):
+        block[sl, sl] = True
+    return m, C + np.where(block, 0.0, G @ G.T)
 
 
 def register(measured_circles, measured_lines, inventory, *, datums=None, pose_hint=None):

@@ -344,3 +344,62 @@ def test_an_arc_seen_through_a_slot_against_the_background_is_matched():
     m = measure_features(inv, T, ids, np.random.default_rng(2), n_points=0)
     reg = register(m.circles, m.lines, inv)
     assert _correct_assignment(reg, m) and "arc-1" in reg.assignment["circle"].values()
+
+
+def _skew(v):
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _with_shared_error(m, z, scale):
+    """The measured records as a calibration's error leaves them: ``scale`` (stds of a turn about the rig's
+    origin, rad; a shift, mm; a scale about it) times ``z``, with each record's responses and covariance."""
+    from types import SimpleNamespace
+
+    s_w, s_v, s_s = scale
+    out = []
+    for rec in (*m.circles, *m.lines):
+        circle = hasattr(rec, "center")
+        X = np.asarray(rec.center if circle else rec.point, float)
+        a = np.asarray(rec.normal if circle else rec.direction, float)
+        G = np.zeros((7 if circle else 6, 7))
+        G[:3, :3], G[:3, 3:6], G[:3, 6] = -_skew(X) * s_w, np.eye(3) * s_v, X * s_s
+        G[3:6, :3] = -_skew(a) * s_w
+        if circle:
+            G[6, 6] = rec.radius * s_s
+        d = G @ z
+        r = SimpleNamespace(**vars(rec))
+        r.calibration_response = G
+        r.covariance = rec.covariance + G[:3] @ G[:3].T
+        if circle:
+            r.center, r.normal, r.radius = X + d[:3], a + d[3:6], rec.radius + d[6]
+            r.normal_cov = rec.normal_cov + G[3:6] @ G[3:6].T
+        else:
+            r.point, r.direction = X + d[:3], a + d[3:6]
+            r.start, r.end = rec.start + d[:3], rec.end + d[:3]
+            r.direction_cov = rec.direction_cov + G[3:6] @ G[3:6].T
+        out.append(r)
+    return out[: len(m.circles)], out[len(m.circles):]
+
+
+def test_a_calibration_error_shared_by_all_features_is_taken_up_by_the_pose(scene):
+    """A calibration's error moves every feature alike (a turn and a shift of the rig frame, 100 times the
+    image noise) and scales them a little: the part-frame centres stay honest, and much better than the
+    shared error, which the pose takes up; taken as independent per feature it would swamp them."""
+    _, inv, T, ids = scene
+    datums = [i for i in ids if i.startswith("line")]
+    rng = np.random.default_rng(21)
+    z, spread = [], []
+    for _ in range(30):
+        m = measure_features(inv, T, ids, rng, n_points=0)
+        circles, lines = _with_shared_error(m, rng.standard_normal(7), (5e-4, 0.2, 1e-4))
+        reg = register(circles, lines, inv, datums=datums)  # found afresh: the shared error moves it
+        assert 0.4 < reg.weighted_rms < 1.6  # the shared error is no misfit
+        for pf in reg.features_in_part_frame():
+            if pf.kind == "circle":
+                e = pf.center - inv[pf.cad_id].center
+                w, V = np.linalg.eigh(pf.covariance)
+                z.extend((V.T @ e) / np.sqrt(w))
+                spread.append(np.sqrt(w.max()))
+    rms = np.sqrt(np.mean(np.square(z)))
+    assert 0.8 < rms < 1.25, rms
+    assert np.median(spread) < 0.05  # against 0.2 mm of shift alone

@@ -189,3 +189,34 @@ def test_a_form_value_that_cannot_be_simulated_is_inconclusive_with_its_reason(p
     assert ev.measured is None and ev.standard_uncertainty is None
     assert "cannot be simulated" in ev.reason and "fewer than 4 points" in ev.reason
     assert decide(ev).decision == "inconclusive"
+
+
+def test_distances_and_positions_under_a_calibration_error_all_features_share(plate):
+    """A calibration's error (a turn and shift of the rig frame and a 1e-4 scale, shared by every
+    feature): distances and positions state what reaches them, neither the shared error whole (which
+    the pose and the difference take up) nor nothing (the scale remains)."""
+    from tests.cad.test_registration import _with_shared_error
+
+    inv, T, ids = plate
+    chars = [
+        C("cc", "distance", ["circle-2", "circle-4"], feature_distance(inv["circle-2"], inv["circle-4"]), 0, 100),
+        C("cl", "distance", ["circle-2", "line-5"], feature_distance(inv["circle-2"], inv["line-5"]), 0, 100),
+        C("p4", "position", ["circle-4"], 0.0, None, 1.0),
+        C("p6", "position", ["circle-6"], 0.0, None, 1.0),
+    ]
+    truths = [c.nominal for c in chars]
+    rng = np.random.default_rng(5)
+    z = []
+    for draw in range(40):
+        m = measure_features(inv, T, ids, rng, n_points=0)
+        circles, lines = _with_shared_error(m, rng.standard_normal(7), (5e-4, 0.2, 1e-4))
+        reg = register(circles, lines, inv)
+        ev = evaluate(chars, reg, inv, seed=draw, n_mc=1000)
+        z.append([(e.measured - t) / e.standard_uncertainty for e, t in zip(ev[:2], truths[:2])])
+        # a position's true value is 0: its measured value is a distance, judged by its own u
+        z[-1] += [e.measured / e.standard_uncertainty for e in ev[2:]]
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    assert np.all((rms[:2] > 0.7) & (rms[:2] < 1.35)), rms
+    # A position's value over its u: 1.05-1.11 with image noise alone on these draws (the value is a
+    # length, never negative); the shared error must leave it there, not at a tenth of it.
+    assert np.all((rms[2:] > 0.8) & (rms[2:] < 1.45)), rms
