@@ -46,18 +46,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def stated_calibration(calib, kind, d):
-    """The calibration as stated after the rig drifted by ``d`` px of ``kind``."""
-    import cv2
+    """The calibration as stated after the rig drifted by ``d`` px of ``kind`` (its uncertainty kept).
 
-    if kind == "shift":
-        K2 = np.array(calib.K2, float)
-        K2[1, 2] += d
-        return replace(calib, K2=K2)
-    if kind == "roll":
-        w = calib.image_size[0]
-        Q = cv2.Rodrigues(np.array([0.0, 0.0, d / (0.5 * w)]))[0]
-        return replace(calib, R=Q @ np.asarray(calib.R, float), T=Q @ np.asarray(calib.T, float).ravel())
-    raise ValueError(kind)
+    Moving the stated rig by ``d`` is the rig drifting by ``-d`` from it
+    (:func:`partinspect.simulate.calibration.drifted_rig`).
+    """
+    from partinspect.simulate.calibration import drifted_rig
+
+    moved = drifted_rig(calib, kind, d)
+    return replace(moved, std=calib.std, cov=calib.cov)
 
 
 def true_residual(true_calib, stated, truth):
@@ -101,9 +98,14 @@ def inspect(part, images, stated, work):
         return None, str(e)
 
 
+CHI2_3 = 8.0249
+"""The 95.45 % point of the chi-square distribution with 3 degrees of freedom."""
+
+
 def row(report, truth, true_res):
     """One table row's numbers from a report."""
     out = {"true_res": true_res}
+    truth_features = {f["id"]: f for f in truth["features"]}
     if report is None:
         return out
     feats = report["features"]
@@ -122,6 +124,14 @@ def row(report, truth, true_res):
         lo, up = c.get("lower_limit"), c.get("upper_limit")
         outside = (lo is not None and tv < lo) or (up is not None and tv > up)
         false_accepts += int(c["decision"] == "pass" and outside)
+    for f in feats:
+        m, t = f["measured"], truth_features.get(f["id"])
+        if m is None or f["kind"] == "line" or t is None or "center" not in m:
+            continue
+        e = np.asarray(m["center"], float) - np.asarray(t["rendered"]["center"], float)
+        d2 = float(e @ np.linalg.solve(np.asarray(m["covariance"], float), e))
+        cover["centre"].append(d2 <= CHI2_3)
+        z["centre"].append(np.sqrt(d2 / 3.0))
     out["cover"] = {t: (sum(v), len(v)) for t, v in cover.items()}
     out["z_rms"] = {t: float(np.sqrt(np.mean(np.square(v)))) for t, v in z.items()}
     out["false_accepts"] = false_accepts
@@ -133,7 +143,9 @@ def main():
     ap.add_argument("--parts", default="plate,bracket")
     ap.add_argument("--kinds", default="shift,roll")
     ap.add_argument("--levels", default="0,0.25,0.5,1,2")
+    ap.add_argument("--draws", type=int, default=3, help="calibrations drawn as a board session states them")
     args = ap.parse_args()
+    from partinspect.simulate.calibration import simulated_calibration
     from partinspect.vision.calibration import read_calibration
 
     levels = [float(v) for v in args.levels.split(",")]
@@ -143,33 +155,38 @@ def main():
             ex = ROOT / "examples" / part
             truth = json.loads((ex / "truth.json").read_text())
             calib = read_calibration(ex / "images")
+            stated0 = [("exact", calib)] + [
+                (f"draw {k}", simulated_calibration(calib, np.random.default_rng(k))) for k in range(args.draws)]
             for kind in args.kinds.split(","):
                 print(f"\n== {part}, drift {kind}")
-                print(f"{'drift px':>8} {'true res':>9} {'estimate':>9} {'u':>7} {'verdict':>12} {'features':>8} "
-                      f"{'circles':>7} {'false acc':>9} {'s':>5}  coverage / z RMS per type")
+                print(f"{'drift px':>8} {'calibration':>11} {'true res':>9} {'estimate':>9} {'u':>7} {'verdict':>12} "
+                      f"{'features':>8} {'circles':>7} {'false acc':>9} {'s':>5}  coverage / z RMS per type")
                 for d in levels:
-                    stated = stated_calibration(calib, kind, d)
-                    t0 = time.perf_counter()
-                    report, message = inspect(ex / "part.step", ex / "images", stated, Path(tmp) / f"{part}-{kind}-{d}")
-                    r = row(report, truth, true_residual(calib, stated, truth))
-                    dt = time.perf_counter() - t0
-                    if report is None:
-                        print(f"{d:8.2f} {r['true_res']:9.3f}   run stopped: {message}")
-                        continue
-                    types = ", ".join(f"{t} {a}/{n} ({r['z_rms'][t]:.2f})" for t, (a, n) in sorted(r["cover"].items()))
-                    est = "-" if r["est"] is None else f"{r['est']:9.3f}"
-                    u = "-" if r["u"] is None else f"{r['u']:7.3f}"
-                    print(f"{d:8.2f} {r['true_res']:9.3f} {est:>9} {u:>7} {r['verdict'] or '-':>12} "
-                          f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types}")
-                    for t, (a, n) in r["cover"].items():
-                        pooled[(kind, d > 0)][t].append((a, n))
-    print("\n== pooled over parts (drifted levels only)")
-    for (kind, drifted), types in sorted(pooled.items()):
-        if not drifted:
-            continue
-        parts = ", ".join(f"{t} {100 * sum(a for a, _ in v) / max(1, sum(n for _, n in v)):.1f} % of "
-                          f"{sum(n for _, n in v)}" for t, v in sorted(types.items()))
-        print(f"{kind}: {parts}")
+                    for name, base in stated0:
+                        stated = stated_calibration(base, kind, d)
+                        t0 = time.perf_counter()
+                        report, message = inspect(ex / "part.step", ex / "images", stated,
+                                                  Path(tmp) / f"{part}-{kind}-{d}-{name}")
+                        r = row(report, truth, true_residual(calib, stated, truth))
+                        dt = time.perf_counter() - t0
+                        if report is None:
+                            print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f}   run stopped: {message}")
+                            continue
+                        types = ", ".join(f"{t} {a}/{n} ({r['z_rms'][t]:.2f})" for t, (a, n) in sorted(r["cover"].items()))
+                        est = "-" if r["est"] is None else f"{r['est']:9.3f}"
+                        u = "-" if r["u"] is None else f"{r['u']:7.3f}"
+                        print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f} {est:>9} {u:>7} {r['verdict'] or '-':>12} "
+                              f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types}",
+                              flush=True)
+                        if name != "exact":
+                            for t, (a, n) in r["cover"].items():
+                                pooled[(kind, d)][t].append((a, n, r["z_rms"][t] ** 2 * n))
+    print("\n== pooled over parts and drawn calibrations: within +-U (z RMS)")
+    for (kind, d), types in sorted(pooled.items()):
+        parts = ", ".join(f"{t} {100 * sum(a for a, _, _ in v) / max(1, sum(n for _, n, _ in v)):.1f} % of "
+                          f"{sum(n for _, n, _ in v)} ({np.sqrt(sum(s for _, _, s in v) / max(1, sum(n for _, n, _ in v))):.2f})"
+                          for t, v in sorted(types.items()))
+        print(f"{kind} {d:.2f} px: {parts}")
 
 
 if __name__ == "__main__":

@@ -120,10 +120,27 @@ def _render_parser():
     p.add_argument("--calib-error", metavar="SEED", type=int, default=None,
                    help="write calibration.yaml as a board calibration of the rig states it (seeded), not the exact rig; "
                    "truth.json keeps the true rig")
+    p.add_argument("--drift", metavar="KIND=PX", default=None,
+                   help="render with the right camera drifted after calibration: shift=PX (its principal point moved "
+                   "down) or roll=PX (turned about its axis, PX at the image's side edges); calibration.yaml states "
+                   "the rig before")
     p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
+
+
+def _parse_drift(text):
+    if text is None:
+        return None
+    kind, _, px = text.partition("=")
+    try:
+        value = float(px)
+        if kind not in ("shift", "roll") or not abs(value) <= 50:
+            raise ValueError
+    except ValueError:
+        raise InputError(None, f"--drift: expected shift=PX or roll=PX with |PX| <= 50, got {text!r}") from None
+    return kind, value
 
 
 def _calibrate_parser():
@@ -354,6 +371,7 @@ def _run_render(args):
     if args.noise < 0:
         raise InputError(None, f"--noise must be >= 0 grey levels, got {args.noise}")
     size = _parse_size(args.size)
+    drift = _parse_drift(args.drift)
     from partinspect.simulate.folder import render_to_folder
 
     progress = _progress(args.quiet)
@@ -367,6 +385,7 @@ def _run_render(args):
         distortion=args.distortion,
         image_size=size,
         calib_error=args.calib_error,
+        drift=drift,
         progress=progress,
     )
     if not args.quiet:

@@ -40,7 +40,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from functools import partial
 from types import SimpleNamespace
 
 import numpy as np
@@ -640,7 +639,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     from partinspect.vision.calibration_uncertainty import calibration_responses
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
-    from partinspect.vision.stereo import corrected_correspondences, feature_views, fit_feature, make_feature3d
+    from partinspect.vision.stereo import corrected_correspondences, feature_views, fit_feature, make_feature3d, views_of
 
     geo = geo if geo is not None else epipolar_geometry(calib)
     fid, kind = feature.id, feature.kind
@@ -683,7 +682,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         corr = corrected_correspondences(fl, fr, fviews, corr, geo, model.sigma)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return FeaturePrediction(status="failed", reason=f"{fid}: 3D fit failed ({exc})", **base)
-    cal = calibration_responses(fit, kind2, partial(feature_views, fl, fr, model.sigma), calib)
+    cal = calibration_responses(fit, kind2, views_of(fl, fr, model.sigma), calib)
     if not model.systematic and fit.param_cov_systematic is not None:
         # The chain weights a rim's points by their Type B part too (the
         # points beside a steep shading count less), which widens its

@@ -21,12 +21,15 @@ References
        IEEE Trans. PAMI 22(11), 1330-1334.
 """
 
+from dataclasses import replace
+
 import numpy as np
 
 from partinspect.vision.calibration import StereoCalibration, project_points, validate_calibration
 from partinspect.vision.stereo_calibration import Board, calibrate_camera, calibrate_pair, parameter_covariance
 
-__all__ = ["CORNER_NOISE", "N_VIEWS", "calibration_board", "board_views", "simulated_calibration"]
+__all__ = ["CORNER_NOISE", "N_VIEWS", "DRIFTS", "calibration_board", "board_views", "simulated_calibration",
+           "drifted_rig"]
 
 CORNER_NOISE = 0.1
 """px: standard deviation of a detected chessboard corner (``cornerSubPix``
@@ -125,3 +128,41 @@ def simulated_calibration(rig, rng, *, n_views=N_VIEWS, corner_noise=CORNER_NOIS
     cov = parameter_covariance(objs, cam1, cam2, pair)
     return validate_calibration(
         StereoCalibration(size, cam1["K"], cam1["D"], cam2["K"], cam2["D"], pair["R"], pair["T"], cov=cov))
+
+
+DRIFTS = ("shift", "roll")
+"""How :func:`drifted_rig` can move the right camera after calibration."""
+
+
+def drifted_rig(rig, kind, px):
+    """The rig after its right camera moved, as a calibrated rig drifts on a shop floor.
+
+    Parameters
+    ----------
+    rig : StereoCalibration
+        As calibrated (its image size set).
+    kind : {"shift", "roll"}
+        "shift": the right camera's principal point moves down by ``px``
+        (a refocused lens, a sensor that settled), which moves every
+        epipolar line across itself by about ``px``; "roll": the right
+        camera turns about its optical axis so that points at the image's
+        side edges move by ``px`` across the epipolar lines (a bumped
+        camera), a drift that grows across the image.
+    px : float
+        Pixels, signed.
+
+    Returns
+    -------
+    StereoCalibration
+        The moved rig, without stated uncertainties (it is a true rig).
+    """
+    import cv2
+
+    if kind == "shift":
+        K2 = np.array(rig.K2, float)
+        K2[1, 2] += px
+        return replace(rig, K2=K2, std={}, cov=None)
+    if kind == "roll":
+        Q = cv2.Rodrigues(np.array([0.0, 0.0, px / (0.5 * rig.image_size[0])]))[0]
+        return replace(rig, R=Q @ np.asarray(rig.R, float), T=Q @ np.asarray(rig.T, float).ravel(), std={}, cov=None)
+    raise ValueError(f"unknown drift {kind!r}: expected one of {', '.join(DRIFTS)}")

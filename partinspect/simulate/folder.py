@@ -61,6 +61,7 @@ def render_to_folder(
     distortion=False,
     image_size=(2448, 2048),
     calib_error=None,
+    drift=None,
     progress=None,
 ):
     """Render a stereo pair of a STEP part and write it with its ground truth.
@@ -95,6 +96,11 @@ def render_to_folder(
         made by the true rig, but ``calibration.yaml`` is what a board
         session calibrates it to (:func:`partinspect.simulate.calibration.simulated_calibration`),
         with its stated uncertainties; truth.json keeps the true rig.
+    drift : (str, float) or None
+        ``(kind, px)``: the images are made by the rig after its right
+        camera drifted (:func:`partinspect.simulate.calibration.drifted_rig`),
+        while ``calibration.yaml`` states the rig before (exact, or as
+        ``calib_error`` calibrates it); truth.json records both.
     progress : callable or None
         ``progress(message)`` at each stage.
 
@@ -120,8 +126,13 @@ def render_to_folder(
         raise ValueError(f"noise must be >= 0 grey levels, got {noise}")
     step_path = Path(step_path)
     inv, devs, shape, bounds = _load_part(step_path, deviations, say)
-    rig = default_rig(image_size, distortion=distortion)
-    part_to_camera = _resolve_pose(pose, bounds, rig)
+    calibrated = default_rig(image_size, distortion=distortion)
+    rig = calibrated
+    if drift is not None:
+        from partinspect.simulate.calibration import drifted_rig
+
+        rig = drifted_rig(calibrated, *drift)
+    part_to_camera = _resolve_pose(pose, bounds, calibrated)
 
     say("tessellating")
     from partinspect.cad.mesh import tessellate
@@ -134,10 +145,16 @@ def render_to_folder(
 
     say("computing the ground truth")
     settings = _settings(step_path, rig, noise, seed, distortion, stats, len(mesh.faces))
-    stated = rig
+    stated = calibrated
     if calib_error is not None:
         say("calibrating the rig as a board session would")
-        stated, settings["calibration_error"] = _stated_calibration(rig, calib_error)
+        stated, settings["calibration_error"] = _stated_calibration(calibrated, calib_error)
+    if drift is not None:
+        settings["drift"] = {
+            "kind": drift[0], "px": float(drift[1]),
+            "method": "the images are made by the rig after its right camera drifted; calibration.yaml states it before",
+            "rig_after_drift": {name: np.asarray(getattr(rig, name), float).tolist() for name in ("K1", "K2", "R", "T")},
+        }
     truth = make_truth(inv, devs, rs, rig, part_to_camera, settings)
 
     say(f"writing {out_dir}")

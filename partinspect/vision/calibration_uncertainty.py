@@ -218,7 +218,9 @@ def calibration_responses(fit, kind, views, calib):
     minimal parameters respond, to first order, by one Gauss-Newton step
     from the solution: ``d theta = -(J^T J)^-1 J^T d r`` with ``d r`` the
     change of the weighted residuals when the calibration moves by d_j;
-    central differences at +-d_j give the response ``g_j`` directly, and
+    central differences at +-d_j give the response ``g_j`` directly (a
+    radius responds to some directions at second order only, which a
+    one-sided difference would read as first), and
     ``sum_j g_j g_j^T = G C G^T`` is the law of propagation (JCGM 100,
     5.2.2).
     """

@@ -29,7 +29,7 @@ import numpy as np
 from partinspect.vision.fit3d import fit_circle_3d, fit_line_3d
 from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
 from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
-from partinspect.vision.stereo import correction_corr_length, coupled_noise, feature_views
+from partinspect.vision.stereo import correction_corr_length, correction_std_of, coupled_noise, feature_views
 
 __all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors", "with_monte_carlo_covariances"]
 
@@ -162,6 +162,7 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
                 corrections.append(offset[None] + (own + zc * rest)[:, :, None] * normal[None])
             else:
                 corrections.append(None)
+        stds = (correction_std_of(fl, corr_length), correction_std_of(fr, corr_length))
         samples = []
         for t in range(draws):
             cal = calib
@@ -169,7 +170,8 @@ def monte_carlo(result, calib, features=None, *, draws=200, seed=0, image_noise=
                 cal = perturbed_calibration(calib, _calibration_draw(directions, rng))
             fl_t, fr_t = (f if c is None else replace(f, background_offset=c[t])
                           for f, c in ((fl, corrections[0]), (fr, corrections[1])))
-            views = feature_views(fl_t, fr_t, corr_length, cal, uv=(fl.uv + noises[0][t], fr.uv + noises[1][t]))
+            views = feature_views(fl_t, fr_t, corr_length, cal, uv=(fl.uv + noises[0][t], fr.uv + noises[1][t]),
+                                  correction_std=stds)
             try:
                 if kind == "line":
                     fit = fit_line_3d(views, f3.point, f3.direction)

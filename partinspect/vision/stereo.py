@@ -48,7 +48,6 @@ References
 """
 
 from dataclasses import dataclass, fields, replace
-from functools import partial
 
 import cv2
 import numpy as np
@@ -69,7 +68,7 @@ from partinspect.vision.matching import arc_circle, epipolar_geometry, match_fea
 from partinspect.vision.noise import estimate_noise
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
+           "feature_views", "views_of", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
            "as_fitted",
            "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
@@ -468,7 +467,7 @@ def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options
 # ------------------------------------------------------------------ 3D fits
 
 
-def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
+def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_std=None):
     """fit3d Views of a matched pair: ideal points, their
     across-edge standard uncertainties, the cameras of ``calib``.
 
@@ -489,11 +488,16 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
     ``EDGE_BIAS_FACTOR * background_bound`` of what remains, correlated
     along the edge over ``EDGE_BIAS_CORR_ANGLE`` times the ellipse's
     semi-major axis. Lines are used as found.
+
+    ``correction_std``: the two features' :func:`correction_std`, if
+    already computed (they depend on neither the calibration nor ``uv``).
     """
     P1, P2 = camera_matrices(calib)
+    if correction_std is None:
+        correction_std = (correction_std_of(fl, corr_length), correction_std_of(fr, corr_length))
     views = []
-    for f, P, K, D, pts in ((fl, P1, calib.K1, calib.D1, None if uv is None else uv[0]),
-                            (fr, P2, calib.K2, calib.D2, None if uv is None else uv[1])):
+    for f, P, K, D, pts, sigma_c in ((fl, P1, calib.K1, calib.D1, None if uv is None else uv[0], correction_std[0]),
+                                     (fr, P2, calib.K2, calib.D2, None if uv is None else uv[1], correction_std[1])):
         arc = f.kind == "arc"
         offset = getattr(f, "background_offset", None) if arc else None
         sigma, bias, bias_length = f.ideal.normal_std, None, None
@@ -508,16 +512,39 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False):
             xy = to_ideal(pts, K, D)
         if arc:
             xy = deblurred(xy, f.fit, f.blur)
-        sigma_c = None
         if offset is not None:
-            # The correction and the point share noise (coupled_noise): that
-            # share goes with the correction's smooth noise, the rest of
-            # which is its own.
-            smooth, rest, _ = coupled_noise(f.uv, sigma, f.background_std, corr_length)
-            sigma_c = np.hypot(BACKGROUND_CORRECTION * rest, smooth)
             bias = np.hypot(EDGE_BIAS_FACTOR * f.background_bound, EDGE_BIAS_FLOOR)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))
+    return views
+
+
+def correction_std_of(f, corr_length):
+    """Standard deviation of the noise of an arc's corrected points, px (None where no correction is made).
+
+    The correction and the point share noise (:func:`coupled_noise`): that
+    share goes with the correction's smooth noise, the rest of which is
+    its own.
+    """
+    if f.kind != "arc" or getattr(f, "background_offset", None) is None:
+        return None
+    smooth, rest, _ = coupled_noise(f.uv, f.ideal.normal_std, f.background_std, corr_length)
+    return np.hypot(BACKGROUND_CORRECTION * rest, smooth)
+
+
+def views_of(fl, fr, corr_length):
+    """:func:`feature_views` of a pair as a function of the calibration, ``views(calib, remap=False)``.
+
+    What depends on neither the calibration nor the points (the
+    correction's noise) is computed once, for
+    :func:`partinspect.vision.calibration_uncertainty.calibration_responses`,
+    which asks for the views under many calibrations.
+    """
+    stds = (correction_std_of(fl, corr_length), correction_std_of(fr, corr_length))
+
+    def views(calib, remap=False):
+        return feature_views(fl, fr, corr_length, calib, remap=remap, correction_std=stds)
+
     return views
 
 
@@ -868,5 +895,5 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
-    G = calibration_responses(fit, fl.kind, partial(feature_views, fl, fr, corr_length), calib)
+    G = calibration_responses(fit, fl.kind, views_of(fl, fr, corr_length), calib)
     return make_feature3d(match, fl, fr, fit, corr, G, geo, views[0]), None

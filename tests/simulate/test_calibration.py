@@ -80,3 +80,23 @@ def test_render_writes_the_calibrated_rig_and_keeps_the_true_one(tmp_path, repo)
     true_K1 = np.array(note["true_rig"]["K1"])
     assert note["seed"] == 4 and stated.std["intrinsics1"][0] > 0 and stated.cov.shape == (24, 24)
     assert abs(stated.K1[0, 0] - true_K1[0, 0]) > 1e-3 and abs(stated.K1[0, 0] - true_K1[0, 0]) < 6 * stated.std["intrinsics1"][0]
+
+
+def test_a_drifted_rig_is_rendered_and_the_run_finds_the_drift(tmp_path, repo):
+    from partinspect.pipeline import run_inspection
+
+    out = tmp_path / "render"
+    assert main(["render", str(repo / "examples" / "plate" / "part.step"), str(out), "--size", "612x512",
+                 "--drift", "shift=1.5", "-q"]) == 0
+    stated = read_calibration(out / "images")
+    note = json.loads((out / "truth.json").read_text())["drift"]
+    assert note["kind"] == "shift" and note["px"] == 1.5
+    assert np.array(note["rig_after_drift"]["K2"])[1, 2] == stated.K2[1, 2] + 1.5
+    check = run_inspection(repo / "examples" / "plate" / "part.step", out / "images", tmp_path / "out").report[
+        "calibration_check"]
+    assert check["verdict"] == "drifted" and abs(abs(check["epipolar_residual_px"]) - 1.5) < 0.2, check
+
+
+def test_a_bad_drift_is_one_clear_error(tmp_path, repo, capsys):
+    code = main(["render", str(repo / "examples" / "plate" / "part.step"), str(tmp_path / "r"), "--drift", "tilt=1"])
+    assert code == 2 and "--drift: expected shift=PX or roll=PX" in capsys.readouterr().err
