@@ -1,8 +1,10 @@
 """A drifted rig: the sample parts inspected with a stated calibration that no longer fits the images.
 
 The bundled pairs (``examples/*/images``, rendered with the exact rig of
-their ``calibration.yaml``) are inspected with that calibration moved as a
-rig drifts after calibrating:
+their ``calibration.yaml``), or a NIST part rendered once the way
+``bench_stress.py`` renders it (framed on one of its holes, noise 2,
+``NIST_VIEW``), are inspected with that calibration moved as a rig drifts
+after calibrating:
 
 - ``shift``: the right camera's principal point moved down by ``d`` px,
   which moves every epipolar line across itself by about ``d`` px (the
@@ -39,8 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
-# Beside this file: the stress run's rule for a render's true values.
-from bench_stress import true_value
+# Beside this file: the stress run's rule for a render's true values, and its renders of NIST parts.
+from bench_stress import PARTS, render_one, true_value
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -79,7 +81,24 @@ def true_residual(true_calib, stated, truth):
     return float(np.median(np.concatenate(out)))
 
 
-def inspect(part, images, stated, work):
+NIST_VIEW = {"elevation": 45.0, "azimuth": 30.0, "roll": 10.0, "offset": [0.0, 0.0, 0.0], "noise": 2.0,
+             "distortion": False, "seed": 1, "deviate": 0.0, "pick": 0.0}
+"""How a NIST part is rendered (bench_stress's settings for one render)."""
+
+
+def part_inputs(part, tmp):
+    """(STEP file, images folder, truth, tolerances file or None) of a bundled example or a NIST part."""
+    if part in ("plate", "bracket"):
+        ex = ROOT / "examples" / part
+        return ex / "part.step", ex / "images", json.loads((ex / "truth.json").read_text()), None
+    step, framing = PARTS[part]
+    folder = Path(tmp) / f"render-{part}"
+    run = render_one({"index": 0, "part": part, "step": str(step), "framing": framing, **NIST_VIEW}, folder,
+                     (2448, 2048))
+    return step, folder / "images", json.loads((folder / "truth.json").read_text()), run["tolerances"]
+
+
+def inspect(part, images, stated, work, tolerances=None):
     """run_inspection on a copy of the pair with the stated calibration; (report or None, message)."""
     from partinspect.errors import InputError
     from partinspect.pipeline import run_inspection
@@ -93,7 +112,7 @@ def inspect(part, images, stated, work):
         shutil.copy(images / name, folder / name)
     write_calibration(folder / "calibration.yaml", stated)
     try:
-        return run_inspection(part, folder, work / "out").report, ""
+        return run_inspection(part, folder, work / "out", tolerances=tolerances).report, ""
     except InputError as e:
         return None, str(e)
 
@@ -140,7 +159,8 @@ def row(report, truth, true_res):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--parts", default="plate,bracket")
+    ap.add_argument("--parts", default="plate,bracket",
+                    help="plate, bracket, or a NIST part of bench_stress.py (ctc_01, ctc_03, ftc_09, ftc_11)")
     ap.add_argument("--kinds", default="shift,roll")
     ap.add_argument("--levels", default="0,0.25,0.5,1,2")
     ap.add_argument("--draws", type=int, default=3, help="calibrations drawn as a board session states them")
@@ -152,9 +172,8 @@ def main():
     pooled = defaultdict(lambda: defaultdict(list))
     with tempfile.TemporaryDirectory() as tmp:
         for part in args.parts.split(","):
-            ex = ROOT / "examples" / part
-            truth = json.loads((ex / "truth.json").read_text())
-            calib = read_calibration(ex / "images")
+            step, images, truth, tolerances = part_inputs(part, tmp)
+            calib = read_calibration(images)
             stated0 = [("exact", calib)] + [
                 (f"draw {k}", simulated_calibration(calib, np.random.default_rng(k))) for k in range(args.draws)]
             for kind in args.kinds.split(","):
@@ -165,8 +184,8 @@ def main():
                     for name, base in stated0:
                         stated = stated_calibration(base, kind, d)
                         t0 = time.perf_counter()
-                        report, message = inspect(ex / "part.step", ex / "images", stated,
-                                                  Path(tmp) / f"{part}-{kind}-{d}-{name}")
+                        report, message = inspect(step, images, stated, Path(tmp) / f"{part}-{kind}-{d}-{name}",
+                                                  tolerances)
                         r = row(report, truth, true_residual(calib, stated, truth))
                         dt = time.perf_counter() - t0
                         if report is None:
