@@ -161,6 +161,7 @@ def test_calibration_yaml_round_trips(ours, tmp_path):
     for key in back.std:
         np.testing.assert_allclose(back.std[key], c.std[key], rtol=1e-12)
     assert len(back.std["intrinsics1"]) == 4 + len(back.D1) and np.all(back.std["extrinsics"] > 0)
+    np.testing.assert_allclose(back.cov, c.cov, rtol=1e-12)
 
 
 def test_report_is_self_contained(ours):
@@ -278,6 +279,16 @@ def test_true_parameters_within_reported_uncertainty(synthetic):
     rms = np.sqrt(np.mean(z**2))
     assert within >= 0.90, f"only {within:.0%} of true parameters within 2 u; normalised errors {np.round(z, 1)}"
     assert 0.6 <= rms <= 1.5, f"RMS of error / u is {rms:.2f}"
+
+
+def test_the_stated_covariance_describes_the_errors_together(synthetic):
+    """The parameters' joint covariance: the errors' squared Mahalanobis distance is chi-square with 24 dof."""
+    m2 = []
+    for r in synthetic.values():
+        e = _normalised_errors(r) * np.sqrt(np.diag(r.calibration.cov))
+        m2.append(e @ np.linalg.solve(r.calibration.cov, e))
+    # Mean of chi-square(24) over the seeds: within its 99.9 % range for that many draws.
+    assert 24 - 3.3 * np.sqrt(48 / len(m2)) < np.mean(m2) < 24 + 3.3 * np.sqrt(48 / len(m2)), m2
 
 
 def test_translation_comes_out_in_mm(synthetic):
