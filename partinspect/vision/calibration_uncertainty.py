@@ -46,6 +46,7 @@ __all__ = [
     "perturbed_calibration",
     "with_extrinsic_covariance",
     "calibration_responses",
+    "residual_changes",
     "calibration_covariance",
     "budget_entry",
 ]
@@ -224,13 +225,36 @@ def calibration_responses(fit, kind, views, calib):
     ``sum_j g_j g_j^T = G C G^T`` is the law of propagation (JCGM 100,
     5.2.2).
     """
+    changes = residual_changes(fit, kind, views, calib)
+    if changes is None:
+        return np.zeros((6 if kind == "line" else 7, 0))
+    _, J, D, M = changes
+    return M @ (-np.linalg.pinv(J) @ D)
+
+
+def residual_changes(fit, kind, views, calib):
+    """How a fit's weighted residuals move with the calibration, at its solution.
+
+    Parameters as :func:`calibration_responses`.
+
+    Returns
+    -------
+    (r0, J, D, M) or None
+        ``r0`` (N,) the weighted residuals at the solution; ``J`` (N, p)
+        their Jacobian in the fit's minimal parameters; ``D`` (N, q) their
+        change along each of the q :func:`uncertainty_directions` (central
+        differences, the points mapped again: a radius responds to some
+        directions only at second order, which a one-sided difference would
+        read as first); ``M`` as
+        :func:`partinspect.vision.fit3d.minimal_residuals`. None when the
+        calibration states no uncertainty.
+    """
     directions = uncertainty_directions(calib)
     if not directions:
-        return np.zeros((6 if kind == "line" else 7, 0))
+        return None
     res0, theta0, M = minimal_residuals(fit, kind, views(calib))
     h = 1e-6 * np.maximum(1.0, np.abs(theta0))
     J = np.stack([(res0(theta0 + e) - res0(theta0 - e)) / (2 * s) for e, s in zip(np.diag(h), h)], 1)
-    pinv = np.linalg.pinv(J)
     cols = []
     for d in directions:
         r = []
@@ -238,8 +262,8 @@ def calibration_responses(fit, kind, views, calib):
             cal = perturbed_calibration(calib, {lab: sign * v for lab, v in d.items()})
             res, _, _ = minimal_residuals(fit, kind, views(cal, remap=True))
             r.append(res(theta0))
-        cols.append(-pinv @ (0.5 * (r[0] - r[1])))
-    return M @ np.stack(cols, 1)
+        cols.append(0.5 * (r[0] - r[1]))
+    return res0(theta0), J, np.stack(cols, 1), M
 
 
 def calibration_covariance(fit, kind, views, calib):

@@ -164,7 +164,9 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
     residuals, variances : ndarray, shape (n,)
         Right minus left band offset of each tangency, px, and its variance,
         px^2: the two fits' and, for each image, the rims' Type B edge
-        displacement (:data:`partinspect.vision.stereo.EDGE_BIAS_FLOOR`).
+        displacement (:data:`partinspect.vision.stereo.EDGE_BIAS_FLOOR`), and
+        the rim's own disagreement between its two tangencies
+        (:func:`_with_rim_disagreement`).
     select : list of (int, int)
         Which tangencies they are.
     """
@@ -196,7 +198,27 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
                 res.append(orr[k] - ol[k])
                 var.append(v)
                 used.append((i, k))
-    return np.array(res), np.array(var), used
+    return np.array(res), _with_rim_disagreement(np.array(var), np.array(res), used), used
+
+
+def _with_rim_disagreement(var, res, used):
+    """Variances with each rim's own Type B: what its two tangencies disagree by beyond their noise.
+
+    A drift moves a rim's two tangencies alike (a shift exactly, a roll all
+    but alike: they lie at about one distance from the principal point), so
+    their difference shows the rim's own error, which the fits do not carry
+    (a shading the background correction missed, a rim partly hidden). With
+    an independent systematic ``b`` of variance ``s^2`` on each,
+    ``E[(r_0 - r_1)^2] = v_0 + v_1 + 2 s^2``: ``s^2`` is estimated from that
+    one difference, zero where it is within the noise, and added to both.
+    """
+    at = {key: n for n, key in enumerate(used)}
+    out = var.copy()
+    for (i, k), n in at.items():
+        m = at.get((i, 1 - k))
+        if m is not None:
+            out[n] += max(0.0, 0.5 * ((res[n] - res[m]) ** 2 - var[n] - var[m]))
+    return out
 
 
 @dataclass(frozen=True)

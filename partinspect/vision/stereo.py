@@ -60,7 +60,7 @@ from partinspect.vision.edges import (BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FA
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.frames import orthonormal_frame, plane_basis
-from partinspect.vision.calibration_uncertainty import calibration_responses, uncertainty_directions
+from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
 from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d, minimal_residuals
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import MAX_OUTLIER_FRACTION, ImageFeature, chauvenet_z, image_features
@@ -889,6 +889,10 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
         fit = fit_feature(fl, fr, views, corr.points, geo)
         if fl.kind == "arc":
             delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
+            if p < MISMATCH_P and uncertainty_directions(calib):
+                # One circle seen through a calibration its stated uncertainty allows?
+                r0, J, D, _ = residual_changes(fit, "arc", views_of(fl, fr, corr_length), calib)
+                delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params), (r0, J, D))
             if p < MISMATCH_P:
                 return None, (f"the two images' arcs are not one circle: its fit's chi-square exceeds "
                               f"the two ellipses' by {delta:.0f} (p = {p:.1e})")

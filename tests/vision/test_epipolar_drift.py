@@ -72,3 +72,35 @@ def test_a_roll_of_the_right_camera_is_corrected_too(plate):
 def test_a_drift_beyond_correction_is_invalid(plate):
     calib, pairs = plate
     assert check_calibration(_shifted(calib, 4.0), pairs).verdict == "invalid"
+
+
+BRACKET = IMAGES.parents[1] / "bracket" / "images"
+
+
+def test_a_rims_disagreeing_tangents_do_not_hide_a_roll():
+    """The bracket's wall hole reads its two tangents 0.2 px apart at any drift: that is the rim's own
+    error, not the rig's, and must not swamp the roll the other rims show (0.5 px at the image's sides)."""
+    from partinspect.simulate.calibration import drifted_rig, simulated_calibration
+
+    calib = read_calibration(BRACKET)
+    stated = simulated_calibration(calib, np.random.default_rng(0))
+    rolled = replace(drifted_rig(stated, "roll", 0.5), std=stated.std, cov=stated.cov)
+    left, right, _ = read_pair(BRACKET, rolled)
+    pairs = matched_arcs(measure_stereo(left, right, rolled))
+    _, variances, used = tangency_residuals(epipolar_geometry(rolled), pairs)
+    assert len(used) >= 6 and variances.max() > 10 * np.median(variances)  # the odd rim carries its Type B
+    check = check_calibration(rolled, pairs)
+    assert check.corrected and abs(np.degrees(check.correction[2]) + np.degrees(0.5 / 1224)) < 0.01, check.correction
+
+
+def test_a_precise_circle_is_paired_through_the_calibrations_own_epipolar_error():
+    """Under a calibration as a board session states it (0.01-0.02 px of epipolar error), every circle the
+    exact rig pairs is paired: one circle through a calibration its covariance allows."""
+    from partinspect.simulate.calibration import simulated_calibration
+
+    calib = read_calibration(IMAGES)
+    left, right, _ = read_pair(IMAGES, calib)
+    exact = sum(f.kind != "line" for f in measure_stereo(left, right, calib).features)
+    stated = simulated_calibration(calib, np.random.default_rng(0))
+    drawn = sum(f.kind != "line" for f in measure_stereo(left, right, stated).features)
+    assert drawn == exact >= 7
