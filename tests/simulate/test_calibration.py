@@ -71,12 +71,17 @@ def test_its_stated_covariance_describes_its_errors_and_its_epipolar_geometry():
     assert max(ratio_independent) < 0.02, ratio_independent
 
 
-def test_render_writes_the_calibrated_rig_and_keeps_the_true_one(tmp_path, repo):
+def _render(tmp_path, repo, *options):
+    """The plate rendered at 612 x 512 with ``options``: (stated calibration, truth)."""
     out = tmp_path / "render"
     assert main(["render", str(repo / "examples" / "plate" / "part.step"), str(out), "--size", "612x512",
-                 "--calib-error", "4", "-q"]) == 0
-    stated = read_calibration(out / "images")
-    note = json.loads((out / "truth.json").read_text())["calibration_error"]
+                 *options, "-q"]) == 0
+    return read_calibration(out / "images"), json.loads((out / "truth.json").read_text())
+
+
+def test_render_writes_the_calibrated_rig_and_keeps_the_true_one(tmp_path, repo):
+    stated, truth = _render(tmp_path, repo, "--calib-error", "4")
+    note = truth["calibration_error"]
     true_K1 = np.array(note["true_rig"]["K1"])
     assert note["seed"] == 4 and stated.std["intrinsics1"][0] > 0 and stated.cov.shape == (24, 24)
     assert abs(stated.K1[0, 0] - true_K1[0, 0]) > 1e-3 and abs(stated.K1[0, 0] - true_K1[0, 0]) < 6 * stated.std["intrinsics1"][0]
@@ -85,14 +90,12 @@ def test_render_writes_the_calibrated_rig_and_keeps_the_true_one(tmp_path, repo)
 def test_a_drifted_rig_is_rendered_and_the_run_finds_the_drift(tmp_path, repo):
     from partinspect.pipeline import run_inspection
 
-    out = tmp_path / "render"
-    assert main(["render", str(repo / "examples" / "plate" / "part.step"), str(out), "--size", "612x512",
-                 "--drift", "shift=1.5", "-q"]) == 0
-    stated = read_calibration(out / "images")
-    note = json.loads((out / "truth.json").read_text())["drift"]
+    stated, truth = _render(tmp_path, repo, "--drift", "shift=1.5")
+    note = truth["drift"]
     assert note["kind"] == "shift" and note["px"] == 1.5
     assert np.array(note["rig_after_drift"]["K2"])[1, 2] == stated.K2[1, 2] + 1.5
-    check = run_inspection(repo / "examples" / "plate" / "part.step", out / "images", tmp_path / "out").report[
+    check = run_inspection(repo / "examples" / "plate" / "part.step", tmp_path / "render" / "images",
+                           tmp_path / "out").report[
         "calibration_check"]
     assert check["verdict"] == "drifted" and abs(abs(check["epipolar_residual_px"]) - 1.5) < 0.2, check
 
