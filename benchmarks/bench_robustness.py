@@ -1,0 +1,557 @@
+"""Robustness run: the command line on many generated parts and every NIST file, as a user would run it.
+
+Parts come from :mod:`partinspect.simulate.parts` (plates, stepped lugs,
+L-brackets, round flanges and blocks with holes of every kind, slots,
+pockets, bosses, steps, chamfers and fillets, drawn from a seed), plus the
+issue-46 lug (planned), the issue-46 flange (rendered and inspected) and
+the bundled plate (planned). Each command runs as a child process,
+``python3 -m partinspect ...``, with the bundled rig
+(``examples/plate/images/calibration.yaml``):
+
+- ``inspect features PART --json`` on every part;
+- ``inspect plan PART --rig RIG`` on the first ``--n-plan`` generated parts;
+- ``inspect render PART OUT --pose POSE --noise 2`` then ``inspect PART
+  OUT/images`` on the first ``--n-inspect``, each at a random pose that
+  ``inspect plan`` could reach, with the whole part in both images
+  (:func:`partinspect.simulate.parts.random_pose`);
+- ``inspect features`` and ``inspect plan`` on every STEP file in the
+  NIST folder (``/work/shared/data/step``, else ``tests/data/step``), the
+  plan with bench_stress's spec for them (ISO 2768-mK, and +-0.1 mm on the
+  radii below 0.5 mm, which ISO 2768 does not cover).
+
+What it prints, as tables that can be quoted:
+
+- internal errors: an exit code other than 0, 1, 2 or 3, or a traceback or
+  ``internal error`` on stderr; exit 2 with one clear line is a handled
+  outcome and is listed with its line;
+- non-finite numbers in any JSON output (the features' ``--json``,
+  ``plan.json``, ``best_pose.json``, ``truth.json``, ``report.json``), read
+  by a strict parser that takes ``NaN``/``Infinity`` as a finding, with
+  where they are;
+- characteristics with neither a decision nor a reason (``report.json``),
+  and planned characteristics neither decidable nor given a reason
+  (``plan.json``);
+- the slowest stage of each part (from the progress lines every command
+  prints with ``PARTINSPECT_PROGRESS=1``);
+- for the rendered parts, honesty per characteristic type: the true value
+  (from ``truth.json``, as :func:`bench_stress.true_value` gives it) within
+  measured +- U (claim 95.45 %), the RMS of error / u (1 when u is right),
+  and false accepts (a pass whose true value is outside the limits), and
+  the features not measured, by reason.
+
+Usage::
+
+    python3 benchmarks/bench_robustness.py                          # 100 plans, 30 inspections: hours
+    python3 benchmarks/bench_robustness.py --n-plan 5 --n-inspect 3 --dir /tmp/robust
+    python3 benchmarks/bench_robustness.py --dir /tmp/robust --summary   # tables from what is there
+
+``--dir`` keeps every part, output and result (one ``result.json`` per
+command run) and reuses them: an interrupted run continues where it
+stopped, and ``--summary`` prints the tables from the results already
+there without running anything. By default everything goes to a temporary
+folder that is removed. Options also read environment variables
+(``ROBUST_N_PLAN``, ``ROBUST_N_INSPECT``, ``ROBUST_SEED``, ``ROBUST_DIR``,
+``ROBUST_TIMEOUT``); ``--no-nist`` leaves the NIST files out.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+RIG = ROOT / "examples" / "plate" / "images" / "calibration.yaml"
+PLATE = ROOT / "examples" / "plate" / "part.step"
+NIST_DIRS = [Path("/work/shared/data/step"), ROOT / "tests" / "data" / "step"]
+COVERAGE_CLAIM = math.erf(2.0 / math.sqrt(2.0))  # k = 2, normal: 95.45 %
+NOISE = 2.0
+HANDLED = {0, 1, 2, 3}
+
+
+# ------------------------------------------------------------------- JSON
+
+
+class _NonFinite:
+    def __init__(self, text):
+        self.text = text
+
+
+def strict_json(text):
+    """Parse JSON as the standard defines it; return ``(data, paths)``, paths of every NaN/Infinity found.
+
+    Python's ``json`` accepts ``NaN``, ``Infinity`` and ``-Infinity``,
+    which are not JSON; they are read here as markers and their places
+    listed (``characteristics[3].measured``).
+    """
+    data = json.loads(text, parse_constant=_NonFinite)
+    found = []
+
+    def walk(x, path):
+        if isinstance(x, _NonFinite):
+            found.append(f"{path or '.'} = {x.text}")
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                walk(v, f"{path}.{k}" if path else str(k))
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                walk(v, f"{path}[{i}]")
+
+    walk(data, "")
+    return data, found
+
+
+# ------------------------------------------------------------------- jobs
+
+
+_STAGE = re.compile(r"^\[\s*([0-9.]+) s\] (.*)$")
+
+
+def stages(stderr, total):
+    """``[(message, seconds)]`` of a command's progress lines, each lasting until the next (the last until the end)."""
+    marks = [(float(m.group(1)), m.group(2)) for m in map(_STAGE.match, stderr.splitlines()) if m]
+    out = []
+    for k, (t, msg) in enumerate(marks):
+        end = marks[k + 1][0] if k + 1 < len(marks) else total
+        out.append((msg, max(0.0, end - t)))
+    return out
+
+
+def run_command(argv, folder, timeout, stdout_json=None):
+    """Run ``python3 -m partinspect ARGV`` once (or reuse ``folder/result.json``); a dict of what happened."""
+    folder = Path(folder)
+    done = folder / "result.json"
+    if done.is_file():
+        res = json.loads(done.read_text())
+        if res["argv"] == [str(a) for a in argv]:
+            return res
+    folder.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PARTINSPECT_PROGRESS": "1", "PYTHONPATH": str(ROOT)}
+    env.pop("PARTINSPECT_DEBUG", None)
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run([sys.executable, "-m", "partinspect", *map(str, argv)], capture_output=True, text=True,
+                           env=env, timeout=timeout, cwd=folder)
+        rc, out, err = p.returncode, p.stdout, p.stderr
+    except subprocess.TimeoutExpired as e:
+        rc, out, err = None, e.stdout or "", (e.stderr or "")
+        out, err = (out.decode() if isinstance(out, bytes) else out), (err.decode() if isinstance(err, bytes) else err)
+    seconds = time.perf_counter() - t0
+    lines = [ln for ln in err.splitlines() if not _STAGE.match(ln)]
+    internal = rc is not None and (rc not in HANDLED or "Traceback" in err or "internal error" in err)
+    res = {"argv": [str(a) for a in argv], "rc": rc, "seconds": seconds, "timeout": rc is None,
+           "internal": internal, "stderr": "\n".join(lines[-30:]), "stages": stages(err, seconds),
+           "nonfinite": [], "bad_json": []}
+    if stdout_json is not None and rc == 0:
+        (folder / stdout_json).write_text(out)
+    (folder / "result.json").write_text(json.dumps(res, indent=1))
+    return res
+
+
+def check_json(res, folder, names):
+    """Set a result's strict-JSON findings of the named output files in ``folder``."""
+    res["nonfinite"], res["bad_json"] = [], []
+    for name in names:
+        path = Path(folder) / name
+        if not path.is_file():
+            continue
+        try:
+            _, found = strict_json(path.read_text())
+        except ValueError as e:
+            res["bad_json"].append(f"{name}: {e}")
+            continue
+        res["nonfinite"] += [f"{name}: {f}" for f in found]
+    return res
+
+
+# ------------------------------------------------------------------ parts
+
+
+def make_parts(base, n, seed):
+    """Write the named and the ``n`` generated parts' STEP files (reusing them); ``[(name, kind, path)]``."""
+    from partinspect.simulate.parts import flange, lug, random_part, write_part
+
+    out = []
+    named = [("issue-lug", lug), ("issue-flange", flange)]
+    for name, make in named:
+        path = base / "parts" / name / "part.step"
+        if not path.is_file():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_part(make(), path)
+        out.append((name, name.split("-")[1], path))
+    for i in range(n):
+        s = seed * 100_000 + i
+        path = base / "parts" / f"gen-{i:03d}" / "part.step"
+        meta = path.parent / "part.json"
+        if not path.is_file():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            part = write_part(random_part(s), path)
+            meta.write_text(json.dumps({"seed": s, "kind": part.kind,
+                                        "features": [f.kind for f in part.features]}))
+        out.append((f"gen-{i:03d}", json.loads(meta.read_text())["kind"], path))
+    return out
+
+
+def write_pose(step, folder, seed):
+    """A random reachable pose of the part, in view, as a pose file ``inspect render --pose`` reads."""
+    from partinspect.cad.step import load_step
+    from partinspect.simulate.parts import random_pose
+    from partinspect.vision.calibration import read_calibration
+
+    path = Path(folder) / "pose.json"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        P, fp = random_pose(seed, load_step(step), read_calibration(RIG))
+        path.write_text(json.dumps({"part_to_camera": P.tolist(), "fixture": fp.label}))
+    return path
+
+
+def jobs(parts, n_plan, n_inspect, nist):
+    """The commands to run, in order: ``(part name, kind, command, step)``.
+
+    The named parts first; then the generated parts that are rendered, each
+    with all its commands, a NIST file's after every fifth of them; then
+    the NIST files left; then the generated parts only planned. A run
+    stopped early has a mix of all.
+    """
+    out = [("issue-lug", "lug", "features", None), ("issue-lug", "lug", "plan", None),
+           ("issue-flange", "flange", "features", None), ("issue-flange", "flange", "inspect", None),
+           ("plate", "plate", "plan", PLATE)]
+    gen = [p for p in parts if p[0].startswith("gen-")]
+    nist = list(nist)
+
+    def nist_jobs():
+        f = nist.pop(0)
+        return [(f.stem, "nist", "features", f), (f.stem, "nist", "plan", f)]
+
+    def gen_jobs(i, name, kind):
+        return ([(name, kind, "features", None)] + ([(name, kind, "plan", None)] if i < n_plan else [])
+                + ([(name, kind, "inspect", None)] if i < n_inspect else []))
+
+    for i, (name, kind, _) in enumerate(gen[:n_inspect]):
+        out += gen_jobs(i, name, kind)
+        if i % 5 == 4 and nist:
+            out += nist_jobs()
+    while nist:
+        out += nist_jobs()
+    for i, (name, kind, _) in enumerate(gen[n_inspect:], start=n_inspect):
+        out += gen_jobs(i, name, kind)
+    return out
+
+
+def run_job(base, job, steps, timeout, seed):
+    """Run one job's command(s); a list of result dicts, each with its part, kind and command."""
+    name, kind, command, step = job
+    step = step or steps[name]
+    folder = base / "runs" / name
+    results = []
+    if command == "features":
+        res = run_command(["features", step, "--json"], folder / "features", timeout, stdout_json="features.json")
+        results.append(check_json(res, folder / "features", ["features.json"]))
+    elif command == "plan":
+        spec = nist_spec(step, folder) if kind == "nist" else None
+        res = run_command(["plan", step, "--rig", RIG, "-o", folder / "plan"] + (["--tolerances", spec] if spec else []),
+                          folder / "plan-run", timeout)
+        results.append(check_json(res, folder / "plan", ["plan.json", "best_pose.json"]))
+        results[-1]["plan_findings"] = plan_findings(folder / "plan" / "plan.json")
+    elif command == "inspect":
+        pose = write_pose(step, folder, seed)
+        render = folder / "render"
+        res = run_command(["render", step, render, "--pose", pose, "--noise", NOISE, "--seed", seed],
+                          folder / "render-run", timeout)
+        results.append(check_json(res, render, ["truth.json"]))
+        if res["rc"] == 0:
+            res = run_command([step, render / "images", "-o", folder / "inspection"], folder / "inspect-run",
+                              timeout)
+            res = check_json(res, folder / "inspection", ["report.json"])
+            res["report"] = report_findings(folder / "inspection" / "report.json", render / "truth.json")
+            results.append(res)
+    for r, cmd in zip(results, [command] if command != "inspect" else ["render", "inspect"]):
+        r.update(part=name, kind=kind, command=cmd)
+    return results
+
+
+def nist_spec(step, folder):
+    """A NIST part's spec file, or None: ISO 2768-mK and +-0.1 mm on radii below 0.5 mm (bench_stress's).
+
+    ISO 2768-1 gives no general tolerance below 0.5 mm and ``inspect plan``
+    refuses to guess one, as a user of such a part would have to give it.
+    """
+    from bench_stress import _nist_spec
+
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+
+    path = Path(folder) / "tolerances.yaml"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _nist_spec(inventory(load_step(step)), path)
+    # Without such radii ISO 2768-mK alone is the spec: no --tolerances.
+    return None if "features: {}" in path.read_text() else path
+
+
+def plan_findings(path):
+    """Planned characteristics neither decidable nor given a reason, from plan.json."""
+    if not Path(path).is_file():
+        return None
+    try:
+        data, _ = strict_json(Path(path).read_text())
+    except ValueError:
+        return None
+    silent = []
+    for pose in ("start", "best"):
+        for c in (data.get(pose) or {}).get("characteristics", []):
+            if not c.get("decidable") and not (c.get("reason") or "").strip():
+                silent.append(f"{pose}: {c.get('id')}")
+    return {"silent": silent}
+
+
+def report_findings(path, truth_path):
+    """What report.json says, against the render's truth: characteristics, honesty rows, silent ones."""
+    from bench_stress import true_value
+
+    if not Path(path).is_file():
+        return None
+    try:
+        rep, _ = strict_json(Path(path).read_text())
+        truth = json.loads(Path(truth_path).read_text())
+    except ValueError:
+        return None
+    rows, silent = [], []
+    for c in rep.get("characteristics", []):
+        decision, reason = c.get("decision"), (c.get("reason") or "").strip()
+        if decision not in ("pass", "fail", "inconclusive") and not reason:
+            silent.append(f"{c.get('id')}: no decision and no reason")
+        elif decision == "inconclusive" and not reason:
+            silent.append(f"{c.get('id')}: inconclusive without a reason")
+        tv = true_value(c, truth)
+        row = {"id": c["id"], "type": c["type"], "decision": decision, "true": tv,
+               "lower": c.get("lower_limit"), "upper": c.get("upper_limit")}
+        if isinstance(c.get("measured"), (int, float)) and isinstance(c.get("standard_uncertainty"), (int, float)):
+            row.update(measured=c["measured"], u=c["standard_uncertainty"], U=c["expanded_uncertainty"])
+        rows.append(row)
+    unmeasured = {}
+    for f in rep.get("features", []):
+        if f.get("measured") is None:
+            reason = re.sub(r"^(not visible: )?(left|right) image: ", "", f.get("reason") or "no reason")
+            key = re.split(r"[:(;]", reason)[0].strip()[:70]
+            unmeasured[key] = unmeasured.get(key, 0) + 1
+    reg = rep.get("registration") or {}
+    return {"verdict": rep.get("verdict"), "characteristics": rows, "silent": silent, "unmeasured": unmeasured,
+            "symmetry": bool(reg.get("symmetry")), "features": len(rep.get("features", [])),
+            "measured": sum(f.get("measured") is not None for f in rep.get("features", []))}
+
+
+# ---------------------------------------------------------------- summary
+
+
+def _table(header, rows):
+    widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) if rows else len(str(h)) for i, h in enumerate(header)]
+    print("  ".join(str(h).ljust(w) for h, w in zip(header, widths)))
+    print("  ".join("-" * w for w in widths))
+    for r in rows:
+        print("  ".join(str(v).ljust(w) for v, w in zip(r, widths)))
+    print()
+
+
+def _one_line(text, n=150):
+    text = " ".join((text or "").split())
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def summarise(results):
+    """Print the tables; return the number of findings (internal errors, non-finite numbers, silent characteristics)."""
+    by_cmd = {}
+    for r in results:
+        by_cmd.setdefault((r["kind"] == "nist", r["command"]), []).append(r)
+    print(f"\n=== partinspect robustness run: {len({r['part'] for r in results})} parts, {len(results)} commands ===\n")
+    rows = []
+    for (nist, cmd), rs in sorted(by_cmd.items()):
+        rcs = {}
+        for r in rs:
+            key = "timeout" if r["timeout"] else str(r["rc"])
+            rcs[key] = rcs.get(key, 0) + 1
+        secs = [r["seconds"] for r in rs]
+        rows.append(["NIST" if nist else "generated", cmd, len(rs), ", ".join(f"{k}: {v}" for k, v in sorted(rcs.items())),
+                     sum(r["internal"] for r in rs), sum(len(r["nonfinite"]) + len(r["bad_json"]) for r in rs),
+                     f"{np.median(secs):.1f} / {max(secs):.1f}"])
+    _table(["parts", "command", "runs", "exit codes", "internal errors", "non-finite", "median / max s"], rows)
+
+    internal = [r for r in results if r["internal"]]
+    for r in internal:
+        print(f"INTERNAL ERROR {r['part']} ({r['kind']}) {r['command']}: exit {r['rc']}: {_one_line(r['stderr'], 400)}")
+    for r in results:
+        for f in r["nonfinite"] + r["bad_json"]:
+            print(f"NON-FINITE {r['part']} {r['command']}: {f}")
+    silent = [(r, s) for r in results for s in ((r.get("report") or {}).get("silent", [])
+                                                 + (r.get("plan_findings") or {}).get("silent", []))]
+    for r, s in silent:
+        print(f"NO DECISION, NO REASON {r['part']} {r['command']}: {s}")
+    handled = [r for r in results if r["rc"] == 2 and not r["internal"]]
+    if handled:
+        print("\nRuns that stopped with one clear line (exit 2):")
+        for r in handled:
+            print(f"  {r['part']} ({r['kind']}) {r['command']}: {_one_line(r['stderr'])}")
+    timeouts = [r for r in results if r["timeout"]]
+    for r in timeouts:
+        print(f"TIMEOUT {r['part']} {r['command']} after {r['seconds']:.0f} s")
+    print()
+
+    # The slowest stage of each part.
+    parts = {}
+    for r in results:
+        parts.setdefault(r["part"], []).append(r)
+    rows = []
+    for name, rs in parts.items():
+        st = [(s, r["command"], msg) for r in rs for msg, s in r["stages"]]
+        slow = max(st) if st else (0.0, "-", "-")
+        rows.append([name, rs[0]["kind"], " ".join(f"{r['command']} {r['seconds']:.0f}" for r in rs),
+                     f"{slow[1]}: {_one_line(slow[2], 70)}", f"{slow[0]:.1f}"])
+    print("Slowest stage per part (commands' wall time in s; the stage from the progress lines):")
+    _table(["part", "kind", "commands (s)", "slowest stage", "s"], rows)
+
+    # Honesty on the rendered parts.
+    inspected = [r for r in results if r["command"] == "inspect" and r.get("report")]
+    if inspected:
+        rows = []
+        for r in inspected:
+            rep = r["report"]
+            chars = [c for c in rep["characteristics"] if "measured" in c and c["true"] is not None]
+            inside = sum(abs(c["measured"] - c["true"]) <= c["U"] for c in chars)
+            dec = {}
+            for c in rep["characteristics"]:
+                dec[c["decision"]] = dec.get(c["decision"], 0) + 1
+            rows.append([r["part"], r["kind"], f"exit {r['rc']}", f"{rep['measured']}/{rep['features']}",
+                         ", ".join(f"{k} {v}" for k, v in sorted(dec.items())), f"{inside}/{len(chars)}",
+                         "yes" if rep["symmetry"] else "-"])
+        print(f"Rendered and inspected parts (noise {NOISE:g}):")
+        _table(["part", "kind", "exit", "feat. meas.", "decisions", "true in +-U", "symmetric model"], rows)
+
+        by_type = {}
+        for r in inspected:
+            for c in r["report"]["characteristics"]:
+                by_type.setdefault(c["type"], []).append(c)
+        rows = []
+        for t, cs in sorted(by_type.items()):
+            m = [c for c in cs if "measured" in c and c["true"] is not None and c["u"]]
+            z = np.array([(c["measured"] - c["true"]) / c["u"] for c in m])
+            inside = np.array([abs(c["measured"] - c["true"]) <= c["U"] for c in m], bool)
+            rows.append([t, len(cs), len(m), f"{100 * inside.mean():.1f} %" if m else "-",
+                         f"{np.sqrt(np.mean(z * z)):.2f}" if m else "-", f"{np.max(np.abs(z)):.1f}" if m else "-"])
+        print(f"Honesty per characteristic type (claim {100 * COVERAGE_CLAIM:.2f} % inside measured +- U, "
+              "RMS of error/u 1):")
+        _table(["type", "characteristics", "measured, truth known", "true in +-U", "RMS err/u", "max |err/u|"], rows)
+
+        false_accept, false_reject = [], []
+        for r in inspected:
+            for c in r["report"]["characteristics"]:
+                if c["true"] is None:
+                    continue
+                lo = -np.inf if c["lower"] is None else c["lower"]
+                hi = np.inf if c["upper"] is None else c["upper"]
+                ok = lo <= c["true"] <= hi
+                if c["decision"] == "pass" and not ok:
+                    false_accept.append((r["part"], c))
+                if c["decision"] == "fail" and ok:
+                    false_reject.append((r["part"], c))
+        unmeasured = {}
+        for r in inspected:
+            for k, v in r["report"]["unmeasured"].items():
+                unmeasured[k] = unmeasured.get(k, 0) + v
+        _table(["figure", "value"], [
+            ["false accepts (pass, true value outside the limits)", len(false_accept)],
+            ["false rejects (fail, true value inside the limits)", len(false_reject)]]
+            + [[f"features not measured: {k}", v] for k, v in sorted(unmeasured.items(), key=lambda kv: -kv[1])])
+        for label, items in (("false accept", false_accept), ("false reject", false_reject)):
+            for part, c in items:
+                print(f"{label}: {part} {c['id']}: measured {c.get('measured')} +- {c.get('U')}, true {c['true']}")
+    n_nonfinite = sum(len(r["nonfinite"]) + len(r["bad_json"]) for r in results)
+    print(f"internal errors {len(internal)}, non-finite numbers {n_nonfinite}, "
+          f"characteristics with neither decision nor reason {len(silent)}, timeouts {len(timeouts)}")
+    return len(internal) + n_nonfinite + len(silent)
+
+
+def _args():
+    import argparse
+
+    env = os.environ.get
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n-plan", type=int, default=int(env("ROBUST_N_PLAN", "100")),
+                    help="generated parts through inspect plan (default 100)")
+    ap.add_argument("--n-inspect", type=int, default=int(env("ROBUST_N_INSPECT", "30")),
+                    help="generated parts rendered (noise 2) and inspected (default 30)")
+    ap.add_argument("--seed", type=int, default=int(env("ROBUST_SEED", "0")),
+                    help="seed of the parts, poses and noise (default 0)")
+    ap.add_argument("--dir", default=env("ROBUST_DIR"),
+                    help="keep parts, outputs and results here and reuse them (default: a temporary folder)")
+    ap.add_argument("--timeout", type=float, default=float(env("ROBUST_TIMEOUT", "1800")),
+                    help="seconds one command may take (default 1800)")
+    ap.add_argument("--no-nist", action="store_true", help="leave the NIST files out")
+    ap.add_argument("--summary", action="store_true", help="only print the tables from the results in --dir")
+    return ap.parse_args()
+
+
+def main():
+    args = _args()
+    base = Path(args.dir).resolve() if args.dir else Path(tempfile.mkdtemp(prefix="partinspect-robust-"))
+    base.mkdir(parents=True, exist_ok=True)
+    nist_dir = next((d for d in NIST_DIRS if d.is_dir()), None)
+    nist = [] if args.no_nist or nist_dir is None else sorted(nist_dir.glob("*.stp")) + sorted(nist_dir.glob("*.step"))
+    try:
+        n = max(args.n_plan, args.n_inspect)
+        if args.summary:
+            found = sorted(base.glob("runs/*/*/result.json"))
+            results = []
+            for f in found:
+                r = json.loads(f.read_text())
+                if "part" not in r:
+                    continue
+                if r["command"] == "inspect":  # read again: the findings as this version states them
+                    run = f.parent.parent
+                    r["report"] = report_findings(run / "inspection" / "report.json", run / "render" / "truth.json")
+                results.append(r)
+            return 1 if summarise(results) else 0
+        parts = make_parts(base, n, args.seed)
+        steps = {name: path for name, _, path in parts}
+        steps["plate"] = PLATE
+        results = []
+        todo = jobs(parts, args.n_plan, args.n_inspect, nist)
+        for k, job in enumerate(todo):
+            for r in run_job(base, job, steps, args.timeout, args.seed * 100_000 + k):
+                results.append(r)
+                flag = " INTERNAL ERROR" if r["internal"] else (" TIMEOUT" if r["timeout"] else "")
+                flag += " NON-FINITE" if r["nonfinite"] or r["bad_json"] else ""
+                print(f"[{k + 1}/{len(todo)}] {r['part']:28s} {r['command']:8s} exit {r['rc']} "
+                      f"{r['seconds']:6.1f} s{flag}", flush=True)
+            _save_parts(base, job, results)
+        return 1 if summarise(results) else 0
+    finally:
+        if not args.dir:
+            shutil.rmtree(base, ignore_errors=True)
+
+
+def _save_parts(base, job, results):
+    """Write the job's results back to their result.json with part, kind, command and findings (for --summary)."""
+    name, _, command, _ = job
+    for r in results:
+        if r["part"] != name or (r["command"] != command and not (command == "inspect" and r["command"] == "render")):
+            continue
+        sub = {"features": "features", "plan": "plan-run", "render": "render-run", "inspect": "inspect-run"}[r["command"]]
+        path = base / "runs" / name / sub / "result.json"
+        if path.parent.is_dir():
+            path.write_text(json.dumps(r, indent=1))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
