@@ -200,14 +200,13 @@ def print_table(res):
         rm = "-"
         if r["pred"] is None and r["mc"] is None:
             note = "not measured by either"
-            rp = rc = "-"
+            rp = "-"
         elif r["pred"] is None or r["mc"] is None:
             note = "pred: not measurable" if r["pred"] is None else f"chain measured it in {r['measured_draws']} draws only"
-            rp = rc = "-"
+            rp = "-"
         else:
             ratio = r["pred"] / r["mc"]
             rp = f"{ratio:8.2f}"
-            rc = f"{r['chain'] / r['mc']:8.2f}" if r["chain"] else "-"
             rm = f"{r['pred'] / r['mc_robust']:8.2f}" if r["mc_robust"] else "-"
             within = abs(ratio - 1) <= 0.2
             own = r.get("own_range")

@@ -212,7 +212,7 @@ def test_corrected_points_noise_as_the_3d_views_state_it():
 def test_stated_std_spread_predicts_how_the_stated_uncertainties_scatter():
     """The uncertainty each point is given comes from its own noisy magnitudes:
     its log scatters over noise draws as stated_std_spread says."""
-    from partinspect.vision.edges import _subpixel_offset, stated_std_spread
+    from partinspect.vision.edges import stated_std_spread
 
     th = np.radians(30.0)
     hp = HalfPlane(-np.sin(th), np.cos(th), -(-np.sin(th) * 60.3 + np.cos(th) * 60.2))
