@@ -1,4 +1,4 @@
-"""The calibration's standard uncertainties carried into the 3D features.
+"""The calibration's uncertainty (its covariance, or its standard uncertainties) carried into the 3D features.
 
 A stereo calibration may state standard uncertainties of its parameters
 (``StereoCalibration.std``): the intrinsics and distortion of each camera

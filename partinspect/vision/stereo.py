@@ -163,7 +163,8 @@ class Feature3D:
     param_cov_image, param_cov_calibration : ndarray
         Two parts of ``param_cov``: from the image noise on the edge points
         (what a Monte Carlo of image noise reproduces), and from the
-        calibration's standard uncertainties (zeros without them).
+        calibration's stated uncertainty (``G G^T`` of ``calibration_response``;
+        zeros without one).
     fit : Line3D or Circle3D
         The two-view fit (its covariances are the image-noise and systematic
         parts).
@@ -261,7 +262,7 @@ class StereoResult:
     failed : tuple of (Match, str)
         Matched pairs whose 3D fit failed, with the reason.
     calibration_included : bool
-        Whether the calibration's standard uncertainties were propagated.
+        Whether the calibration's stated uncertainty was propagated.
     guided_failed : tuple of (str, str)
         CAD edges whose own stretches of longer image lines were found in
         both images but not measured, with the reason
