@@ -128,13 +128,18 @@ def stages(stderr, total):
     return out
 
 
+def _key(argv):
+    """A command's arguments with the repository's path left out, so a result is reused wherever the repository lies."""
+    return [str(a).replace(str(ROOT), "<repository>") for a in argv]
+
+
 def run_command(argv, folder, timeout, stdout_json=None):
     """Run ``python3 -m partinspect ARGV`` once (or reuse ``folder/result.json``); a dict of what happened."""
     folder = Path(folder)
     done = folder / "result.json"
     if done.is_file():
         res = json.loads(done.read_text())
-        if res["argv"] == [str(a) for a in argv]:
+        if res["argv"] == _key(argv):
             return res
     folder.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PARTINSPECT_PROGRESS": "1", "PYTHONPATH": str(ROOT)}
@@ -150,7 +155,7 @@ def run_command(argv, folder, timeout, stdout_json=None):
     seconds = time.perf_counter() - t0
     lines = [ln for ln in err.splitlines() if not _STAGE.match(ln)]
     internal = rc is not None and (rc not in HANDLED or "Traceback" in err or "internal error" in err)
-    res = {"argv": [str(a) for a in argv], "rc": rc, "seconds": seconds, "timeout": rc is None,
+    res = {"argv": _key(argv), "rc": rc, "seconds": seconds, "timeout": rc is None,
            "internal": internal, "stderr": "\n".join(lines[-30:]), "stages": stages(err, seconds),
            "nonfinite": [], "bad_json": []}
     if stdout_json is not None and rc == 0:
