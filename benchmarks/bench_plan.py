@@ -26,8 +26,7 @@ Per characteristic the table shows
   form zone's noise-bias-corrected value, excess kurtosis up to 1.6 over
   200 draws of the sample parts; a distance 2.7) has a less certain
   spread. Neither interval counts the prediction's own Monte Carlo noise
-  (a form value's u from 200 scenes of 5 images, 1.5-3.5 %; 6-7.5 % with
-  20 scenes of 10 images before 2026-12-03);
+  (a form value's u from 200 scenes of 5 images, 1.5-3.5 %);
 - ``own 95 %``: the range of ``pred/MC`` the prediction itself allows
   for that many draws of one scene: for a straightness or circularity the
   central 95 % of the spreads its error model gives over 400 scenes

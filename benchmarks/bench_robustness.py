@@ -57,7 +57,6 @@ folder that is removed. Options also read environment variables
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 import shutil
@@ -69,13 +68,15 @@ from pathlib import Path
 
 import numpy as np
 
+# Beside this file: the stress run's coverage claim and tables.
+from bench_stress import COVERAGE_CLAIM, honesty_by_type, table
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 RIG = ROOT / "examples" / "plate" / "images" / "calibration.yaml"
 PLATE = ROOT / "examples" / "plate" / "part.step"
 NIST_DIRS = [Path("/work/shared/data/step"), ROOT / "tests" / "data" / "step"]
-COVERAGE_CLAIM = math.erf(2.0 / math.sqrt(2.0))  # k = 2, normal: 95.45 %
 NOISE = 2.0
 HANDLED = {0, 1, 2, 3}
 
@@ -361,15 +362,6 @@ def report_findings(path, truth_path):
 # ---------------------------------------------------------------- summary
 
 
-def _table(header, rows):
-    widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) if rows else len(str(h)) for i, h in enumerate(header)]
-    print("  ".join(str(h).ljust(w) for h, w in zip(header, widths)))
-    print("  ".join("-" * w for w in widths))
-    for r in rows:
-        print("  ".join(str(v).ljust(w) for v, w in zip(r, widths)))
-    print()
-
-
 def _one_line(text, n=150):
     text = " ".join((text or "").split())
     return text if len(text) <= n else text[: n - 3] + "..."
@@ -391,7 +383,7 @@ def summarise(results):
         rows.append(["NIST" if nist else "generated", cmd, len(rs), ", ".join(f"{k}: {v}" for k, v in sorted(rcs.items())),
                      sum(r["internal"] for r in rs), sum(len(r["nonfinite"]) + len(r["bad_json"]) for r in rs),
                      f"{np.median(secs):.1f} / {max(secs):.1f}"])
-    _table(["parts", "command", "runs", "exit codes", "internal errors", "non-finite", "median / max s"], rows)
+    table(["parts", "command", "runs", "exit codes", "internal errors", "non-finite", "median / max s"], rows)
 
     internal = [r for r in results if r["internal"]]
     for r in internal:
@@ -424,7 +416,7 @@ def summarise(results):
         rows.append([name, rs[0]["kind"], " ".join(f"{r['command']} {r['seconds']:.0f}" for r in rs),
                      f"{slow[1]}: {_one_line(slow[2], 70)}", f"{slow[0]:.1f}"])
     print("Slowest stage per part (commands' wall time in s; the stage from the progress lines):")
-    _table(["part", "kind", "commands (s)", "slowest stage", "s"], rows)
+    table(["part", "kind", "commands (s)", "slowest stage", "s"], rows)
 
     # Honesty on the rendered parts.
     inspected = [r for r in results if r["command"] == "inspect" and r.get("report")]
@@ -441,22 +433,11 @@ def summarise(results):
                          ", ".join(f"{k} {v}" for k, v in sorted(dec.items())), f"{inside}/{len(chars)}",
                          "yes" if rep["symmetry"] else "-"])
         print(f"Rendered and inspected parts (noise {NOISE:g}):")
-        _table(["part", "kind", "exit", "feat. meas.", "decisions", "true in +-U", "symmetric model"], rows)
+        table(["part", "kind", "exit", "feat. meas.", "decisions", "true in +-U", "symmetric model"], rows)
 
-        by_type = {}
-        for r in inspected:
-            for c in r["report"]["characteristics"]:
-                by_type.setdefault(c["type"], []).append(c)
-        rows = []
-        for t, cs in sorted(by_type.items()):
-            m = [c for c in cs if "measured" in c and c["true"] is not None and c["u"]]
-            z = np.array([(c["measured"] - c["true"]) / c["u"] for c in m])
-            inside = np.array([abs(c["measured"] - c["true"]) <= c["U"] for c in m], bool)
-            rows.append([t, len(cs), len(m), f"{100 * inside.mean():.1f} %" if m else "-",
-                         f"{np.sqrt(np.mean(z * z)):.2f}" if m else "-", f"{np.max(np.abs(z)):.1f}" if m else "-"])
         print(f"Honesty per characteristic type (claim {100 * COVERAGE_CLAIM:.2f} % inside measured +- U, "
               "RMS of error/u 1):")
-        _table(["type", "characteristics", "measured, truth known", "true in +-U", "RMS err/u", "max |err/u|"], rows)
+        table(*honesty_by_type(c for r in inspected for c in r["report"]["characteristics"]))
 
         false_accept, false_reject = [], []
         for r in inspected:
@@ -474,7 +455,7 @@ def summarise(results):
         for r in inspected:
             for k, v in r["report"]["unmeasured"].items():
                 unmeasured[k] = unmeasured.get(k, 0) + v
-        _table(["figure", "value"], [
+        table(["figure", "value"], [
             ["false accepts (pass, true value outside the limits)", len(false_accept)],
             ["false rejects (fail, true value inside the limits)", len(false_reject)]]
             + [[f"features not measured: {k}", v] for k, v in sorted(unmeasured.items(), key=lambda kv: -kv[1])])

@@ -297,7 +297,28 @@ def _reason_counts(rep):
 # ----------------------------------------------------------------- summary
 
 
-def _table(header, rows):
+def honesty_by_type(characteristics):
+    """Per characteristic type: judged, measured with a known truth, true value within +-U, RMS, median and
+    largest |error / u|. ``characteristics``: dicts with ``type``, ``measured``, ``true``, ``u`` and ``U``.
+
+    Returns the table's header and rows (:func:`table`).
+    """
+    by_type = {}
+    for c in characteristics:
+        by_type.setdefault(c["type"], []).append(c)
+    rows = []
+    for t, cs in sorted(by_type.items()):
+        m = [c for c in cs if "measured" in c and c["true"] is not None and c["u"]]
+        z = np.array([(c["measured"] - c["true"]) / c["u"] for c in m])
+        inside = np.array([abs(c["measured"] - c["true"]) <= c["U"] for c in m], bool)
+        rows.append([t, len(cs), len(m), f"{100 * inside.mean():.1f} %" if len(m) else "-",
+                     f"{np.sqrt(np.mean(z * z)):.2f}" if len(m) else "-",
+                     f"{np.median(np.abs(z)):.2f}" if len(m) else "-",
+                     f"{np.max(np.abs(z)):.1f}" if len(m) else "-"])
+    return ["type", "judged", "measured", "true in +-U", "RMS err/u", "median |err/u|", "max |err/u|"], rows
+
+
+def table(header, rows):
     widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) if rows else len(str(h)) for i, h in enumerate(header)]
     line = "  ".join(str(h).ljust(w) for h, w in zip(header, widths))
     print(line)
@@ -320,7 +341,7 @@ def summarise(runs, results, size):
                      res["outcome"], f"{res.get('measured', '-')}/{res.get('features', '-')}",
                      f"{inside}/{len(measured)}", f"{run.get('render_s', float('nan')):.0f}",
                      f"{res['inspect_s']:.1f}", f"{res['peak_rss_mb']:.0f}"])
-    _table(["#", "part", "elev/azim/roll", "noise", "dist.", "deviation", "outcome", "feat. meas.",
+    table(["#", "part", "elev/azim/roll", "noise", "dist.", "deviation", "outcome", "feat. meas.",
             "true in +-U", "render s", "inspect s", "peak MB"], rows)
 
     for run, res in zip(runs, results):
@@ -330,22 +351,9 @@ def summarise(runs, results, size):
                 print(res["traceback"])
     print()
 
-    by_type = {}
-    for res in results:
-        for c in res.get("characteristics", []):
-            by_type.setdefault(c["type"], []).append(c)
-    rows = []
-    for t, cs in sorted(by_type.items()):
-        m = [c for c in cs if "measured" in c and c["true"] is not None and c["u"]]
-        z = np.array([(c["measured"] - c["true"]) / c["u"] for c in m])
-        inside = np.array([abs(c["measured"] - c["true"]) <= c["U"] for c in m], bool)
-        rows.append([t, len(cs), len(m), f"{100 * inside.mean():.1f} %" if len(m) else "-",
-                     f"{np.sqrt(np.mean(z * z)):.2f}" if len(m) else "-",
-                     f"{np.median(np.abs(z)):.2f}" if len(m) else "-",
-                     f"{np.max(np.abs(z)):.1f}" if len(m) else "-"])
     print(f"Coverage per characteristic type (claim: {100 * COVERAGE_CLAIM:.2f} % inside measured +- U, "
           "RMS of error/u 1):")
-    _table(["type", "judged", "measured", "true in +-U", "RMS err/u", "median |err/u|", "max |err/u|"], rows)
+    table(*honesty_by_type(c for res in results for c in res.get("characteristics", [])))
 
     posed = [(run, res) for run, res in zip(runs, results) if "pose_d2" in res]
     if posed:
@@ -396,7 +404,7 @@ def summarise(runs, results, size):
         ["inspection time, median / max (s)", f"{np.median([r['inspect_s'] for r in results]):.1f} / "
                                               f"{max(r['inspect_s'] for r in results):.1f}"],
     ]
-    _table(["figure", "value"], summary)
+    table(["figure", "value"], summary)
     for label, items in (("false fail", false_fail), ("false pass", false_pass)):
         for i, cid, m, U, tv in items:
             print(f"{label}: render {i} {cid}: measured {m:.4f} +- {U:.4f}, true {tv:.4f}")

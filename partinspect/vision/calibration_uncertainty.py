@@ -41,6 +41,7 @@ from partinspect.vision.fit3d import minimal_residuals
 
 __all__ = [
     "calibration_parameters",
+    "full_covariance",
     "stated_covariance",
     "uncertainty_directions",
     "perturbed_calibration",
@@ -73,6 +74,20 @@ def calibration_parameters(calib):
     return out
 
 
+def full_covariance(calib):
+    """The covariance of all the calibration's parameters, shape (n, n), n = 14 + len(D1) + len(D2).
+
+    Order: intrinsics1, intrinsics2, extrinsics (as :func:`calibration_parameters`);
+    ``calib.cov``, or the squared standard uncertainties on the diagonal
+    (zeros where none is stated).
+    """
+    if calib.cov is not None:
+        return np.array(calib.cov, float)
+    sizes = (4 + np.size(calib.D1), 4 + np.size(calib.D2), 6)
+    var = [np.asarray(calib.std.get(g, np.zeros(n)), float).ravel() ** 2 for g, n in zip(_GROUPS, sizes)]
+    return np.diag(np.concatenate(var))
+
+
 def stated_covariance(calib):
     """The covariance the calibration states for its parameters with std > 0.
 
@@ -81,29 +96,13 @@ def stated_covariance(calib):
     labels : list of (str, int)
         ``(group, index)`` as :func:`calibration_parameters`.
     cov : ndarray, shape (n, n)
-        ``calib.cov`` restricted to them, or the squared standard
-        uncertainties on the diagonal when the calibration states no
-        covariance.
+        :func:`full_covariance` restricted to them.
     """
-    params = calibration_parameters(calib)
-    labels = [(g, k) for g, k, _ in params]
-    if calib.cov is None:
-        return labels, np.diag([s * s for _, _, s in params])
-    at = {}
-    for group in _GROUPS:
-        for k in range(np.asarray(calib.std.get(group, ()), float).size):
-            at[(group, k)] = len(at)
-    idx = [at[lab] for lab in labels]
-    return labels, np.asarray(calib.cov, float)[np.ix_(idx, idx)]
-
-
-def _full_covariance(calib):
-    """``calib.cov``, or the squared standard uncertainties on the diagonal (zeros where none is stated)."""
-    if calib.cov is not None:
-        return np.array(calib.cov, float)
     sizes = (4 + np.size(calib.D1), 4 + np.size(calib.D2), 6)
-    var = [np.asarray(calib.std.get(g, np.zeros(n)), float).ravel() ** 2 for g, n in zip(_GROUPS, sizes)]
-    return np.diag(np.concatenate(var))
+    every = [(g, k) for g, n in zip(_GROUPS, sizes) for k in range(n)]
+    C = full_covariance(calib)
+    idx = [i for i in range(len(every)) if C[i, i] > 0]
+    return [every[i] for i in idx], C[np.ix_(idx, idx)]
 
 
 def with_extrinsic_covariance(calib, cov_rt):
@@ -124,7 +123,7 @@ def with_extrinsic_covariance(calib, cov_rt):
     """
     from partinspect.vision.calibration import validate_calibration
 
-    C = _full_covariance(calib)
+    C = full_covariance(calib)
     C[-6:, -6:] += cov_rt
     return validate_calibration(replace(calib, std={}, cov=C))
 

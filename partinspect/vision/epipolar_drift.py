@@ -39,7 +39,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from partinspect.vision.calibration_uncertainty import stated_covariance, with_extrinsic_covariance
+from partinspect.vision.calibration_uncertainty import full_covariance, with_extrinsic_covariance
 from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.psd import covariance_factor
 from partinspect.vision.stereo import EDGE_BIAS_FLOOR
@@ -508,13 +508,7 @@ def _within_stated(calib, rotation, cov, drift, predicted):
     """
     if abs(drift.shift) > MIN_SIGNIFICANCE * np.hypot(predicted, drift.u):
         return False
-    labels, C = stated_covariance(calib)
-    idx = [labels.index(("extrinsics", k)) if ("extrinsics", k) in labels else None for k in range(3)]
-    stated = np.zeros((3, 3))
-    for a, i in enumerate(idx):
-        for b, j in enumerate(idx):
-            if i is not None and j is not None:
-                stated[a, b] = C[i, j]
+    stated = full_covariance(calib)[-6:-3, -6:-3]  # the rotation vector's
     for axis in drift_axes(calib):
         allowed = np.sqrt(max(axis @ stated @ axis, 0.0) + max(axis @ cov @ axis, 0.0))
         if abs(axis @ rotation) > MIN_SIGNIFICANCE * allowed:
