@@ -16,7 +16,7 @@ from pathlib import Path
 
 from partinspect.errors import InputError
 
-__all__ = ["load_step", "save_step"]
+__all__ = ["load_step", "save_step", "check_step_file", "quiet_occt"]
 
 # ISO 10303-21 section 5: the exchange structure starts with this keyword and
 # ends with its END- twin. A file without the end keyword was cut short.
@@ -254,3 +254,9 @@ def _quiet_occt():
     finally:
         for printer in printers:
             messenger.AddPrinter(printer)
+
+
+# Public names for the other STEP reader (partinspect.cad.pmi): the same
+# checks before OCCT sees a file, the same silence while it reads.
+check_step_file = _check_file
+quiet_occt = _quiet_occt
