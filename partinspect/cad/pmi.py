@@ -402,7 +402,7 @@ def _dimensions(labels, targets):
             notes.append(f"no type and no value read (the file names it {name!r})")
             value = None
         elif dtype == "angle":
-            value, upper, lower = (None if v is None else math.radians(v) for v in (value, upper, lower))
+            value, upper, lower = (None if v is None else math.radians(_clean(v)) for v in (value, upper, lower))
         elif factor != 1.0:
             notes.append(f"nominal {value:g} in inch (OCCT converts the limits, not the nominal) taken as "
                          f"{value * factor:.6g} mm")
@@ -414,8 +414,10 @@ def _dimensions(labels, targets):
         if missing:
             notes.append(f"{missing} attached face(s) not found in the model")
         modifiers = tuple(_enum_tail(m, "XCAFDimTolObjects_DimensionModif_") for m in obj.GetModifiers())
-        items.append(PmiItem(f"dim-{n}", "dimension", dtype, name, _clean(value), _clean(upper), _clean(lower),
-                             modifiers, (), faces, faces2, edges, tuple(notes)))
+        if dtype != "angle":  # angles were rounded in degrees, as the file gives them
+            value, upper, lower = _clean(value), _clean(upper), _clean(lower)
+        items.append(PmiItem(f"dim-{n}", "dimension", dtype, name, value, upper, lower, modifiers, (), faces, faces2,
+                             edges, tuple(notes)))
     return items, graphic
 
 

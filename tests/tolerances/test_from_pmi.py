@@ -1,0 +1,122 @@
+"""PMI carried over to edge characteristics (NIST CTC 01 and 03).
+
+Expected values come from the files' own PMI (see tests/cad/test_pmi.py for
+where each is in the file) and from their geometry, read independently here
+through the feature inventory.
+"""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from partinspect.cad.features import inventory
+from partinspect.cad.pmi import INCH, read_pmi
+from partinspect.cad.step import load_step
+from partinspect.tolerances.from_pmi import spec_from_pmi
+from partinspect.tolerances.resolve import characteristics_for, resolve_spec
+from partinspect.tolerances.spec import dump_spec, parse_spec, spec_to_dict
+
+STEP_DIR = Path(__file__).resolve().parents[1] / "data" / "step"
+
+
+def _load(name):
+    path = STEP_DIR / name
+    inv = inventory(load_step(path))
+    pmi = read_pmi(path)
+    return pmi, inv, spec_from_pmi(pmi, inv)
+
+
+@pytest.fixture(scope="module")
+def ctc01():
+    return _load("nist_ctc_01_asme1_ap242-e1.stp")
+
+
+@pytest.fixture(scope="module")
+def ctc03():
+    return _load("nist_ctc_03_asme1_ap242-e2.stp")
+
+
+def _non_smooth_lines(inv, face):
+    return {f.id for f in inv.features if f.kind == "line" and face in f.faces and not f.smooth}
+
+
+def test_every_item_is_used_or_said_to_be_not_evaluated(ctc01, ctc03):
+    for pmi, _, ps in (ctc01, ctc03):
+        used = set(ps.applies_to)
+        skipped = {n.item for n in ps.not_evaluated}
+        assert not used & skipped
+        assert {i.id for i in pmi.items} <= used | skipped
+        assert all(n.reason for n in ps.not_evaluated)
+
+
+def test_diameter_goes_to_the_hole_rims(ctc01):
+    pmi, inv, ps = ctc01
+    d4 = pmi["dim-4"]  # diameter 35 +0/-0.2 on two half-cylinder faces
+    rims = ps.applies_to["dim-4"]
+    assert len(rims) == 2
+    for cid in rims:
+        f = inv[cid]
+        assert f.kind == "circle" and 2 * f.radius == pytest.approx(35.0)
+        assert set(f.faces) & set(d4.faces)
+        assert ps.data["features"][cid]["diameter"] == {"upper": 0.0, "lower": -0.2}
+        assert ps.sources[("features", cid, "diameter")] == "dim-4"
+
+
+def test_flatness_goes_to_the_plane_edges_and_datum_a(ctc01):
+    pmi, inv, ps = ctc01
+    flat = pmi["gtol-6"]
+    lines = _non_smooth_lines(inv, flat.faces[0])
+    assert set(ps.applies_to["gtol-6"]) == lines
+    assert all(ps.data["features"][lid]["straightness"] == {"tolerance": pytest.approx(0.2)} for lid in lines)
+    # Datum A is that face; B and C point at no face in this file.
+    assert set(ps.data["datums"]) == lines
+    reasons = {n.item: n.reason for n in ps.not_evaluated}
+    assert "no face" in reasons["datum-B"] and "no face" in reasons["datum-C"]
+
+
+def test_perpendicularity_becomes_an_angle_over_the_edge_length(ctc01):
+    pmi, inv, ps = ctc01
+    perp = pmi["gtol-5"]  # 1.5 mm to datum A
+    (angle,) = [a for i, a in enumerate(ps.data["angles"]) if ps.sources[("angles", i)] == "gtol-5"]
+    line, datum_line = (inv[x] for x in angle["between"])
+    assert perp.faces[0] in line.faces
+    assert np.linalg.norm(np.cross(line.direction, inv[pmi["datum-A"].faces[0]].normal)) < 1e-6
+    assert angle["upper"] == pytest.approx(math.degrees(math.atan(1.5 / line.length)))
+    assert angle["lower"] == -angle["upper"]
+
+
+def test_not_evaluated_reasons(ctc01, ctc03):
+    reasons = {n.item: n.reason for n in ctc01[2].not_evaluated}
+    assert "surface" in reasons["gtol-3"]  # a surface profile
+    assert "plane" in reasons["gtol-1"]  # position of a slot's centre plane
+    assert "no value" in reasons["dim-1"]
+    reasons3 = {n.item: n for n in ctc03[2].not_evaluated}
+    # The flatness OCCT drops is said, with its value from the text.
+    assert "not read by OCCT" in reasons3["Flatness.1"].reason and "0.127" in reasons3["Flatness.1"].reason
+    assert "thickness" in reasons3["dim-9"].reason
+
+
+def test_inch_position_at_mmc(ctc03):
+    pmi, inv, ps = ctc03
+    pos = pmi["gtol-5"]  # Position.3: 0.05 in at MMC on the 0.438 in holes
+    assert pos.name == "Position.3"
+    for cid in ps.applies_to["gtol-5"]:
+        assert ps.data["features"][cid]["position"]["tolerance"] == pytest.approx(0.05 * INCH)
+        assert 2 * inv[cid].radius == pytest.approx(0.438 * INCH, abs=1e-3)
+
+
+def test_spec_round_trips_and_resolves(ctc01):
+    pmi, inv, ps = ctc01
+    spec = ps.spec()
+    again = parse_spec(dump_spec(spec))
+    assert spec_to_dict(again) == spec_to_dict(spec)
+    assert spec.features  # not an empty spec round-tripping
+    resolved = resolve_spec(again, inv)
+    by_id = {c.id: c for c in resolved.characteristics}
+    c = by_id[f"{ps.applies_to['dim-4'][0]}.diameter"]
+    assert (c.lower_limit, c.upper_limit) == pytest.approx((34.8, 35.0))
+    # With the general tolerances, nothing is given twice.
+    ids = [c.id for c in characteristics_for(spec, inv)]
+    assert len(ids) == len(set(ids))
