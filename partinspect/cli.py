@@ -19,7 +19,7 @@ from partinspect.errors import InputError
 
 EXIT_PASS, EXIT_FAIL, EXIT_ERROR, EXIT_INCONCLUSIVE = 0, 1, 2, 3
 
-SUBCOMMANDS = ("features", "render", "calibrate", "plan")
+SUBCOMMANDS = ("features", "render", "calibrate", "plan", "spec")
 
 MAIN_DESCRIPTION = """\
 Inspect a machined part against its STEP model from one calibrated stereo
@@ -28,10 +28,13 @@ image pair. Writes report.html, report.json and junit.xml into OUT.
 IMAGES_DIR holds left.png, right.png and calibration.yaml (or OpenCV
 stereo_calib's intrinsics.yml + extrinsics.yml). Tolerances come from
 --tolerances, else PART.tol.yaml beside the STEP file (part.tol.yaml for
-part.step), else ISO 2768-mK general tolerances.
+part.step); the STEP file's semantic PMI (AP242) for what that leaves out;
+ISO 2768-mK general tolerances for the rest.
 
 other commands:
   inspect features PART.step [--json]     list the CAD features and their ids
+  inspect features PART.step --pmi        list the STEP file's PMI and the features each applies to
+  inspect spec PART.step [-o FILE]        write the PMI as an editable tolerance spec
   inspect render PART.step OUT_DIR [...]  render a synthetic stereo pair with exact ground truth
   inspect calibrate PAIRS_DIR -o calibration.yaml --board 9x6 --square 25
                                           calibrate the stereo rig from board image pairs,
@@ -54,7 +57,7 @@ class _Parser(argparse.ArgumentParser):
 def _main_parser():
     p = _Parser(
         prog="inspect",
-        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render,calibrate,plan} ...",
+        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render,calibrate,plan,spec} ...",
         description=MAIN_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -86,6 +89,16 @@ def _features_parser():
     p = _Parser(prog="inspect features", description="List the line, circle and arc edges of a STEP model with their ids.")
     p.add_argument("part", metavar="PART.step")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--pmi", action="store_true", help="list the semantic PMI (AP242) and the features each item applies to")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _spec_parser():
+    p = _Parser(prog="inspect spec", description="Write the tolerance spec equivalent to a STEP file's semantic PMI "
+                "(AP242), with each limit's PMI item and what is not evaluated as comments.")
+    p.add_argument("part", metavar="PART.step")
+    p.add_argument("-o", "--output", metavar="FILE", help="the spec file to write (default: print it)")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
 
@@ -350,10 +363,49 @@ def _run_features(args):
     from partinspect.reports.tables import features_table
 
     inv = inventory(load_step(args.part))
+    if args.pmi:
+        from partinspect.tolerances.from_pmi import load_pmi_spec, pmi_listing
+
+        pmi, ps = load_pmi_spec(args.part, inv)
+        if args.json:
+            print(json.dumps({**pmi.to_dict(), "applies_to": ps.applies_to,
+                              "not_evaluated": [n.to_dict() for n in ps.not_evaluated]}, indent=2))
+        else:
+            print(pmi_listing(pmi, ps, args.part))
+        return EXIT_PASS
     if args.json:
         print(json.dumps(inv.to_dict(), indent=2))
     else:
         print(features_table(inv))
+    return EXIT_PASS
+
+
+def _run_spec(args):
+    from pathlib import Path
+
+    from partinspect.atomic import write_bytes_atomic
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+    from partinspect.tolerances.from_pmi import load_pmi_spec, spec_yaml
+
+    part = Path(args.part)
+    out = Path(args.output) if args.output else None
+    if out is not None and out.exists() and out.resolve() == part.resolve():
+        raise InputError(out, "is the STEP file itself; give another -o")
+    inv = inventory(load_step(part))
+    pmi, ps = load_pmi_spec(part, inv)
+    if not pmi and not pmi.unread:
+        raise InputError(part, "holds no semantic PMI to write a spec from")
+    text = spec_yaml(ps, pmi, part.name)
+    if out is None:
+        print(text, end="")
+    else:
+        try:
+            write_bytes_atomic(out, text.encode("utf-8"))
+        except OSError as e:
+            raise InputError(out, f"cannot write: {e.strerror or e}") from None
+        print(f"wrote {out}: {len(ps.sources)} limits from {len(ps.applies_to)} PMI items, "
+              f"{len(ps.not_evaluated)} not evaluated (listed in its comments)")
     return EXIT_PASS
 
 
@@ -399,9 +451,9 @@ def main(argv=None):
     if argv and argv[0] in SUBCOMMANDS:
         command, rest = argv[0], argv[1:]
         parser = {"features": _features_parser, "render": _render_parser, "calibrate": _calibrate_parser,
-                  "plan": _plan_parser}[command]()
+                  "plan": _plan_parser, "spec": _spec_parser}[command]()
         run = {"features": _run_features, "render": _run_render, "calibrate": _run_calibrate,
-               "plan": _run_plan}[command]
+               "plan": _run_plan, "spec": _run_spec}[command]
     else:
         parser, rest, run = _main_parser(), argv, _run_inspect
     args = parser.parse_args(rest)

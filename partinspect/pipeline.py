@@ -175,7 +175,7 @@ def load_inputs(part, images, out, tolerances, pose_hint, progress):
     hint = _pose_hint(pose_hint, shape, calib)
     if tol_path is not None:
         progress(f"reading tolerances {tol_path.name}")
-    resolved, characteristics = load_characteristics(inv, tol_path)
+    resolved, characteristics = load_characteristics(inv, tol_path, part=part)
     calib_file = next((images / n for n in CALIBRATION_NAMES if (images / n).is_file()), None)
     return Inputs(part, images, tol_path, calib, left, right, bit_depth, shape, inv, resolved, characteristics, hint,
                   calib_file)
@@ -335,7 +335,8 @@ def evaluate(inputs, m, progress):
         calibration=None if m.calibration is None else m.calibration.to_dict(),
         image={"width": inputs.left.shape[1], "height": inputs.left.shape[0], "bit_depth": inputs.bit_depth},
         tolerances={"file": None if inputs.tol_path is None else str(inputs.tol_path),
-                    "general": inputs.resolved.general, "decision_rule": inputs.resolved.decision_rule},
+                    "general": inputs.resolved.general, "decision_rule": inputs.resolved.decision_rule,
+                    "not_evaluated": [n.to_dict() for n in inputs.resolved.not_evaluated]},
         uncertainty=m.uncertainty,
         adaptive=m.adaptive,
         registration=registration_entry(m.registration),

@@ -47,7 +47,7 @@ import numpy as np
 from partinspect.cad.step import check_step_file, quiet_occt
 from partinspect.errors import InputError
 
-__all__ = ["PmiItem", "Pmi", "read_pmi", "step_tolerance_values"]
+__all__ = ["PmiItem", "Pmi", "has_semantic_pmi", "read_pmi", "step_tolerance_values"]
 
 INCH = 25.4  # mm
 
@@ -206,6 +206,8 @@ def read_pmi(path):
     path = Path(path)
     check_step_file(path)
     t0 = time.perf_counter()
+    if not has_semantic_pmi(path):
+        return Pmi((), {"dimensions": 0, "tolerances": 0, "datums": 0}, 0, (), time.perf_counter() - t0)
     doc = _read_document(path)
     from OCP.TDF import TDF_LabelSequence
     from OCP.XCAFDoc import XCAFDoc_DocumentTool
@@ -240,6 +242,17 @@ def _unread(text_values, tols):
                 del left[k]
                 break
     return tuple(left)
+
+
+# Entity names only semantic PMI uses (ISO 10303-47 shape tolerances).
+_PMI_MARKERS = (b"DIMENSIONAL_SIZE", b"DIMENSIONAL_LOCATION", b"ANGULAR_LOCATION", b"ANGULAR_SIZE",
+                b"_TOLERANCE", b"DATUM_FEATURE", b"DATUM(")
+
+
+def has_semantic_pmi(path):
+    """Does the file's text name any semantic PMI entity? (The XCAF parse is skipped when not.)"""
+    data = Path(path).read_bytes()
+    return any(marker in data for marker in _PMI_MARKERS)
 
 
 def _read_document(path):

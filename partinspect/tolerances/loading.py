@@ -1,4 +1,4 @@
-"""A part's tolerances: the spec file given or beside the STEP file, else ISO 2768-mK."""
+"""A part's tolerances: the spec file given or beside the STEP file, the STEP file's PMI, else ISO 2768-mK."""
 
 from pathlib import Path
 
@@ -25,11 +25,20 @@ def find_tolerances(part, tolerances=None):
     return None
 
 
-def load_characteristics(inv, tol_path):
-    """The resolved spec (or the ISO 2768-mK default) and every characteristic to evaluate."""
+def load_characteristics(inv, tol_path, part=None):
+    """The resolved spec (or the ISO 2768-mK default) and every characteristic to evaluate.
+
+    With ``part`` (the STEP file), its semantic PMI fills in what the spec
+    does not tolerance itself, item by item, before the general tolerances
+    take the rest (`partinspect.tolerances.from_pmi.merge_pmi`).
+    """
     from partinspect.tolerances import spec as spec_mod
     from partinspect.tolerances.resolve import general_characteristics, resolve_spec
 
     spec = spec_mod.load_spec(tol_path) if tol_path is not None else spec_mod.default_spec()
     resolved = resolve_spec(spec, inv, tol_path)
+    if part is not None:
+        from partinspect.tolerances.from_pmi import merge_pmi
+
+        resolved = merge_pmi(resolved, inv, part)
     return resolved, list(resolved.characteristics) + general_characteristics(inv, resolved)

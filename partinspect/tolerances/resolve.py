@@ -145,6 +145,9 @@ class ResolvedSpec:
         What the spec tolerances, in file order.
     path : str or None
         The spec file.
+    not_evaluated : tuple
+        Tolerances the part's PMI holds that no edge characteristic checks
+        (``partinspect.tolerances.from_pmi.NotEvaluated``), for the report.
     """
 
     spec: ToleranceSpec
@@ -152,6 +155,7 @@ class ResolvedSpec:
     datums: tuple[str, ...]
     characteristics: tuple[Characteristic, ...]
     path: str | None = None
+    not_evaluated: tuple = ()
 
     @property
     def general(self):

@@ -120,3 +120,35 @@ def test_spec_round_trips_and_resolves(ctc01):
     # With the general tolerances, nothing is given twice.
     ids = [c.id for c in characteristics_for(spec, inv)]
     assert len(ids) == len(set(ids))
+
+
+def test_spec_file_overrides_the_pmi_item_by_item(ctc01, tmp_path):
+    from partinspect.tolerances.loading import load_characteristics
+
+    pmi, inv, ps = ctc01
+    a, b = ps.applies_to["dim-4"]  # the two rims of one PMI diameter
+    spec_file = tmp_path / "part.tol.yaml"
+    spec_file.write_text(f"features:\n  {a}:\n    diameter: {{upper: 0.01, lower: -0.01}}\n")
+    resolved, chars = load_characteristics(inv, spec_file, part=STEP_DIR / "nist_ctc_01_asme1_ap242-e1.stp")
+    by_id = {c.id: c for c in chars}
+    assert len(by_id) == len(chars)
+    assert by_id[f"{a}.diameter"].source == "spec" and by_id[f"{a}.diameter"].rule == "part.tol.yaml line 3"
+    assert by_id[f"{a}.diameter"].upper_limit == pytest.approx(35.01)
+    other = by_id[f"{b}.diameter"]
+    assert other.source == "PMI" and "dim-4" in other.rule and "diameter 35 +0/-0.2" in other.rule
+    assert (other.lower_limit, other.upper_limit) == pytest.approx((34.8, 35.0))
+    # Where neither says anything, ISO 2768 still applies; what the PMI holds
+    # and edges cannot check is carried to the report.
+    assert any(c.source.startswith("ISO 2768") for c in chars)
+    assert {n.item for n in resolved.not_evaluated} == {n.item for n in ps.not_evaluated}
+
+
+def test_no_pmi_leaves_the_spec_alone():
+    from partinspect.tolerances.loading import load_characteristics
+
+    plate = Path(__file__).resolve().parents[2] / "examples" / "plate" / "part.step"
+    inv = inventory(load_step(plate))
+    with_part = load_characteristics(inv, None, part=plate)
+    without = load_characteristics(inv, None)
+    assert with_part[0].not_evaluated == ()
+    assert [c.to_dict() for c in with_part[1]] == [c.to_dict() for c in without[1]]
