@@ -502,7 +502,8 @@ def _tolerances(labels, targets, text_values):
             if k < len(candidates):
                 used[name] = k + 1
                 value = _clean(candidates[k][2])
-                notes.append("value read from the file's text (OCCT read 0 from a compound measure entity)")
+                notes.append("value read from the file's text (OCCT read 0 from a compound measure entity)"
+                             if value is not None else "its magnitude entity is missing or not a length")
                 if len({c[2] for c in candidates}) > 1:
                     notes.append(f"{len(candidates)} tolerances named {name!r} with different values: "
                                  "matched by their order in the file")

@@ -303,7 +303,7 @@ class _Mapper:
 
     def tolerance(self, item):
         if item.value is None:
-            self.skip(item.id, item.type, "no tolerance value in the file")
+            self.skip(item.id, item.type, "no tolerance value in the file" + (f" ({item.notes[-1]})" if item.notes else ""))
             return
         faces = self._known_faces(item, item.faces + item.faces2)
         if faces is None:
