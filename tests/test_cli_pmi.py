@@ -58,3 +58,19 @@ def test_spec_bad_output(tmp_path, capsys, where):
     assert main(["spec", str(target if where == "step" else CTC_01), "-o", str(target)]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert (target.read_bytes() if target.exists() else None) == before
+
+
+def test_report_lists_pmi_not_evaluated_escaped():
+    from partinspect.reports.html import render_html
+    from tests.reports.synthetic import make_report
+
+    report = make_report()
+    report["tolerances"] = dict(report.get("tolerances") or {}, file=None, general="ISO 2768-mK",
+                                decision_rule="iso14253",
+                                not_evaluated=[{"item": "gtol-3", "type": "profile_of_surface",
+                                                "reason": "a surface profile <needs> the surface"}])
+    html = render_html(report)
+    assert 'id="not-evaluated"' in html and "gtol-3" in html
+    assert "&lt;needs&gt;" in html and "<needs>" not in html
+    del report["tolerances"]["not_evaluated"]
+    assert 'id="not-evaluated"' not in render_html(report)
