@@ -150,6 +150,9 @@ class Pmi:
         gives them.
     seconds : float
         Wall time of the read (XCAF parse and transfer), s.
+    faces : tuple of partinspect.cad.features.FaceInfo
+        The faces of the part's solids as XCAF holds them, in id order:
+        the ids the items use, the same as the feature inventory's.
     """
 
     items: tuple = ()
@@ -157,6 +160,7 @@ class Pmi:
     presentation_only: int = 0
     unread: tuple = ()
     seconds: float = 0.0
+    faces: tuple = ()
 
     def __bool__(self):
         return bool(self.items)
@@ -230,7 +234,8 @@ def read_pmi(path):
     dims, n_graphic = _dimensions(sequences["dimensions"], targets)
     tols = _tolerances(sequences["tolerances"], targets, text_values)
     datums = _datums(sequences["datums"], targets)
-    return Pmi(tuple(dims + tols + datums), labels, n_graphic, _unread(text_values, tols), time.perf_counter() - t0)
+    return Pmi(tuple(dims + tols + datums), labels, n_graphic, _unread(text_values, tols), time.perf_counter() - t0,
+               tuple(targets.infos))
 
 
 def _unread(text_values, tols):
@@ -288,8 +293,8 @@ class _Targets:
     def __init__(self, shape_tool):
         from OCP.BRep import BRep_Builder
         from OCP.TDF import TDF_LabelSequence
-        from OCP.TopAbs import TopAbs_FACE
-        from OCP.TopExp import TopExp
+        from OCP.TopAbs import TopAbs_FACE, TopAbs_SOLID
+        from OCP.TopExp import TopExp, TopExp_Explorer
         from OCP.TopoDS import TopoDS_Compound
         from OCP.TopTools import TopTools_IndexedMapOfShape
 
@@ -298,14 +303,16 @@ class _Targets:
         self.shape_tool = shape_tool
         free = TDF_LabelSequence()
         shape_tool.GetFreeShapes(free)
-        shapes = [shape_tool.GetShape_s(free.Value(i)) for i in range(1, free.Length() + 1)]
-        if len(shapes) == 1:
-            whole = shapes[0]
-        else:
-            whole, builder = TopoDS_Compound(), BRep_Builder()
-            builder.MakeCompound(whole)
-            for s in shapes:
-                builder.Add(whole, s)
+        # The solids alone, as load_step keeps them: faces of loose shells
+        # (supplemental geometry, such as a datum's centre plane) would shift
+        # the geometric face ids away from the inventory's.
+        whole, builder = TopoDS_Compound(), BRep_Builder()
+        builder.MakeCompound(whole)
+        for i in range(1, free.Length() + 1):
+            explorer = TopExp_Explorer(shape_tool.GetShape_s(free.Value(i)), TopAbs_SOLID)
+            while explorer.More():
+                builder.Add(whole, explorer.Current())
+                explorer.Next()
         self.face_map = TopTools_IndexedMapOfShape()
         TopExp.MapShapes_s(whole, TopAbs_FACE, self.face_map)
         self.infos = face_inventory(whole)
@@ -425,7 +432,7 @@ def _dimensions(labels, targets):
             if note:
                 notes.append(note)
         if missing:
-            notes.append(f"{missing} attached face(s) not found in the model")
+            notes.append(f"{missing} attached face(s) not on the part's solid (supplemental geometry)")
         modifiers = tuple(_enum_tail(m, "XCAFDimTolObjects_DimensionModif_") for m in obj.GetModifiers())
         if dtype != "angle":  # angles were rounded in degrees, as the file gives them
             value, upper, lower = _clean(value), _clean(upper), _clean(lower)
@@ -502,8 +509,12 @@ def _tolerances(labels, targets, text_values):
             if k < len(candidates):
                 used[name] = k + 1
                 value = _clean(candidates[k][2])
-                notes.append("value read from the file's text (OCCT read 0 from a compound measure entity)"
-                             if value is not None else "its magnitude entity is missing or not a length")
+                if value is None:
+                    notes.append("its magnitude entity is missing or not a length")
+                elif value == 0:
+                    notes.append("the file gives a zero tolerance")
+                else:
+                    notes.append("value read from the file's text (OCCT read 0 from a compound measure entity)")
                 if len({c[2] for c in candidates}) > 1:
                     notes.append(f"{len(candidates)} tolerances named {name!r} with different values: "
                                  "matched by their order in the file")
@@ -528,7 +539,7 @@ def _tolerances(labels, targets, text_values):
             drf.append((d.GetPosition(), _text(d.GetName())))
         datums = tuple(dict.fromkeys(letter for _, letter in sorted(drf) if letter))
         if missing:
-            notes.append(f"{missing} attached face(s) not found in the model")
+            notes.append(f"{missing} attached face(s) not on the part's solid (supplemental geometry)")
         items.append(PmiItem(f"gtol-{n}", "tolerance", ttype, name, _clean(value), None, None, tuple(modifiers), datums, faces,
                              faces2, edges, tuple(notes)))
     return items

@@ -311,8 +311,13 @@ class _Mapper:
         if not faces:
             self.skip(item.id, item.type, "attached to no face of the model")
             return
-        zone = {"tolerance": item.value}
         t = item.type
+        if item.value <= 0:
+            bonus = [m for m in item.modifiers if m in ("MMC", "LMC")]
+            self.skip(item.id, t, f"zero tolerance at {bonus[0]}: all of it is the bonus from the feature's size, "
+                      "which an edge position does not apply" if bonus else "zero tolerance")
+            return
+        zone = {"tolerance": item.value}
         if t in ("position", "circularity", "cylindricity"):
             rims = [f for f in self.rims(faces) if t == "position" or f.kind == "circle"]
             if not rims:

@@ -13,6 +13,7 @@ import math
 import re
 from collections import Counter
 
+import numpy as np
 import pytest
 
 from partinspect.cad.pmi import INCH, read_pmi, step_tolerance_values
@@ -207,3 +208,22 @@ def test_missing_magnitude_is_said(tmp_path):
     bad.write_text(text.replace(line, line.replace("#82", "#999999")), encoding="latin-1")
     flat = _by_name(read_pmi(bad), "Flatness.1")
     assert flat.value is None and "missing" in flat.notes[-1]
+
+
+@pytest.mark.parametrize("name", ["nist_ctc_01_asme1_ap242-e1.stp", "nist_ftc_10_asme1_ap242-e2.stp"])
+def test_face_ids_agree_with_the_step_loader(name):
+    # ftc_10's XCAF shape also holds 18 faces of loose shells (supplemental
+    # geometry) beside the solid's 264: they must not shift the ids.
+    from partinspect.cad.features import face_inventory
+    from partinspect.cad.step import load_step
+
+    path = STEP_DIR / name
+    pmi = _read(path)
+    loaded = face_inventory(load_step(path))
+    assert len(pmi.faces) == len(loaded)
+    for a, b in zip(pmi.faces, loaded):
+        assert a.id == b.id and a.surface == b.surface
+        np.testing.assert_allclose(a.centroid, b.centroid, atol=1e-6)
+    if name.startswith("nist_ftc_10"):
+        loose = [i for i in pmi.items if any("supplemental" in n for n in i.notes)]
+        assert len(loose) == 8

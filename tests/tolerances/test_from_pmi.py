@@ -152,3 +152,18 @@ def test_no_pmi_leaves_the_spec_alone():
     without = load_characteristics(inv, None)
     assert with_part[0].not_evaluated == ()
     assert [c.to_dict() for c in with_part[1]] == [c.to_dict() for c in without[1]]
+
+
+def test_zero_position_at_mmc_is_not_evaluated(ctc01):
+    # ASME Y14.5 allows "0 (M)": all the tolerance is bonus from the size,
+    # which the edge position does not apply (ftc_10 has one at MMC, one at LMC).
+    from partinspect.cad.pmi import Pmi, PmiItem
+
+    pmi, inv, _ = ctc01
+    hole = pmi["dim-4"].faces
+    items = (PmiItem("gtol-1", "tolerance", "position", "Position.0", 0.0, modifiers=("MMC",), faces=hole),
+             PmiItem("gtol-2", "tolerance", "position", "Position.1", 0.1, faces=hole))
+    ps = spec_from_pmi(Pmi(items), inv)
+    reasons = {n.item: n.reason for n in ps.not_evaluated}
+    assert "zero tolerance at MMC" in reasons["gtol-1"]
+    assert all(ps.data["features"][c]["position"] == {"tolerance": 0.1} for c in ps.applies_to["gtol-2"])
