@@ -528,7 +528,6 @@ def merge_pmi(resolved, inventory, part):
     from dataclasses import replace
     from pathlib import Path
 
-    from partinspect.errors import InputError
     from partinspect.tolerances.resolve import resolve_spec
 
     name = Path(part).name
@@ -537,8 +536,9 @@ def merge_pmi(resolved, inventory, part):
         if not ps.sources and not ps.not_evaluated:
             return resolved
         pmi_resolved = resolve_spec(ps.spec(), inventory, None)
-    except InputError as e:
-        why = NotEvaluated(name, "PMI", f"the PMI could not be used ({e}); ISO 2768 applies instead")
+    except Exception as e:  # noqa: BLE001  the PMI is an optional input: a bad one must not stop the run
+        text = " ".join(str(e).split()) or type(e).__name__
+        why = NotEvaluated(name, "PMI", f"the PMI could not be used ({text}); the spec and ISO 2768 apply instead")
         return replace(resolved, not_evaluated=resolved.not_evaluated + (why,))
     by_id = {i.id: i for i in pmi.items}
     rules = {}

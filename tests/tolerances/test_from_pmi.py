@@ -167,3 +167,19 @@ def test_zero_position_at_mmc_is_not_evaluated(ctc01):
     reasons = {n.item: n.reason for n in ps.not_evaluated}
     assert "zero tolerance at MMC" in reasons["gtol-1"]
     assert all(ps.data["features"][c]["position"] == {"tolerance": 0.1} for c in ps.applies_to["gtol-2"])
+
+
+def test_unusable_pmi_falls_back_and_says_so(ctc01, monkeypatch):
+    from partinspect.tolerances import from_pmi
+    from partinspect.tolerances.loading import load_characteristics
+
+    _, inv, _ = ctc01
+
+    def broken(part, inventory):
+        raise ValueError("datum reference to a missing entity #4711")
+
+    monkeypatch.setattr(from_pmi, "load_pmi_spec", broken)
+    resolved, chars = load_characteristics(inv, None, part=STEP_DIR / "nist_ctc_01_asme1_ap242-e1.stp")
+    (why,) = resolved.not_evaluated
+    assert "#4711" in why.reason and "ISO 2768 apply instead" in why.reason
+    assert all(c.source.startswith("ISO 2768") for c in chars)
