@@ -364,7 +364,8 @@ def _run_features(args):
 
     inv = inventory(load_step(args.part))
     if args.pmi:
-        from partinspect.tolerances.from_pmi import load_pmi_spec, pmi_listing
+        from partinspect.tolerances.from_pmi import load_pmi_spec
+        from partinspect.tolerances.pmi_text import pmi_listing
 
         pmi, ps = load_pmi_spec(args.part, inv)
         if args.json:
@@ -386,7 +387,8 @@ def _run_spec(args):
     from partinspect.atomic import write_bytes_atomic
     from partinspect.cad.features import inventory
     from partinspect.cad.step import load_step
-    from partinspect.tolerances.from_pmi import load_pmi_spec, spec_yaml
+    from partinspect.tolerances.from_pmi import load_pmi_spec
+    from partinspect.tolerances.pmi_text import spec_yaml
 
     part = Path(args.part)
     out = Path(args.output) if args.output else None

@@ -25,7 +25,9 @@ each one noted on the item it touched:
 - graphics-only entries (presentation, common labels) sit among the
   dimensions: they are counted, not listed;
 - datum labels repeat for every tolerance that uses them: datums are
-  merged by their letter.
+  merged by their letter;
+- some tolerances are not read at all: the text's ones left over are
+  listed as ``Pmi.unread``.
 
 References
 ----------
@@ -45,11 +47,10 @@ from pathlib import Path
 import numpy as np
 
 from partinspect.cad.step import check_step_file, quiet_occt
+from partinspect.cad.step_text import INCH, step_tolerance_values
 from partinspect.errors import InputError
 
-__all__ = ["PmiItem", "Pmi", "has_semantic_pmi", "read_pmi", "step_tolerance_values"]
-
-INCH = 25.4  # mm
+__all__ = ["INCH", "PmiItem", "Pmi", "has_semantic_pmi", "read_pmi", "step_tolerance_values"]
 
 # A nominal that agrees with the CAD size within this relative amount is
 # taken as the size it names.
@@ -117,7 +118,7 @@ class PmiItem:
     @property
     def unit(self):
         """``"rad"`` for angles, else ``"mm"``."""
-        return "rad" if self.type in ("angle", "angularity") and self.kind == "dimension" else "mm"
+        return "rad" if self.type == "angle" and self.kind == "dimension" else "mm"
 
     def to_dict(self):
         d = {"id": self.id, "kind": self.kind, "type": self.type, "name": self.name}
@@ -568,74 +569,3 @@ def _datums(labels, targets):
 def _text(handle):
     # OCP hands a null handle over as None.
     return "" if handle is None else handle.ToCString()
-
-
-# --- the file's own text ----------------------------------------------------
-
-_RECORD = re.compile(r"#(\d+)\s*=\s*((?:[^;']|'(?:[^']|'')*')*);")
-_TOLERANCE = re.compile(r"\b(\w+_TOLERANCE)\s*\(\s*'((?:[^']|'')*)'\s*,\s*'(?:[^']|'')*'\s*,\s*#(\d+)")
-_SPECIFIC = re.compile(r"\b(\w+?_TOLERANCE)\s*\(\s*\)")
-_MEASURE = re.compile(r"\b(LENGTH|POSITIVE_LENGTH|PLANE_ANGLE)_MEASURE\s*\(\s*([-+0-9.eE]+)\s*\)\s*,\s*#(\d+)")
-_SI_PREFIX = {"MILLI": 1.0, "CENTI": 10.0, "DECI": 100.0, "MICRO": 1e-3, "KILO": 1e6}
-
-
-def step_tolerance_values(path):
-    """Geometric tolerances and their magnitudes as the file's text states them.
-
-    OCCT does not read a tolerance magnitude given as a compound entity
-    (ISO 10303-21 external mapping), which several CAD systems write; the
-    magnitude is found here by following the tolerance's third attribute to
-    its ``LENGTH_MEASURE`` and that measure's unit.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-
-    Returns
-    -------
-    list of (name, entity type, value)
-        In the order of the entity numbers; ``value`` in mm (None when the
-        magnitude or its unit cannot be read). The entity type is the
-        specific one (``FLATNESS_TOLERANCE``), also for a compound entity
-        (where it is the member without attributes).
-    """
-    text = Path(path).read_text(encoding="latin-1")
-    data = text[text.find("DATA;"):]
-    records = {int(m.group(1)): m.group(2) for m in _RECORD.finditer(data)}
-    out = []
-    for num in sorted(records):
-        body = records[num]
-        if "_TOLERANCE" not in body:
-            continue
-        m = _TOLERANCE.search(body)
-        if m is None:
-            continue
-        etype, name, ref = m.group(1), m.group(2).replace("''", "'"), int(m.group(3))
-        specific = _SPECIFIC.search(body)  # a compound's kind is its empty member
-        if specific is not None:
-            etype = specific.group(1)
-        out.append((name, etype, _measure_mm(records, ref)))
-    return out
-
-
-def _measure_mm(records, ref):
-    m = _MEASURE.search(records.get(ref, ""))
-    if m is None:
-        return None
-    factor = _unit_mm(records, int(m.group(3)))
-    return None if factor is None else float(m.group(2)) * factor
-
-
-def _unit_mm(records, ref, depth=0):
-    body = records.get(ref, "")
-    if "CONVERSION_BASED_UNIT" in body:
-        if re.search(r"'INCH'", body, re.I):
-            return INCH
-        m = re.search(r"CONVERSION_BASED_UNIT\s*\(\s*'[^']*'\s*,\s*#(\d+)", body)
-        if m and depth < 3:
-            return _measure_mm(records, int(m.group(1)))
-        return None
-    m = re.search(r"SI_UNIT\s*\(\s*(?:\.(\w+)\.|\$)\s*,\s*\.METRE\.", body)
-    if m:
-        return 1000.0 if m.group(1) is None else _SI_PREFIX.get(m.group(1))
-    return None

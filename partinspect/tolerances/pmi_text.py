@@ -1,0 +1,94 @@
+"""The PMI of a STEP file as text: a listing of its items and an editable spec file.
+
+The listing is what ``inspect features PART.step --pmi`` prints; the spec
+text is what ``inspect spec`` writes: `partinspect.tolerances.spec.dump_spec`'s
+YAML, headed by comments naming each limit's PMI item and every item not
+evaluated, so that `load_spec` reads it back to the same spec.
+"""
+
+import math
+
+__all__ = ["describe_item", "pmi_listing", "spec_yaml"]
+
+
+def describe_item(item):
+    """``diameter 35 +0/-0.2 mm`` or ``position 0.75 mm | A | B | C``."""
+    if item.kind == "datum":
+        return f"datum {item.name}"
+    if item.value is None:
+        return f"{item.type} (no value)"
+    rad = item.kind == "dimension" and item.type == "angle"
+    conv, unit = (math.degrees, "deg") if rad else (float, "mm")
+    text = f"{item.type} {conv(item.value):.6g}"
+    if item.upper is not None:
+        text += f" {conv(item.upper):+.6g}/{conv(item.lower):+.6g}"
+    text += f" {unit}"
+    extra = [m for m in item.modifiers if m in ("MMC", "LMC")]
+    if item.datums and item.kind == "tolerance":
+        text += " | " + " | ".join(item.datums)
+    return text + (f" ({', '.join(extra)})" if extra else "")
+
+
+def pmi_listing(pmi, pmi_spec, path=None):
+    """A text table of the PMI items and the features each applies to.
+
+    Parameters
+    ----------
+    pmi : partinspect.cad.pmi.Pmi
+    pmi_spec : PmiSpec
+    path : str or os.PathLike, optional
+        The STEP file, named in the heading.
+
+    Returns
+    -------
+    str
+    """
+    from pathlib import Path
+
+    name = Path(path).name if path else "the STEP file"
+    if not pmi and not pmi.unread:
+        return f"{name}: no semantic PMI (the ISO 2768 general tolerances or a spec file apply)"
+    skipped = {n.item: n.reason for n in pmi_spec.not_evaluated}
+    rows = []
+    for item in pmi.items:
+        applies = pmi_spec.applies_to.get(item.id)
+        target = ", ".join(_compact(applies)) if applies else "not evaluated: " + skipped.get(item.id, "")
+        rows.append((item.id, describe_item(item), item.name if item.kind != "datum" else "", target))
+    for n in pmi_spec.not_evaluated:
+        if n.item not in {i.id for i in pmi.items}:
+            rows.append(("-", n.type, n.item, "not evaluated: " + n.reason))
+    widths = [max(len(r[k]) for r in rows + [("id", "PMI", "name", "")]) for k in range(3)]
+    lines = [f"{name}: {len(pmi.of_kind('dimension'))} dimensions, {len(pmi.of_kind('tolerance'))} geometric "
+             f"tolerances, {len(pmi.of_kind('datum'))} datums; {len(pmi_spec.applies_to)} items on edges, "
+             f"{len(pmi_spec.not_evaluated)} not evaluated",
+             "  ".join(h.ljust(w) for h, w in zip(("id", "PMI", "name"), widths)) + "  applies to"]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(r[:3], widths)) + "  " + r[3] for r in rows]
+    return "\n".join(lines)
+
+
+def _compact(ids, limit=8):
+    ids = list(ids)
+    return ids if len(ids) <= limit else ids[:limit] + [f"... ({len(ids)} features)"]
+
+
+def spec_yaml(pmi_spec, pmi, part_name):
+    """The PMI's spec as YAML text to edit, its sources and omissions as comments.
+
+    The comments name, for every characteristic, the PMI item it comes
+    from, and list what is not evaluated with the reason; the YAML itself is
+    `partinspect.tolerances.spec.dump_spec`'s, so `load_spec` reads it back
+    to the same spec.
+    """
+    from partinspect.tolerances.spec import dump_spec, format_loc
+
+    by_id = {i.id: i for i in pmi.items}
+    head = [f"# Tolerance spec from the semantic PMI of {part_name} (written by `inspect spec`).",
+            "# Edit freely: a spec file overrides the PMI item by item.", "#", "# source of each limit:"]
+    for loc, item_id in pmi_spec.sources.items():
+        item = by_id.get(item_id)
+        what = describe_item(item) if item else item_id
+        head.append(f"#   {format_loc(loc)}: PMI {item_id} ({what}{', ' + repr(item.name) if item and item.name else ''})")
+    if pmi_spec.not_evaluated:
+        head += ["#", "# not evaluated by edge measurement:"]
+        head += [f"#   {n.item} ({n.type}): {n.reason}" for n in pmi_spec.not_evaluated]
+    return "\n".join(head) + "\n" + dump_spec(pmi_spec.spec())
