@@ -24,9 +24,11 @@ flatness, straightness  straightness of each straight boundary edge of the
                         plane, zone = the tolerance
 profile of a line       profile of each boundary edge
 perpendicularity,       ``angles``: a boundary line of the toleranced plane
-angularity (plane)      running along the datum plane's normal against a
-                        line of the datum plane, nominal from the CAD model,
-                        limits +- atan(t / L) over the line's length L
+angularity (plane)      across the line where it meets the datum plane,
+                        against a datum plane line across it too (their
+                        angle is the dihedral angle), nominal from the CAD
+                        model, limits +- atan(t / L) over the line's
+                        length L
 ======================  ======================================================
 
 Everything else (surface profile, parallelism, symmetry, run-out, an
@@ -359,22 +361,26 @@ class _Mapper:
         if not dplanes:
             self.skip(item.id, item.type, f"its datum {datum or '(none)'} is not a plane attached to the model")
             return
-        normal = np.asarray(dplanes[0].normal, float)
-        dlines = self.lines(dplanes)
+        # Both edges must run across the planes' line of intersection: the
+        # angle between them is then the dihedral angle the tolerance bounds.
+        n_face, n_datum = np.asarray(planes[0].normal, float), np.asarray(dplanes[0].normal, float)
+        axis = np.cross(n_face, n_datum)
+        if np.linalg.norm(axis) < _ALONG:
+            self.skip(item.id, item.type, "the face is parallel to its datum plane: parallel edges have no angle")
+            return
+        axis /= np.linalg.norm(axis)
+
+        def across(lines):
+            return [f for f in lines if abs(np.asarray(f.direction) @ axis) < _ALONG]
+
         best = None
-        for line in self.lines(planes):
-            d = np.asarray(line.direction)
-            if item.type == "perpendicularity" and np.linalg.norm(np.cross(d, normal)) > _ALONG:
-                continue
-            for dl in dlines:
-                try:
-                    line_angle(line.start, line.end, dl.start, dl.end)
-                except ValueError:
-                    continue
+        for line in across(self.lines(planes)):
+            for dl in across(self.lines(dplanes)):
                 if best is None or (line.length, dl.length) > (best[0].length, best[1].length):
                     best = (line, dl)
         if best is None:
-            self.skip(item.id, item.type, "no edge of the face runs along its datum's normal, or no datum edge")
+            self.skip(item.id, item.type, "no edge of the face, or none of its datum plane, runs across the line "
+                      "where the two planes meet")
             return
         line, dl = best
         half = math.degrees(math.atan(item.value / line.length))
