@@ -249,8 +249,6 @@ class _Mapper:
             return
         if item.type in ("diameter", "radius"):
             rims = self.rims(faces)
-            kind = "circle" if item.type == "diameter" else None
-            rims = [f for f in rims if kind is None or f.kind in ("circle", "arc")]
             if not rims:
                 self.skip(item.id, item.type, "no circular edge bounds the toleranced cylinder")
                 return
