@@ -38,6 +38,7 @@ def test_spec_writes_a_spec_that_loads_back(tmp_path, capsys):
     assert len(diam) == 14 and sum((d.upper, d.lower) == (0.0, -0.2) for d in diam.values()) == 2
     assert "PMI dim-4 (diameter 35 +0/-0.2 mm" in text
     assert "# not evaluated by edge measurement:" in text and "gtol-3 (profile_of_surface)" in text
+    assert "PMI datum(s) A." in text and spec.datums  # ctc_01: only A is attached to a face
     assert list(tmp_path.iterdir()) == [out]  # atomic: no temporary left
 
 

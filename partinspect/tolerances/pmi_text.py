@@ -88,6 +88,10 @@ def spec_yaml(pmi_spec, pmi, part_name):
         item = by_id.get(item_id)
         what = describe_item(item) if item else item_id
         head.append(f"#   {format_loc(loc)}: PMI {item_id} ({what}{', ' + repr(item.name) if item and item.name else ''})")
+    if pmi_spec.data.get("datums"):
+        letters = [i.name for i in pmi.items if i.kind == "datum" and i.id in pmi_spec.applies_to]
+        head += ["#", f"# datums: the edges of PMI datum(s) {', '.join(letters)}. They alone drive the alignment, so",
+                 "# they must be in view; delete the key to align on every feature."]
     if pmi_spec.not_evaluated:
         head += ["#", "# not evaluated by edge measurement:"]
         head += [f"#   {n.item} ({n.type}): {n.reason}" for n in pmi_spec.not_evaluated]
