@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from partinspect.vision.noise import estimate_noise
+from partinspect.vision.noise import QUANTISATION_STD, estimate_noise
 
 __all__ = [
     "EdgePoints",
@@ -49,6 +49,7 @@ __all__ = [
     "gradient_noise_std",
     "edge_error_correlation",
     "background_shift_std",
+    "point_noise_scale",
 ]
 
 # Variance of a point's position along the edge, px^2. The along-edge
@@ -143,6 +144,11 @@ class EdgePoints:
         background gradient vectors on the two sides: a scale for what the
         first-order ``background_shift`` may miss (points beside a shaded
         surface), see :func:`background_gradients`.
+    noise_scale : ndarray, shape (N,) or None
+        The image noise's standard deviation at each point over ``noise``,
+        where it depends on the grey level (photon noise, pixel response
+        non-uniformity; :func:`partinspect.vision.noise.noise_level_function`);
+        None where it is the same everywhere. ``cov`` includes it.
     """
 
     xy: np.ndarray
@@ -157,6 +163,7 @@ class EdgePoints:
     grad_noise: float
     background_shift: np.ndarray | None = None
     background_bound: np.ndarray | None = None
+    noise_scale: np.ndarray | None = None
 
     def __len__(self):
         return len(self.xy)
@@ -168,7 +175,8 @@ class EdgePoints:
 
     def take(self, index):
         """The subset of points selected by an index array or boolean mask."""
-        opt = [None if a is None else a[index] for a in (self.background_shift, self.background_bound)]
+        opt = [None if a is None else a[index] for a in (self.background_shift, self.background_bound,
+                                                           self.noise_scale)]
         return EdgePoints(self.xy[index], self.normal[index], self.strength[index], self.cov[index],
                           self.pixel[index], self.width[index], self.shape, self.sigma, self.noise,
                           self.grad_noise, *opt)
@@ -452,10 +460,44 @@ def background_shift_std(edges, index):
     ndarray, shape (len(index),)
     """
     W = _step_width(edges.width)
-    return W * np.sqrt(BACKGROUND_NOISE) * edges.grad_noise / (edges.strength[index] * np.sqrt(2.0 * np.pi))
+    grad_noise = edges.grad_noise if edges.noise_scale is None else edges.grad_noise * edges.noise_scale[index]
+    return W * np.sqrt(BACKGROUND_NOISE) * grad_noise / (edges.strength[index] * np.sqrt(2.0 * np.pi))
 
 
-def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0, k_high=8.0):
+def point_noise_scale(image, pixel, noise_level, sigma=1.0):
+    """The image noise's standard deviation at edge points, relative to ``noise_level.noise``.
+
+    A point's position is read through the derivative filter from both
+    sides of the step, whose weights are symmetric about it, so its noise
+    variance is the filter-weighted mean of the pixels' variances; with a
+    variance linear in the grey level and the square of it (photon noise,
+    PRNU), that is the variance function at the local means of ``I`` and
+    ``I^2`` over the filter's Gaussian footprint.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+    pixel : ndarray, shape (N, 2), int
+        (row, col) of the points.
+    noise_level : NoiseLevel
+    sigma : float
+        The edge filter's scale, px.
+
+    Returns
+    -------
+    ndarray, shape (N,) or None
+        None where the noise does not depend on the grey level.
+    """
+    if not noise_level.signal_dependent:
+        return None
+    f = np.asarray(image, np.float64)
+    m1 = cv2.GaussianBlur(f, (0, 0), sigma)[pixel[:, 0], pixel[:, 1]]
+    m2 = cv2.GaussianBlur(f * f, (0, 0), sigma)[pixel[:, 0], pixel[:, 1]]
+    var = noise_level.b + noise_level.a * m1 + noise_level.c * m2
+    return np.sqrt(np.maximum(var, QUANTISATION_STD ** 2)) / noise_level.noise
+
+
+def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0, k_high=8.0, noise_level=None):
     """Sub-pixel edge points with position covariances.
 
     Parameters
@@ -472,6 +514,11 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
         Default ``k_low`` and ``k_high`` times the gradient noise std: with
         no edge, the magnitude is Rayleigh-distributed and exceeds k std
         with probability exp(-k^2 / 2) (3e-4 for k = 4, 1e-14 for k = 8).
+    noise_level : NoiseLevel, optional
+        The noise as a function of the grey level
+        (:func:`partinspect.vision.noise.noise_level_function`); each
+        point's covariance then follows the noise at its grey level
+        (:func:`point_noise_scale`), while the thresholds keep ``noise``.
 
     Returns
     -------
@@ -545,13 +592,16 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
     xy = np.column_stack([cols + off * ex, rows + off * ey])
 
     var_n = noise * noise * _normal_variance(J, n_ax, sigma)
+    pixel = np.column_stack([rows, cols]).astype(np.int32)
+    scale = None if noise_level is None else point_noise_scale(img, pixel, noise_level, sigma)
+    if scale is not None:
+        var_n = var_n * scale * scale
     t = np.column_stack([-nrm[:, 1], nrm[:, 0]])
     cov = var_n[:, None, None] * nrm[:, :, None] * nrm[:, None, :] \
         + ALONG_EDGE_VARIANCE * t[:, :, None] * t[:, None, :]
-    pixel = np.column_stack([rows, cols]).astype(np.int32)
     # Along the axis a Gaussian profile of std w reads as std w / |n . e|,
     # and the second difference of its logarithm is -(n . e)^2 / w^2.
     Dl = np.log(a) - 2.0 * np.log(b) + np.log(c)
     width = np.sqrt(np.maximum(-n_ax2 / np.minimum(Dl, -1e-12), 0.0))
-    shift, bound = background_gradients(gx, gy, xy, nrm, m, width, sg)
-    return EdgePoints(xy, nrm, m, cov, pixel, width, (H, W), float(sigma), noise, sg, shift, bound)
+    shift, bound = background_gradients(gx, gy, xy, nrm, m, width, sg if scale is None else sg * scale)
+    return EdgePoints(xy, nrm, m, cov, pixel, width, (H, W), float(sigma), noise, sg, shift, bound, scale)

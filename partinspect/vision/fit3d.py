@@ -38,7 +38,7 @@ from partinspect.frames import plane_basis
 from partinspect.vision.fitting import fit_ellipse, information_matrices, trace_r2
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
-           "circle_consistency", "minimal_residuals"]
+           "circle_consistency", "minimal_residuals", "circle_residuals_at"]
 
 
 @dataclass(frozen=True)
@@ -417,6 +417,27 @@ def fit_circle_3d(views, center0, normal0, radius0):
         theta[:3], n, float(theta[5]), cov[:3, :3], normal_cov, float(np.sqrt(cov[5, 5])), cov, float(r @ r),
         int(r.size - 6), cov_sys
     )
+
+
+def circle_residuals_at(views, fit):
+    """The weighted residuals of a circle fit's views at its solution, and their Jacobian.
+
+    Parameters
+    ----------
+    views : sequence of View
+    fit : Circle3D
+
+    Returns
+    -------
+    r : ndarray, shape (N,)
+        Each point's Sampson distance over its ``total_sigma``, views stacked.
+    J : ndarray, shape (N, 6)
+        Their derivatives by (centre, two tilts of the normal, radius).
+    """
+    e1, e2 = plane_basis(fit.normal).T
+    res = _circle_residuals(views, fit.normal, e1, e2)
+    theta = np.r_[fit.center, 0.0, 0.0, fit.radius]
+    return res(theta), _jacobian(res, theta, 1e-6 * np.maximum(1.0, np.abs(theta)))
 
 
 def minimal_residuals(fit, kind, views):

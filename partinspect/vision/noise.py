@@ -13,15 +13,25 @@ References
 .. [2] Tai, S.-C., Yang, S.-M. (2008). A fast method for image noise
        estimation using Laplacian operator and adaptive edge detection.
        ISCCSP 2008: excluding edge pixels before applying [1].
+.. [3] Foi, A., Trimeche, M., Katkovnik, V., Egiazarian, K. (2008).
+       Practical Poissonian-Gaussian noise modeling and fitting for
+       single-image raw-data. IEEE Trans. Image Process. 17(10),
+       1737-1754: the noise level function from local means and
+       variances of one image.
+.. [4] EMVA Standard 1288, release 4.0 (2021): the linear camera model
+       (photon noise, read noise, quantisation) and the pixel response
+       non-uniformity (PRNU), a gain that differs from pixel to pixel.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy import special
 
-__all__ = ["estimate_noise", "QUANTISATION_STD"]
+__all__ = ["estimate_noise", "QUANTISATION_STD", "NoiseLevel", "noise_level_function"]
 
 # Immerkaer's mask: the difference of two Laplacians, zero on any quadratic.
 _MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
@@ -153,3 +163,152 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
         # pixel still carries the rounding error of 1/sqrt(12) grey levels.
         sigma = max(sigma, QUANTISATION_STD)
     return sigma
+
+
+NLF_SIGNIFICANCE = 13.8
+"""Chi-square (2 degrees of freedom, p = 0.001) by which the grey-dependent
+noise model must fit the binned variances better than a constant before it
+replaces the constant: noise that does not depend on the grey level stays
+one number, as :func:`estimate_noise` gives it."""
+NLF_BINS = 12
+"""Bins of grey level the noise's variance is read in (fewer on small images)."""
+NLF_MIN_PIXELS = 300
+"""Least pixels per bin: the variance's relative standard error is
+``sqrt(2 / n)``, 8 % at 300."""
+
+
+@dataclass(frozen=True)
+class NoiseLevel:
+    """Noise variance as a function of the grey level, ``var(I) = b + a I + c I^2``.
+
+    ``b``: read noise and quantisation; ``a``: photon (shot) noise, the
+    gain in grey levels per electron; ``c``: the square of the pixel
+    response non-uniformity (a gain that differs from pixel to pixel acts
+    on one image as noise proportional to the grey level) [3]_ [4]_.
+
+    Attributes
+    ----------
+    b, a, c : float
+        Coefficients, grey levels^2, grey levels, and 1.
+    noise : float
+        :func:`estimate_noise` of the same image, grey levels: the constant
+        the rest of the chain uses (thresholds) and what ``var`` equals
+        when ``signal_dependent`` is False.
+    signal_dependent : bool
+        Whether the grey-dependent model was significantly better than a
+        constant (``NLF_SIGNIFICANCE``).
+    """
+
+    b: float
+    a: float
+    c: float
+    noise: float
+    signal_dependent: bool
+
+    def std(self, grey):
+        """Noise standard deviation at grey level(s) ``grey``, grey levels."""
+        grey = np.asarray(grey, dtype=np.float64)
+        if not self.signal_dependent:
+            return np.full(grey.shape, self.noise)
+        return np.sqrt(np.maximum(self.b + self.a * grey + self.c * grey * grey, QUANTISATION_STD ** 2))
+
+
+def _bin_variances(resp, grey, n_bins):
+    """Per bin of local grey level: (mean grey, mean grey^2, noise variance, pixel count).
+
+    Each bin's variance is the truncated second moment of the Immerkaer
+    responses, as in :func:`estimate_noise` (robust to the few edge pixels
+    the mask let through).
+    """
+    edges = np.unique(np.quantile(grey, np.linspace(0.0, 1.0, n_bins + 1)))
+    idx = np.clip(np.searchsorted(edges, grey, side="right") - 1, 0, max(len(edges) - 2, 0))
+    out = []
+    for k in range(max(len(edges) - 1, 1)):
+        sel = idx == k
+        n = int(np.count_nonzero(sel))
+        if n < NLF_MIN_PIXELS:
+            continue
+        r2 = (resp[sel].astype(np.float64) / _MASK_NORM) ** 2
+        var = float(np.median(r2)) / 0.4549364231195724  # median of chi-square(1)
+        for _ in range(5):
+            below = r2 < 9.0 * var
+            if not below.any():
+                break
+            var = float(r2[below].mean() / _truncated_variance_factor(3.0))
+        g = grey[sel].astype(np.float64)
+        out.append((g.mean(), (g * g).mean(), var, n))
+    return np.array(out).reshape(-1, 4)
+
+
+def _weighted_fit(design, v, w):
+    """Non-negative weighted least squares of v on the columns of design; (coefficients, chi-square)."""
+    from scipy.optimize import nnls
+
+    sw = np.sqrt(w)
+    coef, _ = nnls(design * sw[:, None], v * sw)
+    return coef, float(np.sum(w * (design @ coef - v) ** 2))
+
+
+def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
+    """The image noise's variance as a function of the grey level, from the image itself.
+
+    Immerkaer's responses [1]_ on a grid of every third pixel (so no two
+    share a pixel and they are independent) away from edges and saturated
+    pixels, grouped by the local mean grey (3 x 3, the mask's support) into
+    ``n_bins`` bins of equal count; each bin's robust variance; then the
+    non-negative weighted fit of ``b + a I + c I^2`` to them (weights from
+    each variance's own sampling variance, ``2 var^2 / n``) [3]_. The
+    model is kept only if it beats a constant by ``NLF_SIGNIFICANCE``:
+    a sensor with grey-independent noise gets the constant back.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W) or (H, W, C)
+    noise : float, optional
+        :func:`estimate_noise` of the image, if already known.
+    edge_k : float
+        Gradient significance for the edge mask, in local noise standard
+        deviations (as in :func:`estimate_noise`).
+    n_bins : int
+
+    Returns
+    -------
+    NoiseLevel
+    """
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    noise = float(estimate_noise(img)) if noise is None else float(noise)
+    constant = NoiseLevel(noise * noise, 0.0, 0.0, noise, False)
+    top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
+    f = img.astype(np.float32)
+    sub = (slice(1, -1, 3), slice(1, -1, 3))
+    resp = cv2.filter2D(f, cv2.CV_32F, _MASK, borderType=cv2.BORDER_REFLECT)[sub]
+    grey = cv2.blur(f, (3, 3), borderType=cv2.BORDER_REFLECT)[sub]
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
+    grad_max = _max3x3_at(cv2.magnitude(gx, gy), 3)
+    valid = np.ones(resp.shape, bool)
+    if top is not None:
+        valid &= ~_max3x3_at((img == 0) | (img == top), 3)
+    level = constant
+    for _ in range(2):
+        # The edge mask's threshold follows the noise at each pixel's grey:
+        # a bright face's larger noise must not read as edges.
+        keep = valid & ~(grad_max > edge_k * np.sqrt(12.0) * np.maximum(level.std(grey), 1e-3))
+        if np.count_nonzero(keep) < 3 * NLF_MIN_PIXELS:
+            return constant
+        # Small images get fewer, fuller bins: each variance to about 8 %.
+        bins = _bin_variances(resp[keep], grey[keep], min(n_bins, np.count_nonzero(keep) // NLF_MIN_PIXELS))
+        if len(bins) < 3:
+            return constant
+        m1, m2, v, n = bins.T
+        floor = QUANTISATION_STD ** 2 if top is not None else 0.0
+        v = np.maximum(v, floor)
+        w = n / (2.0 * v * v)
+        (b0,), chi_const = _weighted_fit(np.ones((len(v), 1)), v, w)
+        coef, chi_full = _weighted_fit(np.column_stack([np.ones_like(m1), m1, m2]), v, w)
+        if chi_const - chi_full < NLF_SIGNIFICANCE:
+            return constant
+        level = NoiseLevel(float(coef[0]), float(coef[1]), float(coef[2]), noise, True)
+    return level

@@ -30,8 +30,12 @@ per point (JCGM 100, 4.3.1: ``EDGE_BIAS_FACTOR`` times the shading's bound,
 fit weights and propagates it with the random part. The correction's own
 noise is random, correlated over :func:`correction_corr_length`, and drawn
 by the Monte Carlo (:mod:`partinspect.vision.montecarlo`); the Type B part
-is not. Lines are not corrected: an edge between two planar faces under a
-directional light has uniform grey on both sides.
+is not. How large that Type B really is depends on the optics and the
+surface, so the level the rim's own fit residuals show of it, at its
+correlation length, scales its share in the centre and normal
+(:func:`type_b_scale`, :mod:`partinspect.vision.bias_evidence`). Lines are
+not corrected: an edge between two planar faces under a directional light
+has uniform grey on both sides.
 
 Frames: 2D points in distorted pixels as detected, or ideal pixels where
 said; 3D geometry in the rig frame (left camera, mm).
@@ -61,14 +65,16 @@ from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.frames import orthonormal_frame, plane_basis
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
-from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d, minimal_residuals
+from partinspect.vision.bias_evidence import bias_evidence
+from partinspect.vision.fit3d import (View, circle_consistency, circle_residuals_at, fit_circle_3d, fit_line_3d,
+                                      minimal_residuals)
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import MAX_OUTLIER_FRACTION, ImageFeature, chauvenet_z, image_features
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
-from partinspect.vision.noise import estimate_noise
+from partinspect.vision.noise import estimate_noise, noise_level_function
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "views_of", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
+           "feature_views", "views_of", "type_b_scale", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
            "as_fitted",
            "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
@@ -459,7 +465,8 @@ def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     noise = float(estimate_noise(img))
-    edges = edge_points(img, sigma, noise=noise, **(edge_options or {}))
+    level = noise_level_function(img, noise)
+    edges = edge_points(img, sigma, noise=noise, noise_level=level, **(edge_options or {}))
     segments = segment_contours(edges, chain_edges(edges), **(segment_options or {}))
     feats = [_with_edge_data(f, edges) for f in image_features(edges, segments, K, D)]
     return ImageResult(noise, edges, segments, feats)
@@ -518,6 +525,37 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))
     return views
+
+
+def type_b_scale(views, fit):
+    """The factor on a rim's stated Type B standard uncertainties that its fit's residuals support.
+
+    The centre and normal take it (:func:`_image_param_cov`); the radius
+    and the points' error model (the form) keep the stated level, since a
+    displacement common to the whole rim leaves no residual.
+
+    ``sqrt(k^2)`` of :func:`partinspect.vision.bias_evidence.bias_evidence`
+    (the systematic displacement's observed over stated variance at its own
+    correlation length), but never below the square root of that
+    estimate's standard error: a level the residuals cannot tell from zero
+    is stated at what they could just detect, not at nothing.
+
+    Parameters
+    ----------
+    views : sequence of View
+        The fit's views with the stated Type B (``bias_scale`` 1).
+    fit : Circle3D
+
+    Returns
+    -------
+    float
+    """
+    r, J = circle_residuals_at(views, fit)
+    ev = bias_evidence(views, r, J)
+    if ev is None:
+        return 1.0
+    k2, se = ev
+    return float(np.sqrt(max(k2, se)))
 
 
 def correction_std_of(f, corr_length):
@@ -624,8 +662,16 @@ def _angular_extent(points, center, normal):
 # ------------------------------------------------------------------ the chain
 
 
-def _image_param_cov(fit, kind):
-    """The fit's covariance of (point, direction) or (center, normal, radius): (image noise, systematic)."""
+def _image_param_cov(fit, kind, type_b_scale=1.0):
+    """The fit's covariance of (point, direction) or (center, normal, radius): (image noise, systematic).
+
+    A circle's systematic part has its centre and normal rows and columns
+    multiplied by ``type_b_scale`` (:func:`type_b_scale`): what the rim's
+    residuals show of the Type B displacement's variation along the rim,
+    which moves the centre and tilts the normal. The radius keeps the
+    stated Type B: a displacement common to the whole rim moves only the
+    radius and leaves no residual to judge it by.
+    """
     if kind == "line":
         # Lines carry no systematic part (feature_views).
         C = np.zeros((6, 6))
@@ -640,7 +686,9 @@ def _image_param_cov(fit, kind):
         return C, np.zeros((6, 6))
     _, _, M = minimal_residuals(fit, kind, [])
     sys = np.zeros_like(fit.param_cov) if fit.param_cov_systematic is None else fit.param_cov_systematic
-    return M @ (fit.param_cov - sys) @ M.T, M @ sys @ M.T
+    img, sys = M @ (fit.param_cov - sys) @ M.T, M @ sys @ M.T
+    d = np.r_[np.full(6, type_b_scale), 1.0]
+    return img, sys * np.outer(d, d)
 
 
 def _on_plane(xy, K, R, T, center, normal):
@@ -740,7 +788,7 @@ def _point_errors(fl, corr, view):
     return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)))
 
 
-def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view):
+def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_scale=1.0):
     """The :class:`Feature3D` record of a matched pair's two-view fit.
 
     Parameters
@@ -761,6 +809,9 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view):
     view : View
         The left view of the fit (:func:`feature_views`): the points'
         random and systematic parts for their error model.
+    type_b_scale : float
+        What a rim's residuals show of its stated Type B (:func:`type_b_scale`),
+        applied to the centre and normal (:func:`_image_param_cov`).
 
     Returns
     -------
@@ -771,7 +822,7 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view):
         plane, cover at least 300 degrees of it.
     """
     kind = fl.kind
-    img_cov, sys_cov = _image_param_cov(fit, kind)
+    img_cov, sys_cov = _image_param_cov(fit, kind, type_b_scale)
     G = np.asarray(cal_response, float)
     cal_cov = G @ G.T
     total = img_cov + cal_cov + sys_cov
@@ -897,8 +948,9 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
             if p < MISMATCH_P:
                 return None, (f"the two images' arcs are not one circle: its fit's chi-square exceeds "
                               f"the two ellipses' by {delta:.0f} (p = {p:.1e})")
+        scale = type_b_scale(views, fit) if fl.kind == "arc" else 1.0
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
     G = calibration_responses(fit, fl.kind, views_of(fl, fr, corr_length), calib)
-    return make_feature3d(match, fl, fr, fit, corr, G, geo, views[0]), None
+    return make_feature3d(match, fl, fr, fit, corr, G, geo, views[0], scale), None
