@@ -112,8 +112,8 @@ def render_to_folder(
         ``R`` / ``R0.1`` (fillet radius, mm) or ``C0.2`` (chamfer leg): the
         rendered solid has every convex edge broken so
         (:func:`partinspect.simulate.edge_break.break_edges`); the truth's
-        features stay the sharp model's, and truth.json lists the edges
-        left sharp.
+        features stay the sharp model's, their visibility judged on the
+        sharp solid, and truth.json lists the edges left sharp.
     material : str or None
         ``matte`` (the Lambertian default), ``aluminium`` or ``steel``,
         optionally ``:SEED`` for the machining marks
@@ -168,25 +168,31 @@ def render_to_folder(
     from partinspect.cad.mesh import tessellate
 
     extra = {}
+    mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
+    rs = truth_scene = build_scene(mesh)
     if realism["edge_break"] is not None:
         from partinspect.cad.features import inventory
         from partinspect.simulate.edge_break import break_edges, mesh_min_size
 
         spec = realism["edge_break"]
         try:
-            shape, extra["edge_break"] = break_edges(shape, spec, inv if not devs else inventory(shape), say)
+            broken, extra["edge_break"] = break_edges(shape, spec, inv if not devs else inventory(shape), say)
         except ValueError as exc:
             raise InputError(step_path, f"edge break {spec.kind} {spec.size:g} mm: {exc}") from None
-        mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, min_size=mesh_min_size(spec))
-    else:
-        mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
-    rs = build_scene(mesh)
+        say("tessellating the broken solid")
+        mesh = tessellate(broken, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, min_size=mesh_min_size(spec))
+        rs = build_scene(mesh)
+        # The visibility rules look for two faces meeting at the edge; a
+        # fillet puts a third between them, so each feature's visibility is
+        # judged on the sharp solid: whether its faces are in sight and contrast.
+        extra["edge_break"]["visibility"] = "features' visibility is judged on the sharp solid"
     finish = None
     if realism["material"] is not None:
         from partinspect.simulate.material import finish as lay_finish
 
         finish = lay_finish(rs, *realism["material"])
         extra["material"] = finish.to_dict()
+        extra["material"]["visibility"] = "features' contrast is judged with the Lambertian shading"
     pitch = PIXEL_PITCH * FULL_SIZE[0] / float(image_size[0])
     if realism["defocus"] is not None:
         lens = realism["defocus"]
@@ -222,7 +228,7 @@ def render_to_folder(
             "method": "the images are made by the rig after its right camera drifted; calibration.yaml states it before",
             "rig_after_drift": {name: np.asarray(getattr(rig, name), float).tolist() for name in ("K1", "K2", "R", "T")},
         }
-    truth = make_truth(inv, devs, rs, rig, part_to_camera, settings)
+    truth = make_truth(inv, devs, truth_scene, rig, part_to_camera, settings)
 
     say(f"writing {out_dir}")
     _write(out_dir, left, right, stated, truth)

@@ -174,6 +174,33 @@ def test_a_broken_silhouette_edge_moves_by_the_predicted_amount(box, kind, size)
     assert measured == pytest.approx(predicted, abs=0.05)
 
 
+def test_a_fillet_changes_the_image_near_the_edges_only():
+    import cadquery as cq
+    from scipy import ndimage
+
+    from partinspect.simulate.edge_break import EdgeBreak, break_edges, mesh_min_size
+    from partinspect.simulate.render import render_radiance
+
+    size = (160, 120)
+    camera = _look_at(np.array([-20.0, -50.0, 60.0]), np.array([10.0, 5.0, 2.5]), 1500.0, size)
+    light = np.array([-0.3, -0.5, 0.8]) / np.linalg.norm([-0.3, -0.5, 0.8])
+    spec = EdgeBreak("fillet", 0.2)
+    box = cq.Workplane("XY").box(*BOX, centered=False).val()
+    sharp = _scene(box)
+    broken = _scene(break_edges(box, spec)[0], mesh_min_size(spec))
+    a, _ = render_radiance(sharp, *camera, size, light, psf=0.6)
+    b, _ = render_radiance(broken, *camera, size, light, psf=0.6)
+    v, u = np.mgrid[0:size[1], 0:size[0]]
+    origin, d = pixel_rays(np.stack([u.ravel(), v.ravel()], 1).astype(float), *camera)
+    label = cast(sharp, origin, d).label.reshape(v.shape)
+    edges = (np.diff(label, axis=0, append=label[-1:]) != 0) | (np.diff(label, axis=1, append=label[:, -1:]) != 0)
+    # the fillet is up to 4 px wide here, its supersampled band 1 px wider, and the PSF reaches 5 px
+    near = ndimage.binary_dilation(edges, iterations=10)
+    assert ((label >= 0) & ~near).sum() > 2000  # most of the faces' area is checked
+    assert np.abs(a - b)[~near].max() < 0.01
+    assert np.abs(a - b)[near].max() > 20
+
+
 def test_a_small_fillet_is_meshed_as_a_curve(box):
     """A 0.1 mm fillet is split into many facets across its quarter turn:
     its smooth normals then turn by at most 1/8 rad between mesh rows."""
@@ -260,6 +287,7 @@ def test_edge_spread_grows_with_the_distance_from_focus():
     mean = (lsf * x).sum(axis=1)
     var = (lsf * (x - mean[:, None]) ** 2).sum(axis=1)
     assert np.all(np.abs(mean - 39.5) < 0.01)  # the edge stays where it is
+    np.testing.assert_array_equal(defocus(image, np.zeros_like(coc)), image)  # in focus: untouched
     assert np.all(np.diff(var[::6]) > 0)
     # at the ladder's levels the spread is the disc's (anti-aliased on the pixel grid)
     rows = np.nonzero(np.isclose(coc[:, 0] % 0.5, 0) & (coc[:, 0] >= 4))[0]
@@ -420,7 +448,8 @@ def test_options_off_give_the_same_bytes_and_on_are_recorded(box_step, tmp_path)
     assert truth["photon"]["gain"] == 0.0255 and truth["photon"]["units"]["gain"] == "DN/e-"
     # the features stay the sharp model's
     before = json.loads((tmp_path / "plain" / "truth.json").read_text())
-    assert [f["nominal"] for f in truth["features"]] == [f["nominal"] for f in before["features"]]
+    # the features, their visibility included, are the sharp model's
+    assert truth["features"] == before["features"]
     assert truth["part_to_camera"] == before["part_to_camera"]
 
 
