@@ -195,7 +195,7 @@ def break_edges(shape, spec, inv=None, progress=None):
                     greedy, out = greedy + [k], trial
             kept = greedy
     if out is None:
-        raise ValueError(f"no edge can take a {spec.kind} of {spec.size:g} mm: too large for this part")
+        raise ValueError("no convex edge can take it: too large for this part")
     record = {
         "kind": spec.kind,
         "size": float(spec.size),
