@@ -137,6 +137,9 @@ def _render_parser():
     p.add_argument("--photon", metavar="FULL_WELL,GAIN,READ", default=None,
                    help="Poisson-Gaussian sensor noise and cos^4 vignetting instead of --noise: full well (e-), gain "
                    "(DN/e-), read noise (e-), e.g. 10000,0.0255,5")
+    p.add_argument("--light", metavar="X,Y,Z", default=None,
+                   help="direction towards the light in the left camera frame (default near the cameras: "
+                   "0.351,-0.084,-0.933); moves shading and highlights")
     p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
@@ -158,6 +161,13 @@ def _check_realism(args):
                 parse(value)
             except ValueError as exc:
                 raise InputError(None, f"{flag}: {exc}") from None
+    if args.light is not None:
+        from partinspect.simulate.folder import shading_with_light
+
+        try:
+            shading_with_light(args.light)
+        except ValueError as exc:
+            raise InputError(None, f"--{exc}") from None
     if args.photon is not None and args.noise is not None:
         raise InputError(None, "--noise and --photon exclude each other: --photon's noise follows the light")
 
@@ -423,6 +433,7 @@ def _run_render(args):
         material=args.material,
         defocus=args.defocus,
         photon=args.photon,
+        light=args.light,
         progress=progress,
     )
     if not args.quiet:

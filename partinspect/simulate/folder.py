@@ -15,7 +15,7 @@ from partinspect.simulate.render import SAMPLES
 from partinspect.simulate.rig import FULL_SIZE, PIXEL_PITCH
 from partinspect.cad.raycast import DEFAULT_SHADING, RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
 
-__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder"]
+__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder", "shading_with_light"]
 
 BLUR_SIGMA = 0.6
 """Optics point-spread function, pixels."""
@@ -68,6 +68,7 @@ def render_to_folder(
     material=None,
     defocus=None,
     photon=None,
+    light=None,
     progress=None,
 ):
     """Render a stereo pair of a STEP part and write it with its ground truth.
@@ -126,6 +127,10 @@ def render_to_folder(
         ``FULL_WELL,GAIN,READ`` (e-, DN/e-, e-): Poisson-Gaussian noise and
         cos^4 vignetting (:mod:`partinspect.simulate.photon`) instead of
         ``noise``, which must then be None.
+    light : str, sequence of 3 floats or None
+        Direction towards the light in the left camera's frame (``X,Y,Z``
+        text or numbers, need not be unit length); None: the default
+        light near the cameras (:class:`partinspect.cad.raycast.Shading`).
     progress : callable or None
         ``progress(message)`` at each stage.
 
@@ -149,6 +154,7 @@ def render_to_folder(
 
     say = progress or (lambda message: None)
     realism = _realism(edge_break, material, defocus, photon)
+    shading = DEFAULT_SHADING if light is None else shading_with_light(light)
     if photon is not None and noise is not None:
         raise ValueError("give either noise (grey levels) or photon (the sensor's electrons), not both")
     noise = 2.0 if noise is None and photon is None else noise
@@ -206,13 +212,13 @@ def render_to_folder(
         extra["photon"] = realism["photon"].to_dict()
     (left, right), stats = render_pair(
         rs, rig, part_to_camera, noise=noise or 0.0, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say,
-        finish=finish, lens=realism["defocus"], photon=realism["photon"], pitch=pitch,
+        shading=shading, finish=finish, lens=realism["defocus"], photon=realism["photon"], pitch=pitch,
     )
     if "defocus" in extra:
         extra["defocus"]["coc_px"] = {name: stats[name].pop("coc_px") for name in ("left", "right")}
 
     say("computing the ground truth")
-    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(mesh.faces))
+    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(mesh.faces), shading)
     if finish is not None:
         settings["shading"]["model"] = "lambertian + cook-torrance (see material)"
     if "edge_break" in extra:
@@ -228,7 +234,7 @@ def render_to_folder(
             "method": "the images are made by the rig after its right camera drifted; calibration.yaml states it before",
             "rig_after_drift": {name: np.asarray(getattr(rig, name), float).tolist() for name in ("K1", "K2", "R", "T")},
         }
-    truth = make_truth(inv, devs, truth_scene, rig, part_to_camera, settings)
+    truth = make_truth(inv, devs, truth_scene, rig, part_to_camera, settings, shading)
 
     say(f"writing {out_dir}")
     _write(out_dir, left, right, stated, truth)
@@ -275,7 +281,20 @@ def _load_part(step_path, deviations, say):
     return inv, devs, shape, bounds_of(nominal)
 
 
-def _settings(step_path, rig, noise, seed, distortion, stats, triangles):
+def shading_with_light(light):
+    """The default shading with the light moved to ``light`` (text ``X,Y,Z`` or 3 numbers, rig frame)."""
+    from dataclasses import replace
+
+    try:
+        v = [float(x) for x in (light.split(",") if isinstance(light, str) else light)]
+        if len(v) != 3 or not np.isfinite(v).all() or np.linalg.norm(v) == 0:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ValueError(f"light: expected X,Y,Z, a direction towards the light in the left camera frame, got {light!r}") from None
+    return replace(DEFAULT_SHADING, light=tuple(v))
+
+
+def _settings(step_path, rig, noise, seed, distortion, stats, triangles, shading=DEFAULT_SHADING):
     """truth.json's "settings": everything the render was made with."""
     return {
         "part": step_path.name,
@@ -296,10 +315,10 @@ def _settings(step_path, rig, noise, seed, distortion, stats, triangles):
         },
         "shading": {
             "model": "lambertian",
-            "light_direction_rig": list(DEFAULT_SHADING.direction()),
-            "ambient": DEFAULT_SHADING.ambient,
-            "albedo": DEFAULT_SHADING.albedo,
-            "background": DEFAULT_SHADING.background,
+            "light_direction_rig": list(shading.direction()),
+            "ambient": shading.ambient,
+            "albedo": shading.albedo,
+            "background": shading.background,
         },
         "tessellation": {
             "tolerance": RENDER_TOLERANCE,

@@ -435,7 +435,7 @@ def test_options_off_give_the_same_bytes_and_on_are_recorded(box_step, tmp_path)
     assert not {"edge_break", "material", "defocus", "photon"} & set(plain)
 
     render_to_folder(box_step, tmp_path / "real", seed=2, image_size=size, edge_break="0.2",
-                            material="steel:3", defocus="2.8,380", photon="10000,0.0255,5")
+                            material="steel:3", defocus="2.8,380", photon="10000,0.0255,5", light="0,-1,-1")
     truth = json.loads((tmp_path / "real" / "truth.json").read_text())
     assert truth["noise"] is None
     assert truth["edge_break"]["kind"] == "fillet" and truth["edge_break"]["size"] == 0.2
@@ -446,6 +446,7 @@ def test_options_off_give_the_same_bytes_and_on_are_recorded(box_step, tmp_path)
     lo, hi = truth["defocus"]["coc_px"]["left"]
     assert 0 <= lo < hi
     assert truth["photon"]["gain"] == 0.0255 and truth["photon"]["units"]["gain"] == "DN/e-"
+    np.testing.assert_allclose(truth["shading"]["light_direction_rig"], [0, -0.5 ** 0.5, -0.5 ** 0.5])
     # the features stay the sharp model's
     before = json.loads((tmp_path / "plain" / "truth.json").read_text())
     # the features, their visibility included, are the sharp model's
@@ -462,6 +463,7 @@ def test_options_off_give_the_same_bytes_and_on_are_recorded(box_step, tmp_path)
     (["--photon", "1000,0.1"], "FULL_WELL,GAIN,READ"),
     (["--photon", "1000,-0.1,2"], "gain"),
     (["--photon", "1000,0.1,2", "--noise", "1"], "exclude"),
+    (["--light", "0,0"], "--light"),
 ])
 def test_bad_realism_values_are_one_line_exit_2(cube_step, tmp_path, capsys, args, words):
     from partinspect.cli import main
