@@ -124,6 +124,7 @@ def test_an_edge_the_part_cannot_take_is_reported_the_rest_broken(box):
     unbroken = sorted(u["feature"] for u in record["unbroken"])
     assert unbroken == ["circle-1", "circle-2"]
     assert record["broken"] == 12
+    assert broken.isValid() and broken.Volume() < box.Volume()
     cube = cq.Workplane("XY").box(4, 4, 4).val()
     with pytest.raises(ValueError, match="too large"):
         break_edges(cube, EdgeBreak("fillet", 5.0))
@@ -297,7 +298,7 @@ def test_edge_spread_grows_with_the_distance_from_focus():
 def test_depth_map_is_the_camera_z_of_the_surface(box):
     from partinspect.simulate.defocus import depth_map
 
-    K, D, R, t, C = _camera_above_edge(np.radians(50.0), 120.0, f=2000.0, size=(80, 60))
+    K, D, R, t, _ = _camera_above_edge(np.radians(50.0), 120.0, f=2000.0, size=(80, 60))
     scene = _scene(box)
     depth = depth_map(scene, K, D, R, t, (80, 60))
     v, u = np.mgrid[0:60, 0:80]
@@ -386,7 +387,6 @@ def test_left_and_right_see_a_metal_face_differently_a_matte_one_alike(box):
 def test_machining_marks_are_grooves_of_the_stated_period(box):
     """Along a plane face's groove normal the grey oscillates with the stated
     period; across it, it does not; a pixel as wide as a period clamps them away."""
-    from partinspect.cad.raycast import Hits
     from partinspect.simulate.material import MATERIALS, finish, shade_material
 
     scene = _scene(box)
@@ -408,7 +408,7 @@ def test_machining_marks_are_grooves_of_the_stated_period(box):
         assert np.all(hits.label == top)
         return s, shade_material(scene, hits, C, d, light, Shading(), fin, pixel_angle).astype(float)
 
-    s, along = greys(g, 1e-7)
+    _, along = greys(g, 1e-7)
     spectrum = np.abs(np.fft.rfft(along - along.mean()))
     assert np.argmax(spectrum) == 4  # four periods in the sample
     assert along.std() > 1.0
@@ -429,7 +429,7 @@ def test_options_off_give_the_same_bytes_and_on_are_recorded(box_step, tmp_path)
 
     size = (320, 256)
     plain = render_to_folder(box_step, tmp_path / "plain", seed=2, image_size=size)
-    matte = render_to_folder(box_step, tmp_path / "matte", seed=2, image_size=size, material="matte")
+    render_to_folder(box_step, tmp_path / "matte", seed=2, image_size=size, material="matte")
     for name in ("images/left.png", "images/right.png", "truth.json"):
         assert (tmp_path / "plain" / name).read_bytes() == (tmp_path / "matte" / name).read_bytes()
     assert not {"edge_break", "material", "defocus", "photon"} & set(plain)
