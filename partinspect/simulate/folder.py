@@ -173,43 +173,11 @@ def render_to_folder(
     say("tessellating")
     from partinspect.cad.mesh import tessellate
 
-    extra = {}
     mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
-    rs = truth_scene = build_scene(mesh)
-    if realism["edge_break"] is not None:
-        from partinspect.cad.features import inventory
-        from partinspect.simulate.edge_break import break_edges, mesh_min_size
-
-        spec = realism["edge_break"]
-        try:
-            broken, extra["edge_break"] = break_edges(shape, spec, inv if not devs else inventory(shape), say)
-        except ValueError as exc:
-            raise InputError(step_path, f"edge break {spec.kind} {spec.size:g} mm: {exc}") from None
-        say("tessellating the broken solid")
-        mesh = tessellate(broken, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, min_size=mesh_min_size(spec))
-        rs = build_scene(mesh)
-        # The visibility rules look for two faces meeting at the edge; a
-        # fillet puts a third between them, so each feature's visibility is
-        # judged on the sharp solid: whether its faces are in sight and contrast.
-        extra["edge_break"]["visibility"] = "features' visibility is judged on the sharp solid"
-    finish = None
-    if realism["material"] is not None:
-        from partinspect.simulate.material import finish as lay_finish
-
-        finish = lay_finish(rs, *realism["material"])
-        extra["material"] = finish.to_dict()
-        extra["material"]["visibility"] = "features' contrast is judged with the Lambertian shading"
+    truth_scene = build_scene(mesh)
+    rs, finish, extra = _real_part(step_path, shape, inv if not devs else None, truth_scene, realism, say)
     pitch = PIXEL_PITCH * FULL_SIZE[0] / float(image_size[0])
-    if realism["defocus"] is not None:
-        lens = realism["defocus"]
-        extra["defocus"] = {
-            "f_number": lens.f_number, "focus": lens.focus, "pixel_pitch": pitch,
-            "focal_length": [float(rig.K1[0, 0]) * pitch, float(rig.K2[0, 0]) * pitch],
-            "model": "thin lens: blur circle c = (f/N) f |z - z_f| / (z (z_f - f)) / pitch px, z the surface depth "
-                     "seen by each pixel centre; a uniform disc, levels 0.5 px apart blended linearly, after the optics PSF",
-        }
-    if realism["photon"] is not None:
-        extra["photon"] = realism["photon"].to_dict()
+    extra.update(_real_camera(realism, rig, pitch))
     (left, right), stats = render_pair(
         rs, rig, part_to_camera, noise=noise or 0.0, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say,
         shading=shading, finish=finish, lens=realism["defocus"], photon=realism["photon"], pitch=pitch,
@@ -218,11 +186,11 @@ def render_to_folder(
         extra["defocus"]["coc_px"] = {name: stats[name].pop("coc_px") for name in ("left", "right")}
 
     say("computing the ground truth")
-    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(mesh.faces), shading)
+    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(rs.triangles), shading)
     if finish is not None:
         settings["shading"]["model"] = "lambertian + cook-torrance (see material)"
     if "edge_break" in extra:
-        settings["tessellation"]["min_size"] = mesh_min_size(spec)
+        settings["tessellation"]["min_size"] = extra["edge_break"].pop("mesh_min_size")
     settings.update(extra)
     stated = calibrated
     if calib_error is not None:
@@ -259,6 +227,60 @@ def _realism(edge_break, material, defocus, photon):
     if photon is not None and not isinstance(photon, PhotonSensor):
         out["photon"] = parse_photon(photon)
     return out
+
+
+def _real_part(step_path, shape, inv, scene, realism, say):
+    """The scene to render, its metal finish and their truth.json records.
+
+    ``scene`` is the sharp solid's; with an edge break, the broken solid's
+    scene is made and returned instead (``inv``: the shape's inventory, or
+    None to make it).
+    """
+    from partinspect.cad.raycast import build_scene
+
+    extra, finish = {}, None
+    spec = realism["edge_break"]
+    if spec is not None:
+        from partinspect.cad.features import inventory
+        from partinspect.cad.mesh import tessellate
+        from partinspect.simulate.edge_break import break_edges, mesh_min_size
+
+        try:
+            broken, extra["edge_break"] = break_edges(shape, spec, inv if inv is not None else inventory(shape), say)
+        except ValueError as exc:
+            raise InputError(step_path, f"edge break {spec.kind} {spec.size:g} mm: {exc}") from None
+        say("tessellating the broken solid")
+        extra["edge_break"]["mesh_min_size"] = mesh_min_size(spec)
+        scene = build_scene(tessellate(broken, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE,
+                                       min_size=mesh_min_size(spec)))
+        # The visibility rules look for two faces meeting at the edge; a
+        # fillet puts a third between them, so each feature's visibility is
+        # judged on the sharp solid: whether its faces are in sight and contrast.
+        extra["edge_break"]["visibility"] = "features' visibility is judged on the sharp solid"
+    if realism["material"] is not None:
+        from partinspect.simulate.material import finish as lay_finish
+
+        finish = lay_finish(scene, *realism["material"])
+        extra["material"] = finish.to_dict()
+        extra["material"]["visibility"] = "features' contrast is judged with the Lambertian shading"
+    return scene, finish, extra
+
+
+def _real_camera(realism, rig, pitch):
+    """truth.json's records of the lens's depth of field and the photon sensor."""
+    extra = {}
+    lens = realism["defocus"]
+    if lens is not None:
+        extra["defocus"] = {
+            "f_number": lens.f_number, "focus": lens.focus, "pixel_pitch": pitch,
+            "focal_length": [float(rig.K1[0, 0]) * pitch, float(rig.K2[0, 0]) * pitch],
+            "model": "thin lens: blur circle c = (f/N) f |z - z_f| / (z (z_f - f)) / pitch px, z the surface depth "
+                     "seen by each pixel centre; a uniform disc, levels 0.5 px apart blended linearly, after the "
+                     "optics PSF",
+        }
+    if realism["photon"] is not None:
+        extra["photon"] = realism["photon"].to_dict()
+    return extra
 
 
 def _load_part(step_path, deviations, say):
