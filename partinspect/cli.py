@@ -119,7 +119,8 @@ def _render_parser():
         help="RX,RY,RZ[,TX,TY,TZ]: degrees about the part's bounding-box centre, then its position in mm in "
         "the left camera frame; or a JSON file with part_to_camera (default: a tilted view of the part)",
     )
-    p.add_argument("--noise", metavar="SIGMA", type=float, default=2.0, help="sensor noise, grey levels (default 2)")
+    p.add_argument("--noise", metavar="SIGMA", type=float, default=None,
+                   help="sensor noise, grey levels (default 2; not with --photon)")
     p.add_argument("--seed", metavar="S", type=int, default=0, help="noise seed (default 0)")
     p.add_argument(
         "--deviate",
@@ -137,10 +138,51 @@ def _render_parser():
                    help="render with the right camera drifted after calibration: shift=PX (its principal point moved "
                    "down) or roll=PX (turned about its axis, PX at the image's side edges); calibration.yaml states "
                    "the rig before")
+    p.add_argument("--edge-break", metavar="R|C", default=None,
+                   help="render every convex edge rounded by R mm (0.1 or R0.1) or chamfered (C0.2), as machined "
+                   "(ISO 13715); the STEP file stays sharp, truth.json lists edges that could not be broken")
+    p.add_argument("--material", metavar="NAME[:SEED]", default=None,
+                   help="matte (default, Lambertian), aluminium (milled) or steel (ground): a microfacet highlight "
+                   "and seeded machining marks")
+    p.add_argument("--defocus", metavar="N,FOCUS_MM", default=None,
+                   help="thin lenses of f-number N focused at FOCUS_MM from each camera: the blur grows with depth "
+                   "(e.g. 8,400)")
+    p.add_argument("--photon", metavar="FULL_WELL,GAIN,READ", default=None,
+                   help="Poisson-Gaussian sensor noise and cos^4 vignetting instead of --noise: full well (e-), gain "
+                   "(DN/e-), read noise (e-), e.g. 10000,0.0255,5")
+    p.add_argument("--light", metavar="X,Y,Z", default=None,
+                   help="direction towards the light in the left camera frame (default near the cameras: "
+                   "0.351,-0.084,-0.933); moves shading and highlights")
     p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
+
+
+def _check_realism(args):
+    """Each realism option's text, parsed once here so a mistake is one line before any work."""
+    from partinspect.simulate.defocus import parse_defocus
+    from partinspect.simulate.edge_break import parse_edge_break
+    from partinspect.simulate.material import parse_material
+    from partinspect.simulate.photon import parse_photon
+
+    for flag, value, parse in (("--edge-break", args.edge_break, parse_edge_break),
+                               ("--material", args.material, parse_material),
+                               ("--defocus", args.defocus, parse_defocus), ("--photon", args.photon, parse_photon)):
+        if value is not None:
+            try:
+                parse(value)
+            except ValueError as exc:
+                raise InputError(None, f"{flag}: {exc}") from None
+    if args.light is not None:
+        from partinspect.simulate.folder import shading_with_light
+
+        try:
+            shading_with_light(args.light)
+        except ValueError as exc:
+            raise InputError(None, f"--{exc}") from None
+    if args.photon is not None and args.noise is not None:
+        raise InputError(None, "--noise and --photon exclude each other: --photon's noise follows the light")
 
 
 def _parse_drift(text):
@@ -422,8 +464,9 @@ def _parse_size(text):
 
 
 def _run_render(args):
-    if args.noise < 0:
+    if args.noise is not None and args.noise < 0:
         raise InputError(None, f"--noise must be >= 0 grey levels, got {args.noise}")
+    _check_realism(args)
     size = _parse_size(args.size)
     drift = _parse_drift(args.drift)
     from partinspect.simulate.folder import render_to_folder
@@ -440,6 +483,11 @@ def _run_render(args):
         image_size=size,
         calib_error=args.calib_error,
         drift=drift,
+        edge_break=args.edge_break,
+        material=args.material,
+        defocus=args.defocus,
+        photon=args.photon,
+        light=args.light,
         progress=progress,
     )
     if not args.quiet:

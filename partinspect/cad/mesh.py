@@ -10,7 +10,7 @@ import numpy as np
 __all__ = ["tessellate"]
 
 
-def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
+def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None, min_size=None):
     """Triangulate a part in its part frame with a bounded chord error.
 
     Parameters
@@ -27,6 +27,10 @@ def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
         chord error alone would draw with few segments.
     inventory : partinspect.cad.features.Inventory, optional
         The part's inventory, if already made; it must come from this shape.
+    min_size : float, optional
+        Shortest segment BRepMesh makes, mm (its ``MinSize``); None leaves
+        BRepMesh's default. A small fillet's radius, split by the angular
+        tolerance alone, would take hundreds of facets.
 
     Returns
     -------
@@ -53,7 +57,7 @@ def tessellate(shape, tolerance=0.005, angular_tolerance=0.05, inventory=None):
         raise ValueError(f"tolerances must be > 0, got {tolerance} mm and {angular_tolerance} rad")
     wrapped = getattr(shape, "wrapped", shape)
     face_map, face_label = _face_labels(shape, wrapped, inventory)
-    _triangulate(wrapped, tolerance, angular_tolerance)
+    _triangulate(wrapped, tolerance, angular_tolerance, min_size)
     vertices, triangles, labels = _face_triangles(face_map, face_label)
     return _closed_mesh(vertices, triangles, labels)
 
@@ -80,7 +84,7 @@ def _face_labels(shape, wrapped, inventory):
     return face_map, face_label
 
 
-def _triangulate(wrapped, tolerance, angular_tolerance):
+def _triangulate(wrapped, tolerance, angular_tolerance, min_size=None):
     """Discard any stored triangulation and mesh every face anew (BRepMesh), stored in the shape."""
     from OCP.BRepMesh import BRepMesh_IncrementalMesh
     from OCP.BRepTools import BRepTools
@@ -91,6 +95,8 @@ def _triangulate(wrapped, tolerance, angular_tolerance):
     params.Deflection = tolerance
     params.Angle = angular_tolerance
     params.Relative = False
+    if min_size is not None:
+        params.MinSize = min_size
     # Serial: the parallel mode gains too little to be worth both cores of a
     # shared machine. Delabella gives the same triangles as the default
     # (Watson) triangulator, several times faster at these tolerances.

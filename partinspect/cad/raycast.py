@@ -40,6 +40,7 @@ __all__ = [
     "pixel_rays",
     "cast",
     "shade",
+    "surface_normals",
 ]
 
 MISS = -1
@@ -312,6 +313,28 @@ def shade(rs, hits, directions, light, shading=DEFAULT_SHADING):
     grey = np.full(len(hits.label), shading.background, np.float32)
     if not hit.any():
         return grey
+    n = surface_normals(rs, hits, directions)
+    grey[hit] = shading.ambient + shading.albedo * np.maximum(0.0, n @ light)
+    return grey
+
+
+def surface_normals(rs, hits, directions):
+    """Smooth unit surface normal at every ray's hit, turned towards the viewer.
+
+    Parameters
+    ----------
+    rs : RaycastScene
+    hits : Hits
+    directions : ndarray, shape (N, 3)
+        The rays' directions, part frame.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        For the M rays that hit (``hits.label != MISS``, in order): the
+        corner normals interpolated barycentrically, part frame.
+    """
+    hit = hits.label != MISS
     tri = hits.triangle[hit]
     u = hits.bary[hit, 0:1].astype(float)
     v = hits.bary[hit, 1:2].astype(float)
@@ -321,5 +344,4 @@ def shade(rs, hits, directions, light, shading=DEFAULT_SHADING):
     # so a smooth normal near a silhouette keeps its side.
     facing = np.einsum("ij,ij->i", rs.flat_normals[tri], directions[hit])
     n *= np.where(facing > 0, -1.0, 1.0)[:, None] / np.linalg.norm(n, axis=1)[:, None]
-    grey[hit] = shading.ambient + shading.albedo * np.maximum(0.0, n @ light)
-    return grey
+    return n

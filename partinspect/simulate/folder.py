@@ -10,10 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
+from partinspect.errors import InputError
 from partinspect.simulate.render import SAMPLES
+from partinspect.simulate.rig import FULL_SIZE, PIXEL_PITCH
 from partinspect.cad.raycast import DEFAULT_SHADING, RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
 
-__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder"]
+__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder", "shading_with_light"]
 
 BLUR_SIGMA = 0.6
 """Optics point-spread function, pixels."""
@@ -55,13 +57,18 @@ def render_to_folder(
     out_dir,
     *,
     pose=None,
-    noise=2.0,
+    noise=None,
     seed=0,
     deviations=(),
     distortion=False,
     image_size=(2448, 2048),
     calib_error=None,
     drift=None,
+    edge_break=None,
+    material=None,
+    defocus=None,
+    photon=None,
+    light=None,
     progress=None,
 ):
     """Render a stereo pair of a STEP part and write it with its ground truth.
@@ -79,8 +86,9 @@ def render_to_folder(
         ``--pose`` text (see :func:`~partinspect.poses.parse_pose`).
         An array: part_to_camera. The bounding box used is the nominal
         part's, so a deviation never moves the part.
-    noise : float
-        Sensor noise, grey levels (standard deviation), >= 0.
+    noise : float or None
+        Sensor noise, grey levels (standard deviation), >= 0; None: 2, or
+        none at all with ``photon``.
     seed : int
         Noise seed.
     deviations : sequence
@@ -101,6 +109,28 @@ def render_to_folder(
         camera drifted (:func:`partinspect.simulate.calibration.drifted_rig`),
         while ``calibration.yaml`` states the rig before (exact, or as
         ``calib_error`` calibrates it); truth.json records both.
+    edge_break : str, EdgeBreak or None
+        ``R`` / ``R0.1`` (fillet radius, mm) or ``C0.2`` (chamfer leg): the
+        rendered solid has every convex edge broken so
+        (:func:`partinspect.simulate.edge_break.break_edges`); the truth's
+        features stay the sharp model's, their visibility judged on the
+        sharp solid, and truth.json lists the edges left sharp.
+    material : str or None
+        ``matte`` (the Lambertian default), ``aluminium`` or ``steel``,
+        optionally ``:SEED`` for the machining marks
+        (:mod:`partinspect.simulate.material`).
+    defocus : str, ThinLens or None
+        ``F_NUMBER,FOCUS_MM``: depth of field of a thin lens
+        (:mod:`partinspect.simulate.defocus`), pixel pitch
+        ``PIXEL_PITCH * 2448 / width``.
+    photon : str, PhotonSensor or None
+        ``FULL_WELL,GAIN,READ`` (e-, DN/e-, e-): Poisson-Gaussian noise and
+        cos^4 vignetting (:mod:`partinspect.simulate.photon`) instead of
+        ``noise``, which must then be None.
+    light : str, sequence of 3 floats or None
+        Direction towards the light in the left camera's frame (``X,Y,Z``
+        text or numbers, need not be unit length); None: the default
+        light near the cameras (:class:`partinspect.cad.raycast.Shading`).
     progress : callable or None
         ``progress(message)`` at each stage.
 
@@ -114,7 +144,8 @@ def render_to_folder(
     partinspect.errors.InputError
         Unreadable STEP file or pose file, unknown feature id in a deviation.
     ValueError
-        Bad pose text, negative noise.
+        Bad pose text, negative noise, a bad option, or an edge break the
+        part cannot take anywhere.
     """
     from partinspect.cad.raycast import build_scene
     from partinspect.simulate.render import render_pair
@@ -122,7 +153,12 @@ def render_to_folder(
     from partinspect.simulate.truth import make_truth
 
     say = progress or (lambda message: None)
-    if noise < 0:
+    realism = _realism(edge_break, material, defocus, photon)
+    shading = DEFAULT_SHADING if light is None else shading_with_light(light)
+    if photon is not None and noise is not None:
+        raise ValueError("give either noise (grey levels) or photon (the sensor's electrons), not both")
+    noise = 2.0 if noise is None and photon is None else noise
+    if noise is not None and noise < 0:
         raise ValueError(f"noise must be >= 0 grey levels, got {noise}")
     step_path = Path(step_path)
     inv, devs, shape, bounds = _load_part(step_path, deviations, say)
@@ -138,13 +174,24 @@ def render_to_folder(
     from partinspect.cad.mesh import tessellate
 
     mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
-    rs = build_scene(mesh)
+    truth_scene = build_scene(mesh)
+    rs, finish, extra = _real_part(step_path, shape, inv if not devs else None, truth_scene, realism, say)
+    pitch = PIXEL_PITCH * FULL_SIZE[0] / float(image_size[0])
+    extra.update(_real_camera(realism, rig, pitch))
     (left, right), stats = render_pair(
-        rs, rig, part_to_camera, noise=noise, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say
+        rs, rig, part_to_camera, noise=noise or 0.0, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say,
+        shading=shading, finish=finish, lens=realism["defocus"], photon=realism["photon"], pitch=pitch,
     )
+    if "defocus" in extra:
+        extra["defocus"]["coc_px"] = {name: stats[name].pop("coc_px") for name in ("left", "right")}
 
     say("computing the ground truth")
-    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(mesh.faces))
+    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(rs.triangles), shading)
+    if finish is not None:
+        settings["shading"]["model"] = "lambertian + cook-torrance (see material)"
+    if "edge_break" in extra:
+        settings["tessellation"]["min_size"] = extra["edge_break"].pop("mesh_min_size")
+    settings.update(extra)
     stated = calibrated
     if calib_error is not None:
         say("calibrating the rig as a board session would")
@@ -155,11 +202,85 @@ def render_to_folder(
             "method": "the images are made by the rig after its right camera drifted; calibration.yaml states it before",
             "rig_after_drift": {name: np.asarray(getattr(rig, name), float).tolist() for name in ("K1", "K2", "R", "T")},
         }
-    truth = make_truth(inv, devs, rs, rig, part_to_camera, settings)
+    truth = make_truth(inv, devs, truth_scene, rig, part_to_camera, settings, shading)
 
     say(f"writing {out_dir}")
     _write(out_dir, left, right, stated, truth)
     return truth
+
+
+def _realism(edge_break, material, defocus, photon):
+    """The realism options parsed (texts accepted); None for each that is off, matte included."""
+    from partinspect.simulate.defocus import ThinLens, parse_defocus
+    from partinspect.simulate.edge_break import EdgeBreak, parse_edge_break
+    from partinspect.simulate.material import parse_material
+    from partinspect.simulate.photon import PhotonSensor, parse_photon
+
+    out = {"edge_break": edge_break, "material": None, "defocus": defocus, "photon": photon}
+    if edge_break is not None and not isinstance(edge_break, EdgeBreak):
+        out["edge_break"] = parse_edge_break(edge_break)
+    if material is not None:
+        chosen, marks_seed = parse_material(material)
+        out["material"] = None if chosen is None else (chosen, marks_seed)
+    if defocus is not None and not isinstance(defocus, ThinLens):
+        out["defocus"] = parse_defocus(defocus)
+    if photon is not None and not isinstance(photon, PhotonSensor):
+        out["photon"] = parse_photon(photon)
+    return out
+
+
+def _real_part(step_path, shape, inv, scene, realism, say):
+    """The scene to render, its metal finish and their truth.json records.
+
+    ``scene`` is the sharp solid's; with an edge break, the broken solid's
+    scene is made and returned instead (``inv``: the shape's inventory, or
+    None to make it).
+    """
+    from partinspect.cad.raycast import build_scene
+
+    extra, finish = {}, None
+    spec = realism["edge_break"]
+    if spec is not None:
+        from partinspect.cad.features import inventory
+        from partinspect.cad.mesh import tessellate
+        from partinspect.simulate.edge_break import break_edges, mesh_min_size
+
+        try:
+            broken, extra["edge_break"] = break_edges(shape, spec, inv if inv is not None else inventory(shape), say)
+        except ValueError as exc:
+            raise InputError(step_path, f"edge break {spec.kind} {spec.size:g} mm: {exc}") from None
+        say("tessellating the broken solid")
+        extra["edge_break"]["mesh_min_size"] = mesh_min_size(spec)
+        scene = build_scene(tessellate(broken, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE,
+                                       min_size=mesh_min_size(spec)))
+        # The visibility rules look for two faces meeting at the edge; a
+        # fillet puts a third between them, so each feature's visibility is
+        # judged on the sharp solid: whether its faces are in sight and contrast.
+        extra["edge_break"]["visibility"] = "features' visibility is judged on the sharp solid"
+    if realism["material"] is not None:
+        from partinspect.simulate.material import finish as lay_finish
+
+        finish = lay_finish(scene, *realism["material"])
+        extra["material"] = finish.to_dict()
+        extra["material"]["visibility"] = "features' contrast is judged with the Lambertian shading"
+    return scene, finish, extra
+
+
+def _real_camera(realism, rig, pitch):
+    """truth.json's records of the lens's depth of field and the photon sensor."""
+    extra = {}
+    lens = realism["defocus"]
+    if lens is not None:
+        extra["defocus"] = {
+            "f_number": lens.f_number, "focus": lens.focus, "pixel_pitch": pitch,
+            "focal_length": [float(rig.K1[0, 0]) * pitch, float(rig.K2[0, 0]) * pitch],
+            "model": "thin lens: blur circle c = (f/N) f |z - z_f| / (z (z_f - f)) / pitch px, z the surface depth "
+                     "seen by each pixel centre; a uniform disc, levels 0.5 px apart blended linearly, after the "
+                     "optics PSF",
+        }
+    if realism["photon"] is not None:
+        extra["photon"] = realism["photon"].to_dict()
+    return extra
 
 
 def _load_part(step_path, deviations, say):
@@ -182,12 +303,25 @@ def _load_part(step_path, deviations, say):
     return inv, devs, shape, bounds_of(nominal)
 
 
-def _settings(step_path, rig, noise, seed, distortion, stats, triangles):
+def shading_with_light(light):
+    """The default shading with the light moved to ``light`` (text ``X,Y,Z`` or 3 numbers, rig frame)."""
+    from dataclasses import replace
+
+    try:
+        v = [float(x) for x in (light.split(",") if isinstance(light, str) else light)]
+        if len(v) != 3 or not np.isfinite(v).all() or np.linalg.norm(v) == 0:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ValueError(f"light: expected X,Y,Z, a direction towards the light in the left camera frame, got {light!r}") from None
+    return replace(DEFAULT_SHADING, light=tuple(v))
+
+
+def _settings(step_path, rig, noise, seed, distortion, stats, triangles, shading=DEFAULT_SHADING):
     """truth.json's "settings": everything the render was made with."""
     return {
         "part": step_path.name,
         "image_size": [int(v) for v in rig.image_size],
-        "noise": float(noise),
+        "noise": None if noise is None else float(noise),
         "seed": int(seed),
         "blur_sigma": BLUR_SIGMA,
         "distortion": bool(distortion),
@@ -203,10 +337,10 @@ def _settings(step_path, rig, noise, seed, distortion, stats, triangles):
         },
         "shading": {
             "model": "lambertian",
-            "light_direction_rig": list(DEFAULT_SHADING.direction()),
-            "ambient": DEFAULT_SHADING.ambient,
-            "albedo": DEFAULT_SHADING.albedo,
-            "background": DEFAULT_SHADING.background,
+            "light_direction_rig": list(shading.direction()),
+            "ambient": shading.ambient,
+            "albedo": shading.albedo,
+            "background": shading.background,
         },
         "tessellation": {
             "tolerance": RENDER_TOLERANCE,

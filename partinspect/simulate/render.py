@@ -84,25 +84,41 @@ def sample_pattern(n):
     return np.stack([(i * n + j + 0.5) / m - 0.5, (j * n + i + 0.5) / m - 0.5], axis=1)
 
 
-def _cast_grid(rs, K, D, R, t, us, vs, light, shading, want_grey):
-    """Cast one ray per point of the grid ``us x vs``; labels (and greys) as (len(vs), len(us))."""
+def _grey(rs, hits, origin, d, light, shading, finish, K, marks=True):
+    """Grey of every ray: Lambertian ``shading``, or the metal ``finish`` seen through camera ``K``."""
+    if finish is None:
+        return shade(rs, hits, d, light, shading)
+    from partinspect.simulate.material import shade_material
+
+    return shade_material(rs, hits, origin, d, light, shading, finish, 1.0 / float(K[0, 0]), marks=marks)
+
+
+def _cast_grid(rs, K, D, R, t, us, vs, light, shading, finish=None):
+    """Cast one ray per point of the grid ``us x vs``.
+
+    Returns labels, greys and the greys that decide uniformity (without a
+    finish's machining marks, which are band-limited to the pixel already),
+    each (len(vs), len(us)).
+    """
     nu = len(us)
     total = nu * len(vs)
     label = np.empty(total, np.int64)
-    grey = np.empty(total, np.float32) if want_grey else None
+    grey = np.empty(total, np.float32)
+    smooth = grey if finish is None else np.empty(total, np.float32)
     for a in range(0, total, RAY_CHUNK):
         idx = np.arange(a, min(total, a + RAY_CHUNK))
         uv = np.stack([us[idx % nu], vs[idx // nu]], axis=1)
         origin, d = pixel_rays(uv, K, D, R, t)
         h = cast(rs, origin, d)
         label[idx] = h.label
-        if want_grey:
-            grey[idx] = shade(rs, h, d, light, shading)
-    label = label.reshape(len(vs), nu)
-    return label, (None if grey is None else grey.reshape(len(vs), nu))
+        grey[idx] = _grey(rs, h, origin, d, light, shading, finish, K)
+        if finish is not None:
+            smooth[idx] = _grey(rs, h, origin, d, light, shading, finish, K, marks=False)
+    shape = (len(vs), nu)
+    return label.reshape(shape), grey.reshape(shape), smooth.reshape(shape)
 
 
-def _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail=None):
+def _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail=None, finish=None):
     """Mean grey of pixels (rows, cols) over the sub-pixel ``offsets``.
 
     With ``detail = (image, psf)``, also adds to ``image`` what the PSF
@@ -124,7 +140,7 @@ def _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail=Non
         uv[..., 0] = c[:, None] + offsets[:, 0]
         uv[..., 1] = r[:, None] + offsets[:, 1]
         origin, d = pixel_rays(uv.reshape(-1, 2), K, D, R, t)
-        g = shade(rs, cast(rs, origin, d), d, light, shading).reshape(len(r), m)
+        g = _grey(rs, cast(rs, origin, d), origin, d, light, shading, finish, K).reshape(len(r), m)
         out[a : a + step] = g.mean(axis=1)
         if detail is not None:
             extra = g.astype(np.float64) @ weights - g.mean(axis=1, dtype=np.float64)[:, None] * kc[None, :]
@@ -136,7 +152,7 @@ def _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail=Non
 
 def render_radiance(
     rs, K, D, R, t, image_size, light, shading=DEFAULT_SHADING, *, samples=SAMPLES, adaptive=True, grey_tolerance=1.0,
-    psf=0.0,
+    psf=0.0, finish=None,
 ):
     """Noiseless grey image of one camera: the radiance blurred by the PSF, integrated over each pixel.
 
@@ -161,6 +177,10 @@ def render_radiance(
     psf : float
         Standard deviation of the optics' Gaussian PSF, px; 0 gives each
         pixel's mean radiance over its area (no blur).
+    finish : Finish or None
+        None: Lambertian ``shading``. Else a metal
+        (:func:`partinspect.simulate.material.shade_material`); uniformity
+        is then judged on the grey without machining marks.
 
     Returns
     -------
@@ -174,12 +194,14 @@ def render_radiance(
     detail = (np.zeros((h, w)), float(psf)) if psf > 0 else None
     if not adaptive:
         rows, cols = np.divmod(np.arange(w * h), w)
-        img = _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail).reshape(h, w)
+        img = _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail, finish).reshape(h, w)
         return _with_psf(img, detail, offsets), {"rays": w * h * len(offsets), "supersampled": w * h}
-    corner, cgrey = _cast_grid(rs, K, D, R, t, np.arange(w + 1) - 0.5, np.arange(h + 1) - 0.5, light, shading, True)
-    centre, img = _cast_grid(rs, K, D, R, t, np.arange(w, dtype=float), np.arange(h, dtype=float), light, shading, True)
+    corner, _, cgrey = _cast_grid(rs, K, D, R, t, np.arange(w + 1) - 0.5, np.arange(h + 1) - 0.5, light, shading,
+                                  finish)
+    centre, img, smooth = _cast_grid(rs, K, D, R, t, np.arange(w, dtype=float), np.arange(h, dtype=float), light,
+                                     shading, finish)
     uniform = np.ones((h, w), bool)
-    lo, hi = img.copy(), img.copy()
+    lo, hi = smooth.copy(), smooth.copy()
     for dv, du in ((0, 0), (0, 1), (1, 0), (1, 1)):
         uniform &= corner[dv : dv + h, du : du + w] == centre
         lo = np.minimum(lo, cgrey[dv : dv + h, du : du + w])
@@ -192,7 +214,7 @@ def render_radiance(
     # supersample the neighbours of every non-uniform pixel too.
     uniform &= ~ndimage.binary_dilation(~uniform, structure=np.ones((3, 3), bool))
     rows, cols = np.nonzero(~uniform)
-    img[rows, cols] = _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail)
+    img[rows, cols] = _supersample(rs, K, D, R, t, rows, cols, offsets, light, shading, detail, finish)
     rays = (w + 1) * (h + 1) + w * h + len(rows) * len(offsets)
     return _with_psf(img, detail, offsets), {"rays": rays, "supersampled": len(rows)}
 
@@ -339,6 +361,10 @@ def render_pair(
     adaptive=True,
     shading=DEFAULT_SHADING,
     progress=None,
+    finish=None,
+    lens=None,
+    photon=None,
+    pitch=None,
 ):
     """Render the left and right 8-bit images of a part.
 
@@ -364,13 +390,27 @@ def render_pair(
     shading : Shading
     progress : callable or None
         Called with a short message at each stage.
+    finish : Finish or None
+        None: Lambertian ``shading``. Else a metal's microfacet reflection
+        and machining marks (:func:`partinspect.simulate.material.finish`).
+    lens : ThinLens or None
+        None: every depth in focus. Else the depth of field of
+        :mod:`partinspect.simulate.defocus`, on top of the optics' PSF.
+    photon : PhotonSensor or None
+        None: Gaussian noise of ``noise`` grey levels. Else the photon
+        sensor of :mod:`partinspect.simulate.photon` with cos^4 vignetting,
+        and ``noise`` is not used.
+    pitch : float or None
+        Pixel pitch, mm, for ``lens`` (its focal length is ``K[0, 0] *
+        pitch``).
 
     Returns
     -------
     images : tuple of two ndarray of uint8, shape (H, W)
         Left, right.
     stats : dict
-        Rays cast and supersampled pixels per camera.
+        Rays cast and supersampled pixels per camera; with ``lens``, also
+        each camera's smallest and largest blur circle (``coc_px``).
     """
     rs = mesh_or_scene if isinstance(mesh_or_scene, RaycastScene) else build_scene(mesh_or_scene)
     P = np.asarray(part_to_camera, dtype=float)
@@ -382,9 +422,22 @@ def render_pair(
             progress(f"ray casting the {name} image")
         K, D, R, t = camera_in_part(calib, index, P)
         radiance, stats[name] = render_radiance(
-            rs, K, D, R, t, calib.image_size, light, shading, samples=samples, adaptive=adaptive, psf=blur_sigma
+            rs, K, D, R, t, calib.image_size, light, shading, samples=samples, adaptive=adaptive, psf=blur_sigma,
+            finish=finish,
         )
-        images.append(sensor(radiance, noise, rng))
+        if lens is not None:
+            from partinspect.simulate.defocus import defocus_camera
+
+            if progress:
+                progress(f"defocusing the {name} image")
+            radiance, coc = defocus_camera(radiance, rs, K, D, R, t, lens, pitch)
+            stats[name]["coc_px"] = [float(coc.min()), float(coc.max())]
+        if photon is None:
+            images.append(sensor(radiance, noise, rng))
+        else:
+            from partinspect.simulate.photon import cos4_vignetting, photon_sensor
+
+            images.append(photon_sensor(radiance, photon, rng, cos4_vignetting(K, D, calib.image_size)))
     return tuple(images), stats
 
 
