@@ -4,7 +4,9 @@ Each :class:`~partinspect.tolerances.resolve.Characteristic` is evaluated on
 the registered measurement: value, deviation from nominal, standard
 uncertainty ``u`` and ``U = k u`` (k = 2, JCGM 100 6.2). Values:
 
-- diameter, radius: ``2 r`` / ``r`` of the fitted circle;
+- diameter, radius: ``2 r`` / ``r`` of the fitted circle; on a rim the
+  spec states broken, the wall's, with the break's Type B
+  (:mod:`.edge_break`);
 - distance, angle: :func:`geometry.feature_distance` /
   :func:`geometry.line_angle` on the measured features;
 - straightness, circularity: the noise-corrected form (:mod:`.form`);
@@ -47,6 +49,7 @@ import numpy as np
 
 from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
+from partinspect.tolerances.edge_break import size_on_broken_rim
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
 
 __all__ = [
@@ -129,6 +132,25 @@ class Evaluation:
             d["details"] = {k: round(float(v), 12) if isinstance(v, (float, np.floating)) else v
                             for k, v in self.details.items()}
         return d
+
+
+def _cylinder_side(inventory, feature_id):
+    """``FaceInfo.convex`` of the cylinder a circle bounds (False a hole, True a boss), None if none or several."""
+    faces = [inventory[fid] for fid in inventory[feature_id].faces if fid in inventory]
+    sides = {f.convex for f in faces if f.surface == "cylinder"}
+    return sides.pop() if len(sides) == 1 else None
+
+
+def _seen_from_its_face(inventory, feature_id, part_to_camera):
+    """Whether the rim's planar face looks towards the left camera (a near rim), not away (seen through the hole).
+
+    True when the circle bounds no planar face (nothing to tell by).
+    """
+    T = np.asarray(part_to_camera, float)
+    camera = -T[:3, :3].T @ T[:3, 3]  # the left camera's centre, part frame
+    f = inventory[feature_id]
+    planes = [inventory[fid] for fid in f.faces if fid in inventory and inventory[fid].surface == "plane"]
+    return not planes or any(float((camera - f.center) @ p.normal) > 0 for p in planes)
 
 
 def _unmeasured(c, reason):
@@ -537,7 +559,21 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         if pf.kind != "circle":
             return _unmeasured(c, f"{c.features[0]} is not measured as a circle")
         f = 2.0 if t == "diameter" else 1.0
-        return _result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k, "first order (pose-invariant)")
+        if c.edge_break is None:
+            return _result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k, "first order (pose-invariant)")
+        convex = _cylinder_side(inventory, c.features[0])
+        if not _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
+            # A rim seen through its hole (or past its boss) shows the wall's
+            # own silhouette, where the break has not begun.
+            return _result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k,
+                           "first order (pose-invariant); the wall's silhouette, seen through the hole past its "
+                           "broken rim")
+        r, u, corr, u_b = size_on_broken_rim(float(rec[0].radius), float(rec[0].radius_std), convex, *c.edge_break)
+        wall = {False: "the hole's wall", True: "the boss's wall", None: "the wall (material side unknown)"}[convex]
+        return _result(c, f * r, f * u, k, "first order (pose-invariant), edge break Type B",
+                       edge_break={"min": c.edge_break[0], "max": c.edge_break[1], "correction": f * corr,
+                                   "standard_uncertainty": f * u_b, "rim": f * float(rec[0].radius),
+                                   "measured_as": f"{wall}, from its broken rim"})
     if t in ("straightness", "circularity"):
         points = _form_points(rec[0])
         if points is None:

@@ -33,7 +33,7 @@ def load_characteristics(inv, tol_path, part=None):
     take the rest (`partinspect.tolerances.from_pmi.merge_pmi`).
     """
     from partinspect.tolerances import spec as spec_mod
-    from partinspect.tolerances.resolve import general_characteristics, resolve_spec
+    from partinspect.tolerances.resolve import general_characteristics, resolve_spec, with_edge_breaks
 
     spec = spec_mod.load_spec(tol_path) if tol_path is not None else spec_mod.default_spec()
     resolved = resolve_spec(spec, inv, tol_path)
@@ -41,4 +41,4 @@ def load_characteristics(inv, tol_path, part=None):
         from partinspect.tolerances.from_pmi import merge_pmi
 
         resolved = merge_pmi(resolved, inv, part)
-    return resolved, list(resolved.characteristics) + general_characteristics(inv, resolved)
+    return resolved, with_edge_breaks(list(resolved.characteristics) + general_characteristics(inv, resolved), resolved)

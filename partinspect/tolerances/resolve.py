@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import difflib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import MappingProxyType
 
@@ -46,6 +46,7 @@ __all__ = [
     "select_edge",
     "general_characteristics",
     "characteristics_for",
+    "with_edge_breaks",
 ]
 
 # An at: point is meant to lie on the edge; 1 mm is far beyond CAD rounding
@@ -95,6 +96,9 @@ class Characteristic:
         or "ISO 2768-1 table 1, class m, over 6 up to 30 mm".
     unit : str
         "mm" or "rad".
+    edge_break : tuple of 2 float or None
+        Sizes of circles only: the rim's edge break (min, max), mm, from the
+        spec (:mod:`partinspect.tolerances.edge_break`); None for a sharp rim.
     """
 
     id: str
@@ -106,6 +110,7 @@ class Characteristic:
     source: str
     rule: str = ""
     unit: str = "mm"
+    edge_break: tuple[float, float] | None = None
 
     @property
     def feature(self):
@@ -126,6 +131,7 @@ class Characteristic:
             "unit": "deg" if self.unit == "rad" else self.unit,
             "source": self.source,
             "rule": self.rule,
+            **({"edge_break": {"min": self.edge_break[0], "max": self.edge_break[1]}} if self.edge_break else {}),
         }
 
 
@@ -551,4 +557,26 @@ def characteristics_for(spec, inventory, path=None):
     list of Characteristic
     """
     resolved = resolve_spec(spec, inventory, path)
-    return list(resolved.characteristics) + general_characteristics(inventory, resolved)
+    return with_edge_breaks(list(resolved.characteristics) + general_characteristics(inventory, resolved), resolved)
+
+
+def with_edge_breaks(characteristics, resolved):
+    """The characteristics with each size of a rim given its edge break: the feature's own, else the spec's.
+
+    Parameters
+    ----------
+    characteristics : list of Characteristic
+    resolved : ResolvedSpec
+
+    Returns
+    -------
+    list of Characteristic
+    """
+    spec = resolved.spec
+    own = {resolved.features[key]: fs.edge_break for key, fs in spec.features.items()
+           if fs.edge_break is not None and key in resolved.features}
+    out = []
+    for c in characteristics:
+        eb = own.get(c.features[0], spec.edge_break) if c.type in ("diameter", "radius") else None
+        out.append(replace(c, edge_break=(float(eb.min), float(eb.max))) if eb is not None else c)
+    return out

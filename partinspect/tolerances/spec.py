@@ -149,6 +149,31 @@ class Zone(_Model):
         return v
 
 
+class EdgeBreak(_Model):
+    """An edge state (ISO 13715): material removed from the ideal sharp edge, mm along each face.
+
+    A plain number in the file is ``max`` with ``min`` 0 ("-0.1": up to
+    0.1 mm); ``{min: 0.1, max: 0.3}`` a range.
+    """
+
+    max: Number
+    min: Number = 0.0
+
+    @model_validator(mode="after")
+    def _range(self):
+        if not (0 <= self.min <= self.max and self.max > 0):
+            raise PydanticCustomError("edge_break", "expected 0 <= min <= max and max > 0 mm, got min {lo}, max {hi}",
+                                      {"lo": _show(self.min), "hi": _show(self.max)})
+        return self
+
+
+def _edge_break(value):
+    return {"max": value} if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+
+
+EdgeBreakField = Annotated[EdgeBreak | None, BeforeValidator(_edge_break)]
+
+
 def _point(value):
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         raise PydanticCustomError("point", "expected a point [x, y, z] in mm, got {got}", {"got": _show(value)})
@@ -177,6 +202,8 @@ class FeatureSpec(_Model):
         Size limit deviations, mm.
     position, straightness, circularity, profile : Zone or None
         Geometrical tolerances, mm.
+    edge_break : EdgeBreak or None
+        This edge's break, overriding the spec's general one.
     """
 
     at: Annotated[tuple[Number, Number, Number], BeforeValidator(_point)] | None = None
@@ -186,6 +213,7 @@ class FeatureSpec(_Model):
     straightness: Zone | None = None
     circularity: Zone | None = None
     profile: Zone | None = None
+    edge_break: EdgeBreakField = None
 
     def characteristics(self):
         """``{name: Limits or Zone}`` of the characteristics given, in the documented order."""
@@ -273,6 +301,9 @@ class ToleranceSpec(_Model):
         whose FeatureSpec has ``at``.
     distances : tuple of DistanceSpec
     angles : tuple of AngleSpec
+    edge_break : EdgeBreak or None
+        The edge state of every outer edge (ISO 13715's general note), unless
+        a feature states its own; None: sharp.
     """
 
     units: Literal["mm"] = "mm"
@@ -282,6 +313,7 @@ class ToleranceSpec(_Model):
     features: Annotated[dict[str, FeatureSpec], _none_is_empty({})] = {}
     distances: Annotated[tuple[DistanceSpec, ...], _none_is_empty(())] = ()
     angles: Annotated[tuple[AngleSpec, ...], _none_is_empty(())] = ()
+    edge_break: EdgeBreakField = None
 
     _path: str | None = PrivateAttr(default=None)
     _lines: dict = PrivateAttr(default_factory=dict)
@@ -326,6 +358,8 @@ def _model_at(loc):
     """The model class that validates the mapping at ``loc``, for listing its keys."""
     if len(loc) == 0:
         return ToleranceSpec
+    if loc[-1] == "edge_break" and len(loc) in (1, 3):
+        return EdgeBreak
     if loc[0] == "features":
         if len(loc) == 2:
             return FeatureSpec
@@ -669,6 +703,8 @@ def spec_to_dict(spec):
     out = {"units": spec.units, "general": spec.general, "decision_rule": spec.decision_rule}
     if spec.datums is not None:
         out["datums"] = list(spec.datums)
+    if spec.edge_break is not None:
+        out["edge_break"] = spec.edge_break.model_dump()
     if spec.features:
         out["features"] = {name: clean(f.model_dump()) for name, f in spec.features.items()}
     if spec.distances:

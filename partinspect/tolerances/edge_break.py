@@ -1,0 +1,88 @@
+"""Where the apparent edge of a broken (rounded or chamfered) edge lies, and what that does to a size.
+
+A machined outer edge is broken: deburred, rounded or chamfered, by an
+amount a drawing states as an edge state (ISO 13715, e.g. "-0.1": up to
+0.1 mm of material removed from the ideal sharp edge, along each face).
+The STEP model keeps the sharp edge, but the camera sees the break: the
+grey-level step the detector finds lies somewhere across the break's band,
+between the two lines where it meets its faces, depending on the light,
+the view and the surface. Across a hole's rim that band runs from the top
+face, ``b`` outside the wall, down to the wall itself, so the rim seen is
+larger than the hole by ``2 s b`` with ``s`` in [0, 1] unknown; on a boss it
+is smaller by as much.
+
+The rule here: the break's size ``b`` is uniform between the stated ``min``
+and ``max``, the apparent edge's place ``s`` across the band uniform in
+[0, 1] and independent of it; their product's mean is removed from the size
+measured on the rim (the size reported is the wall's, which is what the
+drawing's diameter means) and its standard deviation is carried as a Type B
+standard uncertainty (JCGM 100, 4.3.7: a rectangular distribution where
+nothing better is known). A break of 0.1 mm states a hole's diameter to
+``0.1 / sqrt(3) = 0.058`` mm standard uncertainty from the break alone: a
+camera that cannot see where on a rounded rim the wall begins cannot
+judge a hole more finely than that, and the decision says so. (That is a
+break of exactly 0.1 mm; "up to 0.1 mm", ``min`` 0, gives 0.044 mm.)
+
+References
+----------
+.. [1] ISO 13715:2019, Technical product documentation -- Edges of
+       undefined shape -- Indication and dimensioning.
+.. [2] JCGM 100:2008 (GUM), 4.3.7 (rectangular distribution), 4.3.9.
+"""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["band_offset", "size_on_broken_rim"]
+
+
+def band_offset(b_min, b_max):
+    """Mean and standard deviation of the apparent edge's offset ``s b`` across a break's band, mm.
+
+    Parameters
+    ----------
+    b_min, b_max : float
+        The break's size range, mm, ``0 <= b_min <= b_max``.
+
+    Returns
+    -------
+    mean, std : float
+        ``s ~ U(0, 1)`` and ``b ~ U(b_min, b_max)`` independent:
+        ``E[s b] = E[b] / 2``, ``E[(s b)^2] = E[b^2] / 3``.
+    """
+    eb = 0.5 * (b_min + b_max)
+    eb2 = (b_min * b_min + b_min * b_max + b_max * b_max) / 3.0
+    mean = 0.5 * eb
+    return mean, math.sqrt(max(eb2 / 3.0 - mean * mean, 0.0))
+
+
+def size_on_broken_rim(radius, radius_u, convex, b_min, b_max):
+    """The radius of a hole's wall (or a boss's) from the radius measured on its broken rim.
+
+    Parameters
+    ----------
+    radius, radius_u : float
+        The rim's fitted radius and its standard uncertainty, mm.
+    convex : bool or None
+        The cylinder's material side (``FaceInfo.convex``): False a hole
+        (the rim seen is larger than the wall), True a boss (smaller); None
+        unknown, when only the Type B is added.
+    b_min, b_max : float
+        The edge break's size range, mm.
+
+    Returns
+    -------
+    radius, u : float
+        The wall's radius and its standard uncertainty, mm.
+    correction : float
+        What was added to the measured radius, mm.
+    u_break : float
+        The break's Type B part of ``u``, mm.
+    """
+    mean, std = band_offset(b_min, b_max)
+    if convex is None:
+        correction, u_break = 0.0, math.sqrt(std * std + mean * mean)
+    else:
+        correction, u_break = (mean if convex else -mean), std
+    return radius + correction, math.hypot(radius_u, u_break), correction, u_break
