@@ -142,14 +142,16 @@ def upgrade(engine, to=SCHEMA_VERSION):
 
 
 def open_database(url, *, create=True):
-    """An engine on the results database at ``url``, its schema brought to the current version.
+    """An engine on the results database at ``url``, its schema brought to the current version (``create``).
 
     Parameters
     ----------
     url : str
         SQLAlchemy URL (``sqlite:///path``, ``postgresql://user@host/db``).
     create : bool
-        False: the database must exist already (``inspect spc``).
+        False: only read it (``inspect spc``): it must exist, and an older
+        schema is read as it is, not upgraded (every version's tables answer
+        the SPC query).
 
     Raises
     ------
@@ -169,15 +171,23 @@ def open_database(url, *, create=True):
             sa.event.listen(engine, "connect", lambda dbapi, _: dbapi.execute("PRAGMA foreign_keys = ON"))
         if not create:
             with engine.connect() as conn:
-                if schema_version(conn) == 0:
-                    raise InputError(_shown(url), "not a partinspect results database (no schema_version table)")
-        upgrade(engine)
+                found = schema_version(conn)
+            if found == 0:
+                raise InputError(shown_url(url), "not a partinspect results database (no schema_version table)")
+            if found > SCHEMA_VERSION:
+                raise InputError(shown_url(url), f"results database has schema version {found}, newer than this "
+                                 f"partinspect's {SCHEMA_VERSION}; upgrade partinspect")
+        else:
+            upgrade(engine)
     except (sa.exc.SQLAlchemyError, ImportError) as exc:
-        raise InputError(_shown(url), f"cannot open the results database: {' '.join(str(exc).split())[:200]}") from None
+        raise InputError(shown_url(url), f"cannot open the results database: {' '.join(str(exc).split())[:200]}") from None
     return engine
 
 
-def _shown(url):
+def shown_url(url):
+    """The URL as a message may show it: a SQLite file's path, a server's URL without its password."""
+    if url.startswith("sqlite:///"):
+        return url[len("sqlite:///"):]
     return sa.engine.make_url(url).render_as_string(hide_password=True)
 
 
@@ -245,15 +255,15 @@ def measurements(engine, batch_id=None):
     Returns
     -------
     list of dict
-        Keys: serial, measured_at, batch_id, verdict, and the columns of
-        ``characteristics`` but its ids.
+        Keys: serial, measured_at, batch_id, verdict, step_file,
+        step_sha256, and the columns of ``characteristics`` but its ids.
     """
     p, c = TABLES["parts"], TABLES["characteristics"]
     where = [p.c.status == DONE]
     if batch_id is not None:
         where.append(p.c.batch_id == batch_id)
     latest = sa.select(sa.func.max(p.c.id)).where(*where).group_by(p.c.serial).scalar_subquery()
-    cols = [p.c.serial, p.c.measured_at, p.c.batch_id, p.c.verdict,
+    cols = [p.c.serial, p.c.measured_at, p.c.batch_id, p.c.verdict, p.c.step_file, p.c.step_sha256,
             *[col for col in c.c if col.name not in ("id", "part_id")]]
     query = (sa.select(*cols).join(p, c.c.part_id == p.c.id).where(p.c.id.in_(latest))
              .order_by(p.c.measured_at, p.c.serial, c.c.characteristic))

@@ -38,7 +38,9 @@ def test_an_older_database_is_upgraded_and_keeps_its_rows(tmp_path):
     with engine.connect() as conn:
         assert "worker" not in {c["name"] for c in sa.inspect(conn).get_columns("parts")}
     engine.dispose()
-    engine = db.open_database(url, create=False)
+    with db.open_database(url, create=False).connect() as conn:  # read only: not upgraded
+        assert db.schema_version(conn) == 1
+    engine = db.open_database(url)
     with engine.connect() as conn:
         assert db.schema_version(conn) == 2
         assert "worker" in {c["name"] for c in sa.inspect(conn).get_columns("parts")}
@@ -51,8 +53,9 @@ def test_a_newer_database_is_refused(tmp_path):
     engine = db.open_database(url)
     with engine.begin() as conn:
         conn.execute(sa.text("UPDATE schema_version SET version = 99"))
-    with pytest.raises(InputError, match="schema version 99, newer"):
-        db.open_database(url)
+    for create in (True, False):
+        with pytest.raises(InputError, match="schema version 99, newer"):
+            db.open_database(url, create=create)
 
 
 def test_spc_needs_an_existing_results_database(tmp_path):
