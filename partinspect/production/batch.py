@@ -119,6 +119,8 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     jobs, problems = read_manifest(manifest, step)
     for line in problems:
         (on_problem or progress)(line)
+    if not jobs:
+        raise InputError(manifest, f"no part to inspect: every line has a problem ({len(problems)})")
     if workers is not None and workers < 1:
         raise InputError(None, f"--workers {workers}: at least one worker")
     out = prepare_output_dir(out)
