@@ -2,6 +2,8 @@
 
 import re
 import shutil
+import subprocess
+import sys
 from datetime import datetime
 
 import pytest
@@ -102,3 +104,17 @@ def test_batch_refuses_a_missing_manifest_and_bad_options(line, capsys):
     assert main(["batch", str(m), "-o", str(line / "out"), "--workers", "0"]) == 2
     assert "--workers 0: at least one worker" in capsys.readouterr().err
     assert not (line / "out").exists()
+
+
+def test_batch_and_spc_help_import_no_heavy_library():
+    code = (
+        "import sys\nfrom partinspect.cli import main\n"
+        "for sub in ('batch', 'spc'):\n"
+        "    try:\n        main([sub, '--help'])\n    except SystemExit as e:\n        assert e.code == 0\n"
+        "heavy = [m for m in ('cadquery', 'numpy', 'sqlalchemy', 'distributed', 'dask', 'plotly', 'yaml') "
+        "if m in sys.modules]\nprint('HEAVY', heavy, file=sys.stderr)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY []" in out.stderr
+    assert "--scheduler tcp://HOST:PORT" in out.stdout and "inspect spc" in out.stdout
