@@ -34,8 +34,8 @@ class BatchResult:
     ----------
     records : list of dict
         The ``parts`` rows written by this run, in completion order.
-    skipped : list of str
-        Serials already done in the batch being resumed.
+    skipped : dict of str to int
+        Serials already done in the batch being resumed, with their exit codes.
     problems : list of str
         Manifest lines left out, one line each.
     url : str
@@ -44,7 +44,7 @@ class BatchResult:
     """
 
     records: list = field(default_factory=list)
-    skipped: list = field(default_factory=list)
+    skipped: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
     url: str = ""
     batch_id: int = 0
@@ -52,7 +52,8 @@ class BatchResult:
 
     @property
     def exit_code(self):
-        return batch_exit_code([r["exit_code"] for r in self.records], len(self.problems))
+        codes = [r["exit_code"] for r in self.records] + list(self.skipped.values())
+        return batch_exit_code(codes, len(self.problems))
 
     def summary_line(self):
         n = {k: sum(r["verdict"] == k for r in self.records) for k in ("pass", "fail", "inconclusive")}
@@ -129,7 +130,8 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     batch_id, done = start_batch(engine, str(out.resolve()), str(Path(manifest).resolve()), __version__,
                                  resume=resume)
     result = BatchResult(problems=problems, url=shown_url(url), batch_id=batch_id)
-    result.skipped = [j.serial for j in jobs if j.serial in done]
+    # A resumed batch's code covers its parts done before, not only this run's.
+    result.skipped = {j.serial: done[j.serial] for j in jobs if j.serial in done}
     todo = [j for j in jobs if j.serial not in done]
     progress(f"{len(todo)} part(s) to inspect" + (f", {len(result.skipped)} already done" if result.skipped else "")
              + (f" on the Dask cluster at {scheduler}" if scheduler else ""))

@@ -196,8 +196,8 @@ def start_batch(engine, name, manifest, software_version, *, resume=False):
 
     Returns
     -------
-    (int, set of str)
-        The batch id and the serials it already holds as done.
+    (int, dict of str to int)
+        The batch id, and the serials it already holds as done with their exit codes.
     """
     b, p = TABLES["batches"], TABLES["parts"]
     with engine.begin() as conn:
@@ -207,8 +207,8 @@ def start_batch(engine, name, manifest, software_version, *, resume=False):
         if batch_id is None:
             batch_id = conn.execute(b.insert().values(
                 name=name, manifest=manifest, started=_now(), software_version=software_version)).inserted_primary_key[0]
-        done = conn.execute(sa.select(p.c.serial).where(p.c.batch_id == batch_id, p.c.status == DONE)).scalars()
-        return batch_id, set(done)
+        done = conn.execute(sa.select(p.c.serial, p.c.exit_code).where(p.c.batch_id == batch_id, p.c.status == DONE))
+        return batch_id, dict(done.all())
 
 
 def record_part(engine, batch_id, part, characteristics):

@@ -106,3 +106,13 @@ def test_resume_on_a_dask_cluster_redoes_only_the_unfinished_part_identically(ba
     assert _table(db, "SELECT count(*) FROM batches") == [(1,)]
     workers = _table(db, "SELECT serial, worker FROM parts ORDER BY serial")
     assert len({w for _, w in workers}) >= 2  # P-001 ran elsewhere than in the first run
+
+
+def test_the_batch_exit_code_rule_and_resumed_parts():
+    from partinspect.production.batch import BatchResult, batch_exit_code
+
+    assert [batch_exit_code(c) for c in ([0, 0], [0, 3], [3, 1, 0], [1, 2], [])] == [0, 3, 1, 2, 0]
+    assert batch_exit_code([0], problems=1) == 2
+    # A resumed batch's code covers the parts done before the interruption.
+    assert BatchResult(records=[{"exit_code": 0}], skipped={"S1": 1}).exit_code == 1
+    assert BatchResult(records=[], skipped={"S1": 3, "S2": 0}).exit_code == 3

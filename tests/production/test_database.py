@@ -70,12 +70,12 @@ def test_parts_resume_and_the_latest_inspection_counts(tmp_path):
     engine = db.open_database(db.database_url(None, tmp_path))
     assert str(engine.url).endswith("results.sqlite")
     b1, done = db.start_batch(engine, "line-1", "m.csv", "0.1.0")
-    assert done == set()
+    assert done == {}
     db.record_part(engine, b1, _part("S1", datetime(2026, 1, 1, 8)), [_char("circle-1.diameter", 12.01),
                                                                      _char("circle-2.diameter", None, "inconclusive")])
     db.record_part(engine, b1, _part("S2", datetime(2026, 1, 1, 9), db.FAILED, None, 2), [])
     same, done = db.start_batch(engine, "line-1", "m.csv", "0.1.0", resume=True)
-    assert same == b1 and done == {"S1"}  # a failed part is tried again
+    assert same == b1 and done == {"S1": 0}  # a failed part is tried again
     # The retry replaces the failed row: one row per serial and batch.
     db.record_part(engine, b1, _part("S2", datetime(2026, 1, 1, 7), verdict="fail", exit_code=1),
                    [_char("circle-1.diameter", 12.06, "fail")])
@@ -100,3 +100,13 @@ def test_a_part_is_written_whole_or_not_at_all(tmp_path):
     with engine.connect() as conn:
         assert conn.execute(sa.text("SELECT count(*) FROM parts")).scalar_one() == 0
         assert conn.execute(sa.text("SELECT count(*) FROM characteristics")).scalar_one() == 0
+
+
+def test_the_schema_compiles_for_postgresql():
+    """No PostgreSQL server here: the DDL and the SPC query at least compile for its dialect."""
+    from sqlalchemy.dialects import postgresql
+
+    ddl = [str(sa.schema.CreateTable(t).compile(dialect=postgresql.dialect())) for t in db.TABLES.values()]
+    assert any("SERIAL NOT NULL" in d and "CREATE TABLE parts" in d for d in ddl)
+    assert any("DOUBLE PRECISION" in d or "FLOAT" in d for d in ddl)
+    assert db.shown_url("postgresql://qa:secret@line-db/line") == "postgresql://qa:***@line-db/line"
