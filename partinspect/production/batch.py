@@ -169,10 +169,15 @@ def _run_locally(jobs, out, workers):
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["partinspect.pipeline", "partinspect.production.worker"])
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        futures = [pool.submit(inspect_part, job, out) for job in jobs]
+        futures = {pool.submit(inspect_part, job, out): job for job in jobs}
         try:
             for f in cf.as_completed(futures):
-                yield f.result()
+                try:
+                    yield f.result()
+                except cf.process.BrokenProcessPool as exc:
+                    # A worker died (killed, out of memory): this part and
+                    # those queued behind it are recorded as not run.
+                    yield _lost(futures[f], exc)
         except BaseException:
             for f in futures:
                 f.cancel()
@@ -194,23 +199,25 @@ def _run_on_dask(jobs, out, scheduler):
     try:
         # pure=False: the same part inspected twice is two runs, not one cached result.
         futures = client.map(inspect_part, jobs, out=out, pure=False)
+        job_of = {f.key: job for f, job in zip(futures, jobs)}
         for f in as_completed(futures):
             try:
                 yield f.result()
             except Exception as exc:  # the worker died (KilledWorker) or the task failed outside the pipeline
-                job = jobs[futures.index(f)]
-                yield _lost(job, out, exc)
+                yield _lost(job_of[f.key], exc)
     finally:
         client.close()
 
 
-def _lost(job, out, exc):
+def _lost(job, exc):
+    """The record of a part whose worker was lost before it answered."""
     from datetime import datetime, timezone
 
     return {"part": {"serial": job.serial, "step_file": str(job.step), "images": str(job.images),
                      "spec_file": None if job.spec is None else str(job.spec),
                      "measured_at": job.time or datetime.now(timezone.utc).replace(tzinfo=None, microsecond=0),
                      "software_version": __version__, "status": "failed", "exit_code": EXIT_ERROR, "verdict": None,
-                     "error": f"the cluster lost the part: {type(exc).__name__}: {exc}", "seconds": 0.0},
+                     "error": f"its worker was lost: {type(exc).__name__}: {' '.join(str(exc).split())}",
+                     "seconds": 0.0},
             "characteristics": []}
 
