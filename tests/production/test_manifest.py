@@ -51,11 +51,12 @@ def test_csv_manifest_reads_good_lines_and_names_each_bad_one(line):
 
 def test_yaml_manifest_with_defaults_and_line_numbers(line):
     m = line / "m.yaml"
-    m.write_text("step: plate.step\nparts:\n  - {serial: S1, images: S1/images}\n"
+    m.write_text("step: plate.step\nparts:\n  - {serial: S1, images: S1/images, time: 2026-03-01T08:00:00+02:00}\n"
                  "  - serial: S2\n    images: S2/images\n    step: bracket.step\n"
                  "  - {serial: S3, images: S3/images, colour: red}\n  - just a string\n")
     jobs, problems = read_manifest(m)
     assert [(j.serial, j.step.name) for j in jobs] == [("S1", "plate.step"), ("S2", "bracket.step")]
+    assert jobs[0].time == datetime(2026, 3, 1, 6, 0) and jobs[1].time is None  # YAML's own time stamp, in UTC
     assert problems == [f"{m}:7: unknown column(s) colour (expected serial, step, images, spec, time)",
                         f"{m}:8: unknown column(s) (not a mapping) (expected serial, step, images, spec, time)"]
 
