@@ -99,13 +99,25 @@ def spc_data(rows, *, title, source, confidence=CONFIDENCE):
     }
 
 
-def _csv(columns, rows):
+def _csv(columns, rows, cell=None):
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(columns)
     for r in rows:
-        w.writerow(["" if r.get(c) is None else r[c] for c in columns])
+        w.writerow([(cell or _cell)(r.get(c)) for c in columns])
     return buf.getvalue().encode("utf-8")
+
+
+def _cell(v):
+    """A computed figure: 12 significant digits, without the binary noise of the arithmetic."""
+    if isinstance(v, float):
+        return f"{v:.12g}"
+    return "" if v is None else v
+
+
+def _stored(v):
+    """A value as the database holds it (Python's shortest exact repr for floats)."""
+    return "" if v is None else v
 
 
 def summary_rows(data):
@@ -128,7 +140,7 @@ def write_spc_files(out, rows, *, title, source):
     write_files_atomic({
         page: render_spc_html(data).encode("utf-8"),
         out / "spc.csv": _csv(SUMMARY_COLUMNS, summary_rows(data)),
-        out / "measurements.csv": _csv(MEASUREMENT_COLUMNS, rows),
+        out / "measurements.csv": _csv(MEASUREMENT_COLUMNS, rows, _stored),
     })
     return page
 
