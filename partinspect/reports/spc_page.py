@@ -59,7 +59,9 @@ def run_chart(c):
                           "y": [value, value], "hoverinfo": "name", "line": {"color": colour, "dash": dash, "width": 1}})
     layout = {"height": 300, "margin": {"l": 70, "r": 20, "t": 10, "b": 40}, "showlegend": True,
               "legend": {"orientation": "h", "y": -0.22, "font": {"size": 10}},
-              "xaxis": {"title": {"text": "part (production order)"}, "zeroline": False},
+              "xaxis": {"title": {"text": "part (production order)"}, "zeroline": False,
+                        # Serials under the points while they fit; beyond, numbers (the hover names the part).
+                        **({"tickvals": x, "ticktext": c["serials"], "tickangle": -45} if len(x) <= 30 else {})},
               "yaxis": {"title": {"text": f"{c['type']} [{c['unit']}]"}, "zeroline": False, "exponentformat": "none"},
               "plot_bgcolor": "#fff", "paper_bgcolor": "#fff"}
     return {"data": data + lines, "layout": layout}
