@@ -19,7 +19,7 @@ from partinspect.errors import InputError
 
 EXIT_PASS, EXIT_FAIL, EXIT_ERROR, EXIT_INCONCLUSIVE = 0, 1, 2, 3
 
-SUBCOMMANDS = ("features", "render", "calibrate", "plan", "spec")
+SUBCOMMANDS = ("features", "render", "calibrate", "plan", "spec", "batch", "spc")
 
 MAIN_DESCRIPTION = """\
 Inspect a machined part against its STEP model from one calibrated stereo
@@ -42,6 +42,10 @@ other commands:
   inspect plan PART.step --rig calibration.yaml [--pose POSE] [--ratio 0.25]
                                           predict each characteristic's U before measuring,
                                           and search the fixture pose where all are decidable
+  inspect batch MANIFEST -o OUT [--db URL] [--resume] [--workers N] [--scheduler tcp://HOST:PORT]
+                                          inspect many parts (CSV/YAML manifest or SERIAL/images/
+                                          folders), record them in a results database, write an SPC page
+  inspect spc DB [-o OUT]                 statistical process control page of a results database
   (inspect COMMAND --help for each)
 
 exit codes: 0 pass, 1 fail, 3 inconclusive, 2 the run could not be made."""
@@ -57,7 +61,7 @@ class _Parser(argparse.ArgumentParser):
 def _main_parser():
     p = _Parser(
         prog="inspect",
-        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render,calibrate,plan,spec} ...",
+        usage="inspect PART.step IMAGES_DIR [-o OUT] [--tolerances FILE] [--quiet]\n       inspect {features,render,calibrate,plan,spec,batch,spc} ...",
         description=MAIN_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -260,6 +264,79 @@ def _plan_parser():
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no table")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
+
+
+def _batch_parser():
+    p = _Parser(
+        prog="inspect batch",
+        description=(
+            "Inspect many parts: one report folder OUT/SERIAL/ each, every characteristic recorded in a results "
+            "database (OUT/results.sqlite unless --db), and OUT/spc.html over the batch. MANIFEST is a CSV file "
+            "with columns serial,step,images[,spec][,time], a YAML file with the same keys in a list under "
+            "'parts:', or a folder of SERIAL/images/ with --step; paths are relative to the manifest. A bad line "
+            "is reported (file:line: problem) and the rest run. Exit code: 2 if any part could not be run, else "
+            "1 if any fails, else 3 if any is inconclusive, else 0."
+        ),
+    )
+    p.add_argument("manifest", metavar="MANIFEST")
+    p.add_argument("-o", "--output", metavar="OUT", default="batch", help="output folder (default: ./batch)")
+    p.add_argument("--step", metavar="PART.step", help="the STEP file of every part of a SERIAL/images/ folder layout")
+    p.add_argument("--db", metavar="URL", help="results database: a SQLite file or a URL such as "
+                   "postgresql://user@host/line (default: OUT/results.sqlite)")
+    p.add_argument("--resume", action="store_true", help="continue the last batch into OUT: inspect only the parts "
+                   "not recorded as done")
+    p.add_argument("--workers", metavar="N", type=int, help="local worker processes (default: one per core)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run the parts on this Dask distributed "
+                   "cluster (its workers must see the same paths)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no summary")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _spc_parser():
+    p = _Parser(
+        prog="inspect spc",
+        description=(
+            "Statistical process control of a results database: per characteristic the run chart with limits and "
+            "each part's +-U, Cp, Cpk, Pp, Ppk with confidence intervals (ISO 22514-2), an individuals control "
+            "chart with rule violations (ISO 7870-2) and the measuring system's U against the tolerance. Writes "
+            "OUT/spc.html, OUT/spc.csv (one row per characteristic) and OUT/measurements.csv (one row per part "
+            "and characteristic)."
+        ),
+    )
+    p.add_argument("db", metavar="DB", help="the results database: a SQLite file or a database URL")
+    p.add_argument("-o", "--output", metavar="OUT", default="spc", help="output folder (default: ./spc)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no summary")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def _run_batch(args):
+    if not args.output:
+        raise InputError(None, "-o: the output folder name is empty")
+    from partinspect.production.batch import run_batch
+
+    progress = _progress(args.quiet)
+    result = run_batch(args.manifest, args.output, db=args.db, step=args.step, resume=args.resume,
+                       workers=args.workers, scheduler=args.scheduler, progress=progress,
+                       on_problem=lambda line: print(f"inspect batch: {line}", file=sys.stderr, flush=True))
+    if not args.quiet:
+        try:
+            print(result.summary_line(), flush=True)
+        except BrokenPipeError:
+            _silence_stdout()
+    return result.exit_code
+
+
+def _run_spc(args):
+    if not args.output:
+        raise InputError(None, "-o: the output folder name is empty")
+    from partinspect.production.spc_report import run_spc
+
+    page = run_spc(args.db, args.output)
+    if not args.quiet:
+        print(f"wrote {page}", flush=True)
+    return EXIT_PASS
 
 
 def _run_plan(args):
@@ -501,9 +578,9 @@ def main(argv=None):
     if argv and argv[0] in SUBCOMMANDS:
         command, rest = argv[0], argv[1:]
         parser = {"features": _features_parser, "render": _render_parser, "calibrate": _calibrate_parser,
-                  "plan": _plan_parser, "spec": _spec_parser}[command]()
+                  "plan": _plan_parser, "spec": _spec_parser, "batch": _batch_parser, "spc": _spc_parser}[command]()
         run = {"features": _run_features, "render": _run_render, "calibrate": _run_calibrate,
-               "plan": _run_plan, "spec": _run_spec}[command]
+               "plan": _run_plan, "spec": _run_spec, "batch": _run_batch, "spc": _run_spc}[command]
     else:
         parser, rest, run = _main_parser(), argv, _run_inspect
     args = parser.parse_args(rest)

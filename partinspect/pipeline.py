@@ -89,7 +89,7 @@ class Measured:
 
 
 def run_inspection(part, images, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
-                   draws=200, pose_hint=None):
+                   draws=200, pose_hint=None, load_cad=None):
     """Inspect a part from a stereo pair and write the reports.
 
     Parameters
@@ -120,6 +120,10 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         enough that each feature lies within half a millimetre of its place:
         the pose search is skipped, which also settles parts that look
         symmetric to the cameras.
+    load_cad : callable, optional
+        ``load_cad(path) -> (shape, inventory)`` in place of loading the STEP
+        file: a batch worker hands a cache, so a part number's model is read
+        once, not once per part.
 
     Returns
     -------
@@ -133,7 +137,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     from partinspect.reports.writer import write_reports
     from partinspect.results import figure_data
 
-    inputs = load_inputs(part, images, out, tolerances, pose_hint, progress)
+    inputs = load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad)
     check, first = check_calibration(inputs, progress)
     m = measure(inputs, progress, check, first)
     if uncertainty == "montecarlo":
@@ -146,7 +150,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     return InspectionResult(report["verdict"], report, out_dir)
 
 
-def load_inputs(part, images, out, tolerances, pose_hint, progress):
+def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=None):
     """Check and read every input; cheap checks first, so a typo fails before seconds of CAD loading."""
     from partinspect.diagnosis import edges_found
     from partinspect.tolerances.loading import find_tolerances, load_characteristics
@@ -165,11 +169,7 @@ def load_inputs(part, images, out, tolerances, pose_hint, progress):
     left, right, bit_depth = read_pair(images, calib)
 
     progress(f"loading {part.name}")
-    from partinspect.cad.features import inventory
-    from partinspect.cad.step import load_step
-
-    shape = load_step(part)
-    inv = inventory(shape)
+    shape, inv = (load_cad or load_cad_model)(part)
     if not inv.features:
         raise InputError(part, f"no line or circle edges to measure ({edges_found(inv)})")
     hint = _pose_hint(pose_hint, shape, calib)
@@ -179,6 +179,15 @@ def load_inputs(part, images, out, tolerances, pose_hint, progress):
     calib_file = next((images / n for n in CALIBRATION_NAMES if (images / n).is_file()), None)
     return Inputs(part, images, tol_path, calib, left, right, bit_depth, shape, inv, resolved, characteristics, hint,
                   calib_file)
+
+
+def load_cad_model(part):
+    """The STEP file's shape and its feature inventory."""
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+
+    shape = load_step(part)
+    return shape, inventory(shape)
 
 
 def check_calibration(inputs, progress):

@@ -29,7 +29,7 @@ def test_help_does_not_import_heavy_libraries():
     assert "features" in out.stdout and "render" in out.stdout
 
 
-@pytest.mark.parametrize("sub", ["features", "render", "calibrate"])
+@pytest.mark.parametrize("sub", ["features", "render", "calibrate", "batch", "spc"])
 def test_subcommand_help(sub, capsys):
     with pytest.raises(SystemExit) as e:
         main([sub, "--help"])

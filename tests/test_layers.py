@@ -17,8 +17,10 @@ PACKAGE = Path(__file__).resolve().parents[1] / "partinspect"
 # depends on the simulator (only the command line, which runs `inspect
 # render` and hands the planner's check its renderer, and the simulator
 # itself); vision knows nothing of the CAD model or the tolerances; the
-# reports only format what they are given.
-UPPER = ["partinspect.cli", "partinspect.pipeline", "partinspect.diagnosis", "partinspect.results"]
+# reports only format what they are given; the production layer (batches,
+# results database, SPC) sits beside the pipeline, above it only the command line.
+UPPER = ["partinspect.cli", "partinspect.pipeline", "partinspect.diagnosis", "partinspect.results",
+         "partinspect.production"]
 FORBIDDEN = {
     "partinspect.vision": ["partinspect.cad", "partinspect.tolerances", "partinspect.planning", "partinspect.reports",
                            "partinspect.simulate", "partinspect.adaptive", *UPPER],
@@ -32,9 +34,13 @@ FORBIDDEN = {
     "partinspect.adaptive": ["partinspect.simulate", *UPPER],
     "partinspect.frames": ["partinspect."],
     "partinspect.poses": ["partinspect.simulate", "partinspect.vision", "partinspect.cad", *UPPER],
-    "partinspect.diagnosis": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline"],
-    "partinspect.results": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline"],
-    "partinspect.pipeline": ["partinspect.simulate", "partinspect.cli", "partinspect.planning"],
+    "partinspect.diagnosis": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline", "partinspect.production"],
+    "partinspect.results": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline", "partinspect.production"],
+    "partinspect.pipeline": ["partinspect.simulate", "partinspect.cli", "partinspect.planning", "partinspect.production"],
+    # Batches orchestrate like the pipeline (which they call once per part);
+    # the SPC maths is plain functions on arrays: no I/O, no other layer.
+    "partinspect.production": ["partinspect.simulate", "partinspect.cli", "partinspect.planning"],
+    "partinspect.production.spc": ["partinspect."],
 }
 
 

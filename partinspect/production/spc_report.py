@@ -1,0 +1,166 @@
+"""The SPC page and its CSV exports, from the results database.
+
+Reads every inspected part's characteristics (:func:`.database.measurements`),
+computes each characteristic's figures (:mod:`.spc`) and writes, together
+and atomically, ``spc.html`` (:mod:`partinspect.reports.spc_page`),
+``spc.csv`` (one row per characteristic) and ``measurements.csv`` (one row
+per part and characteristic, for users' own tools).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from partinspect import __version__
+from partinspect.atomic import prepare_output_dir, write_files_atomic
+from partinspect.production import spc
+
+CONFIDENCE = 0.95
+MEASUREMENT_COLUMNS = ("serial", "measured_at", "batch_id", "verdict", "step_file", "step_sha256", "characteristic", "type", "feature", "unit",
+                       "nominal", "measured", "deviation", "standard_uncertainty", "expanded_uncertainty",
+                       "coverage_factor", "lower_limit", "upper_limit", "decision", "limit_source", "rule")
+SUMMARY_COLUMNS = ("characteristic", "type", "unit", "n", "lower", "upper", "mean", "s", "sigma_within", "cp", "cpk",
+                   "pp", "ppk", "U", "q_mp", "capable_measurement", "tests", "fails", "inconclusive")
+
+
+def _natural(text):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", text)]
+
+
+def characteristic_series(rows):
+    """Rows grouped by part number (the STEP file's content) and characteristic, in production order.
+
+    Returns
+    -------
+    dict of str to list of dict
+        The characteristic's id (prefixed by its STEP file, ``folder/part.step:``,
+        when the rows hold more than one part number) -> its rows.
+    """
+    models = {r["step_sha256"]: r["step_file"] for r in rows}
+    out = {}
+    for r in rows:
+        key = r["characteristic"]
+        if len(models) > 1:
+            f = Path(models[r["step_sha256"]] or "?")
+            key = f"{f.parent.name}/{f.name}: {key}"
+        out.setdefault(key, []).append(r)
+    return {k: out[k] for k in sorted(out, key=_natural)}
+
+
+def summarise(cid, rows, confidence=CONFIDENCE):
+    """One characteristic's SPC figures and chart series from its rows (production order)."""
+    last = rows[-1]
+    measured = [r for r in rows if r["measured"] is not None]
+    x = np.array([r["measured"] for r in measured], float)
+    u = np.array([np.nan if r["standard_uncertainty"] is None else r["standard_uncertainty"] for r in measured])
+    lower, upper = last["lower_limit"], last["upper_limit"]
+    s = spc.characteristic_summary(x, lower, upper, u=u[np.isfinite(u)], confidence=confidence)
+    lim = s.pop("limits") or {}
+    violations = {r: [int(i) for i in idx] for r, idx in s.pop("violations").items() if len(idx)}
+    return {
+        "id": cid, "type": last["type"], "unit": last["unit"] or "", "lower": lower, "upper": upper,
+        **{k: _plain(v) for k, v in s.items()},
+        "center": lim.get("center"), "lcl": lim.get("lcl"), "ucl": lim.get("ucl"),
+        "violations": violations, "rules": sorted(violations),
+        "fails": sum(r["decision"] == "fail" for r in rows),
+        "inconclusive": sum(r["decision"] == "inconclusive" for r in rows),
+        "not_measured": len(rows) - len(measured),
+        "serials": [r["serial"] for r in measured], "measured": x.tolist(),
+        "U_parts": [None if r["expanded_uncertainty"] is None else r["expanded_uncertainty"] for r in measured],
+    }
+
+
+def _plain(v):
+    if isinstance(v, tuple):
+        return tuple(float(a) for a in v)
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return v
+
+
+def spc_data(rows, *, title, source, confidence=CONFIDENCE):
+    """Everything the SPC page shows, from :func:`.database.measurements` rows."""
+    chars = [summarise(cid, rs, confidence) for cid, rs in characteristic_series(rows).items()]
+    times = [r["measured_at"] for r in rows]
+    return {
+        "title": title, "source": source, "confidence": confidence, "software_version": __version__,
+        "created": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "parts": len({r["serial"] for r in rows}),
+        "first": str(min(times)) if times else None, "last": str(max(times)) if times else None,
+        "characteristics": chars, "rules": spc.RULES, "q_limit": spc.Q_LIMIT,
+        "not_capable": [c for c in chars if c["capable_measurement"] is False],
+        "special_causes": [c for c in chars if c["rules"]],
+    }
+
+
+def _csv(columns, rows, cell=None):
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    for r in rows:
+        w.writerow([(cell or _cell)(r.get(c)) for c in columns])
+    return buf.getvalue().encode("utf-8")
+
+
+def _cell(v):
+    """A computed figure: 12 significant digits, without the binary noise of the arithmetic."""
+    if isinstance(v, float):
+        return f"{v:.12g}"
+    return "" if v is None else v
+
+
+def _stored(v):
+    """A value as the database holds it (Python's shortest exact repr for floats)."""
+    return "" if v is None else v
+
+
+def summary_rows(data):
+    """spc.csv's rows: the table of the page, one per characteristic."""
+    out = []
+    for c in data["characteristics"]:
+        row = {"characteristic": c["id"], **{k: c.get(k) for k in SUMMARY_COLUMNS if k in c},
+               "tests": " ".join(str(r) for r in c["rules"])}
+        out.append(row)
+    return out
+
+
+def write_spc_files(out, rows, *, title, source):
+    """Write spc.html, spc.csv and measurements.csv into ``out``, together; returns spc.html's path."""
+    from partinspect.reports.spc_page import render_spc_html
+
+    out = prepare_output_dir(out)
+    data = spc_data(rows, title=title, source=source)
+    page = out / "spc.html"
+    write_files_atomic({
+        page: render_spc_html(data).encode("utf-8"),
+        out / "spc.csv": _csv(SUMMARY_COLUMNS, summary_rows(data)),
+        out / "measurements.csv": _csv(MEASUREMENT_COLUMNS, rows, _stored),
+    })
+    return page
+
+
+def write_spc_page(engine, out, *, batch_id=None, title="Statistical process control"):
+    """The SPC files of one batch (or of the whole database) into ``out``."""
+    from partinspect.production.database import measurements, shown_url
+
+    return write_spc_files(out, measurements(engine, batch_id), title=title,
+                           source=shown_url(engine.url.render_as_string(hide_password=True)))
+
+
+def run_spc(db, out):
+    """``inspect spc DB -o OUT``: the SPC files over every part of an existing results database."""
+    from partinspect.atomic import check_output_dir
+    from partinspect.production.database import database_url, open_database
+
+    check_output_dir(out)
+    engine = open_database(database_url(db, Path(out)), create=False)
+    try:
+        return write_spc_page(engine, out, title=f"SPC of {Path(str(db)).name}")
+    finally:
+        engine.dispose()

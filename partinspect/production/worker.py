@@ -1,0 +1,110 @@
+"""One part of a batch, as a worker process (local or on a Dask cluster) runs it.
+
+:func:`inspect_part` is the one function both executors call: it runs
+:func:`partinspect.pipeline.run_inspection` into ``OUT/SERIAL/`` and returns
+a small picklable record for the results database. A worker stays alive
+across parts, so its heavy imports happen once, and it keeps each STEP
+file's shape and feature inventory (both immutable) keyed by the file's
+sha256: a part number is loaded once per worker, not once per part.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+import time
+from collections import OrderedDict
+from datetime import datetime, timezone
+from pathlib import Path
+
+from partinspect import __version__
+from partinspect.errors import InputError
+
+# Models kept per worker; a line runs a few part numbers at a time.
+CACHE_SIZE = 8
+_MODELS = OrderedDict()
+CHARACTERISTIC_KEYS = ("id", "type", "feature", "unit", "nominal", "measured", "deviation", "standard_uncertainty",
+                       "expanded_uncertainty", "coverage_factor", "lower_limit", "upper_limit", "decision", "source",
+                       "rule")
+
+
+def sha256(path):
+    """Hex sha256 of a file's bytes; None when it cannot be read."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError:
+        return None
+    return h.hexdigest()
+
+
+def cached_model(path):
+    """The STEP file's (shape, inventory), loaded once per content (sha256) in this process."""
+    from partinspect.pipeline import load_cad_model
+
+    key = sha256(path)
+    if key in _MODELS:
+        _MODELS.move_to_end(key)
+        return _MODELS[key]
+    model = load_cad_model(path)
+    if key is not None:
+        _MODELS[key] = model
+        while len(_MODELS) > CACHE_SIZE:
+            _MODELS.popitem(last=False)
+    return model
+
+
+def inspect_part(job, out):
+    """Inspect one part of a batch into ``out/SERIAL``; never raises for the part's own failure.
+
+    Parameters
+    ----------
+    job : partinspect.production.manifest.Job
+    out : str or Path
+        The batch's output folder.
+
+    Returns
+    -------
+    dict
+        ``part``: the ``parts`` row (status "done" or "failed", exit code,
+        verdict, inputs' sha256, timing, worker); ``characteristics``:
+        report.json's characteristics (empty when the run could not be made).
+    """
+    from partinspect.pipeline import CALIBRATION_NAMES, run_inspection
+
+    t0 = time.perf_counter()
+    report_dir = Path(out) / job.serial
+    error, report = None, None
+    try:
+        result = run_inspection(job.step, job.images, report_dir, tolerances=job.spec, load_cad=cached_model)
+        report = result.report
+        status, code, verdict = "done", result.exit_code, result.verdict
+    except InputError as exc:
+        status, code, verdict, error = "failed", 2, None, str(exc)
+    except Exception as exc:  # one part's internal error must not end the batch
+        status, code, verdict = "failed", 2, None
+        error = f"internal error: {type(exc).__name__}: {' '.join(str(exc).split())}"
+    calibration = next((job.images / n for n in CALIBRATION_NAMES if (job.images / n).is_file()), None)
+    spec = job.spec or _spec_used(report)
+    part = {
+        "serial": job.serial, "step_file": str(job.step), "step_sha256": sha256(job.step),
+        "images": str(job.images), "left_sha256": sha256(job.images / "left.png"),
+        "right_sha256": sha256(job.images / "right.png"),
+        "calibration_sha256": None if calibration is None else sha256(calibration),
+        "spec_file": None if spec is None else str(spec), "spec_sha256": None if spec is None else sha256(spec),
+        "measured_at": job.time or datetime.now(timezone.utc).replace(tzinfo=None, microsecond=0),
+        "software_version": __version__, "status": status, "exit_code": code, "verdict": verdict, "error": error,
+        "report_dir": str(report_dir) if report is not None else None,
+        "seconds": round(time.perf_counter() - t0, 3), "worker": f"{socket.gethostname()}:{os.getpid()}",
+    }
+    chars = [] if report is None else [{k: c.get(k) for k in CHARACTERISTIC_KEYS} for c in report["characteristics"]]
+    return {"part": part, "characteristics": chars}
+
+
+def _spec_used(report):
+    if report is None:
+        return None
+    return next((Path(i["path"]) for i in report.get("inputs", []) if i.get("role") == "tolerances"), None)

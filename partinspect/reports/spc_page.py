@@ -1,0 +1,101 @@
+"""spc.html: the statistical process control page of a batch or a results database.
+
+One self-contained, offline page: a table of every characteristic's
+capability figures, then per characteristic an interactive run chart
+(plotly.js, inlined once per page) of the measured values with each part's
++-U, the specification limits, the individuals chart's centre line and
+control limits, and the points that complete a test for special causes.
+
+Plotly rather than static SVG: a line engineer zooms into a drift, reads a
+part's serial and U on hover and hides traces, which a page of hundreds of
+points per chart needs; its 4.8 MB of script is paid once per page. The
+page's scripts are allowed by their hashes only (Content-Security-Policy),
+as report.html's, and every string from the database goes through jinja2's
+autoescaping or, inside the charts' data, JSON with ``<`` escaped.
+"""
+
+import base64
+import hashlib
+import json
+import math
+
+from partinspect.reports.html import environment
+
+_RULE_MARK = "#b3261e"
+
+
+def _finite(v):
+    return v is not None and isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def run_chart(c):
+    """The plotly figure (as a dict: data, layout) of one characteristic's run chart.
+
+    ``c``: one entry of :func:`partinspect.production.spc_report.spc_data`'s
+    characteristics (serials, measured, U, limits, violations).
+    """
+    x = list(range(1, len(c["measured"]) + 1))
+    hover = [f"{s}<br>{m:.4f} ± {u:.4f} {c['unit']}" if _finite(u) else f"{s}<br>{m:.4f} {c['unit']}"
+             for s, m, u in zip(c["serials"], c["measured"], c["U_parts"])]
+    data = [{
+        "type": "scatter", "mode": "lines+markers", "name": "measured ± U", "x": x, "y": c["measured"],
+        "text": hover, "hoverinfo": "text", "line": {"color": "#1d2330", "width": 1}, "marker": {"size": 5},
+        "error_y": {"type": "data", "array": [u if _finite(u) else 0 for u in c["U_parts"]], "visible": True,
+                    "color": "#8a94a6", "thickness": 1, "width": 2},
+    }]
+    flagged = sorted({i for idx in c["violations"].values() for i in idx})
+    if flagged:
+        rules = {i: ", ".join(str(r) for r, idx in sorted(c["violations"].items()) if i in idx) for i in flagged}
+        data.append({"type": "scatter", "mode": "markers", "name": "test for special causes",
+                     "x": [x[i] for i in flagged], "y": [c["measured"][i] for i in flagged],
+                     "text": [f"{c['serials'][i]}: test(s) {rules[i]}" for i in flagged], "hoverinfo": "text",
+                     "marker": {"symbol": "circle-open", "size": 13, "color": _RULE_MARK, "line": {"width": 2}}})
+    lines = []
+    for value, name, colour, dash in ((c["lower"], "LSL", "#b3261e", "solid"), (c["upper"], "USL", "#b3261e", "solid"),
+                                      (c["center"], "centre", "#1b7a3a", "dot"), (c["lcl"], "LCL", "#9a6700", "dash"),
+                                      (c["ucl"], "UCL", "#9a6700", "dash")):
+        if _finite(value):
+            lines.append({"type": "scatter", "mode": "lines", "name": f"{name} {value:.4f}", "x": [0.5, len(x) + 0.5],
+                          "y": [value, value], "hoverinfo": "name", "line": {"color": colour, "dash": dash, "width": 1}})
+    layout = {"height": 300, "margin": {"l": 70, "r": 20, "t": 10, "b": 40}, "showlegend": True,
+              "legend": {"orientation": "h", "y": -0.22, "font": {"size": 10}},
+              "xaxis": {"title": {"text": "part (production order)"}, "zeroline": False,
+                        # Serials under the points while they fit; beyond, numbers (the hover names the part).
+                        **({"tickvals": x, "ticktext": c["serials"], "tickangle": -45} if len(x) <= 30 else {})},
+              "yaxis": {"title": {"text": f"{c['type']} [{c['unit']}]"}, "zeroline": False, "exponentformat": "none"},
+              "plot_bgcolor": "#fff", "paper_bgcolor": "#fff"}
+    return {"data": data + lines, "layout": layout}
+
+
+def _script_json(obj):
+    # Inside <script>, "</" would end it early: JSON's \u003c keeps the value.
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c")
+
+
+def _hash(script):
+    return "'sha256-" + base64.b64encode(hashlib.sha256(script.encode("utf-8")).digest()).decode() + "'"
+
+
+def render_spc_html(data):
+    """spc.html's text.
+
+    Parameters
+    ----------
+    data : dict
+        :func:`partinspect.production.spc_report.spc_data`'s result:
+        ``title``, ``source``, ``created``, ``parts``, ``first``, ``last``,
+        ``characteristics`` (each with its figures and series),
+        ``not_capable`` and ``special_causes``.
+    """
+    import plotly.offline
+
+    charts = [{"id": f"chart-{i}", **run_chart(c)} for i, c in enumerate(data["characteristics"]) if c["measured"]]
+    plotly_js = plotly.offline.get_plotlyjs()
+    draw = ("const CHARTS = " + _script_json(charts) + ";\n"
+            "for (const c of CHARTS) {\n"
+            "  Plotly.newPlot(c.id, c.data, c.layout, {responsive: true, displaylogo: false});\n"
+            "}\n")
+    return environment().get_template("spc.html.j2").render(
+        d=data, plotly_js=plotly_js, draw=draw, script_hashes=f"{_hash(plotly_js)} {_hash(draw)}",
+        charted={c["id"] for c in data["characteristics"] if c["measured"]},
+    )

@@ -1,0 +1,103 @@
+"""inspect spc: the page and the CSV from a results database, checked against an independent computation."""
+
+import csv
+from datetime import datetime, timedelta
+
+import numpy as np
+import pytest
+
+from partinspect.cli import main
+from partinspect.production import database as db
+
+N = 30
+EVIL = "edge-<script>alert(1)</script>.straightness"
+
+
+@pytest.fixture(scope="module")
+def line_db(tmp_path_factory):
+    """30 parts: a hole's diameter drifting upwards, a steady one, and a form characteristic with a large U."""
+    path = tmp_path_factory.mktemp("spc") / "line.sqlite"
+    engine = db.open_database(f"sqlite:///{path}")
+    batch, _ = db.start_batch(engine, "line", None, "0.1.0")
+    rng = np.random.default_rng(7)
+    drift = 12.0 + 0.004 * rng.standard_normal(N) + np.linspace(0.0, 0.03, N)
+    steady = 8.0 + 0.003 * rng.standard_normal(N)
+    for i in range(N):
+        chars = [
+            {"id": "circle-4.diameter", "type": "diameter", "unit": "mm", "nominal": 12.0, "measured": drift[i],
+             "standard_uncertainty": 0.002, "expanded_uncertainty": 0.004, "lower_limit": 11.95,
+             "upper_limit": 12.05, "decision": "fail" if drift[i] > 12.05 else "pass", "source": "spec"},
+            {"id": "circle-2.diameter", "type": "diameter", "unit": "mm", "nominal": 8.0, "measured": steady[i],
+             "standard_uncertainty": 0.002, "expanded_uncertainty": 0.004, "lower_limit": 7.95, "upper_limit": 8.05,
+             "decision": "pass"},
+            {"id": EVIL, "type": "straightness", "unit": "mm", "nominal": 0.0, "measured": 0.01 + 0.001 * (i % 3),
+             "standard_uncertainty": 0.005, "expanded_uncertainty": 0.010, "lower_limit": None,
+             "upper_limit": 0.05, "decision": "pass"},
+        ]
+        part = {"serial": f"S{i:03d}", "step_file": "/line/plate.step", "step_sha256": "b" * 64, "images": "x",
+                "measured_at": datetime(2026, 3, 1, 6) + timedelta(minutes=5 * i), "software_version": "0.1.0",
+                "status": db.DONE, "exit_code": 0, "verdict": "pass"}
+        db.record_part(engine, batch, part, chars)
+    engine.dispose()
+    return path, drift
+
+
+@pytest.fixture(scope="module")
+def spc_out(line_db, tmp_path_factory):
+    out = tmp_path_factory.mktemp("spc-out")
+    assert main(["spc", str(line_db[0]), "-o", str(out), "-q"]) == 0
+    with open(out / "spc.csv", newline="") as f:
+        table = {r["characteristic"]: r for r in csv.DictReader(f)}
+    return out, table
+
+
+def test_cpk_in_the_export_matches_an_independent_computation(line_db, spc_out):
+    _, drift = line_db
+    _, table = spc_out
+    row = table["circle-4.diameter"]
+    assert int(row["n"]) == N
+    sigma_w = np.mean(np.abs(np.diff(drift))) * np.sqrt(np.pi) / 2
+    s = np.std(drift, ddof=1)
+    mean = drift.mean()
+    assert float(row["cpk"]) == pytest.approx(min(12.05 - mean, mean - 11.95) / (3 * sigma_w), rel=1e-9)
+    assert float(row["ppk"]) == pytest.approx(min(12.05 - mean, mean - 11.95) / (3 * s), rel=1e-9)
+    assert float(row["cp"]) == pytest.approx(0.1 / (6 * sigma_w), rel=1e-9)
+    assert int(row["fails"]) == int(np.sum(drift > 12.05))
+
+
+def test_the_drift_fires_a_test_and_the_steady_hole_none(spc_out):
+    _, table = spc_out
+    assert table["circle-4.diameter"]["tests"] != ""
+    assert set(table["circle-4.diameter"]["tests"].split()) & {"1", "2", "3", "5", "6"}
+    assert table["circle-2.diameter"]["tests"] == ""
+
+
+def test_the_measuring_system_is_judged_against_the_tolerance(spc_out):
+    out, table = spc_out
+    # straightness: U = 0.010 over the zone 0 .. 0.05: Q_MP = 2 U / T = 40 %, above 30 %.
+    assert float(table[EVIL]["q_mp"]) == pytest.approx(0.4)
+    assert table[EVIL]["capable_measurement"] == "False"
+    assert float(table["circle-2.diameter"]["q_mp"]) == pytest.approx(0.08)
+    html = (out / "spc.html").read_text()
+    notice = html[html.index('id="not-capable"'):]
+    notice = notice[:notice.index("</p>")]
+    assert "edge-&lt;script&gt;alert(1)&lt;/script&gt;.straightness" in notice and "40 %" in notice
+    assert "<script>alert(1)" not in html          # escaped in the table and, as \u003c, in the charts' data
+    assert html.count("Plotly.newPlot") == 1 and 'id="chart-2"' in html
+
+
+def test_measurements_export_has_one_row_per_part_and_characteristic(spc_out):
+    out, _ = spc_out
+    with open(out / "measurements.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 3 * N
+    assert {r["serial"] for r in rows} == {f"S{i:03d}" for i in range(N)}
+
+
+def test_spc_of_a_missing_or_foreign_database(tmp_path, capsys):
+    assert main(["spc", str(tmp_path / "none.sqlite"), "-o", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err.strip() == f"inspect: error: {tmp_path / 'none.sqlite'}: results database not found"
+    (tmp_path / "x.sqlite").write_text("not a database at all, just text " * 50)
+    assert main(["spc", str(tmp_path / "x.sqlite"), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot open the results database" in err
