@@ -217,12 +217,15 @@ def check_calibration(inputs, progress):
 
 
 def _stereo_round(inputs, params, progress):
+    from partinspect.tolerances.edge_break import apparent_edge_rms
     from partinspect.vision.stereo import measure_stereo
 
+    eb = inputs.resolved.spec.edge_break
     return measure_stereo(
         inputs.left, inputs.right, inputs.calib, sigma=params["sigma"], progress=progress,
         edge_options={"k_low": params["k_low"], "k_high": params["k_high"]},
         match_options={"min_points": params["min_points"]},
+        edge_break=None if eb is None else apparent_edge_rms(eb.min, eb.max),
     )
 
 

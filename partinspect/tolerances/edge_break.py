@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["band_offset", "size_on_broken_rim"]
+__all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms"]
 
 
 def band_offset(b_min, b_max):
@@ -55,6 +55,17 @@ def band_offset(b_min, b_max):
     eb2 = (b_min * b_min + b_min * b_max + b_max * b_max) / 3.0
     mean = 0.5 * eb
     return mean, math.sqrt(max(eb2 / 3.0 - mean * mean, 0.0))
+
+
+def band_rms(b_min, b_max):
+    """RMS of the apparent edge's offset ``s b`` across the band about zero, mm.
+
+    The Type B of what the band's place, changing around a rim, does to the
+    rim's circularity: the out-of-roundness seen lies between zero and the
+    break, and nothing tells where.
+    """
+    mean, std = band_offset(b_min, b_max)
+    return math.hypot(mean, std)
 
 
 def size_on_broken_rim(radius, radius_u, convex, b_min, b_max):
@@ -82,7 +93,33 @@ def size_on_broken_rim(radius, radius_u, convex, b_min, b_max):
     """
     mean, std = band_offset(b_min, b_max)
     if convex is None:
-        correction, u_break = 0.0, math.sqrt(std * std + mean * mean)
+        correction, u_break = 0.0, band_rms(b_min, b_max)
     else:
         correction, u_break = (mean if convex else -mean), std
     return radius + correction, math.hypot(radius_u, u_break), correction, u_break
+
+
+def apparent_edge_rms(b_min, b_max):
+    """RMS distance, mm, of a broken edge's apparent step from the sharp edge.
+
+    Across a chamfer of size ``b`` between two faces at right angles the
+    step lies at ``b ((1 - s) u1 + s u2)`` from the sharp edge (u1, u2 unit
+    vectors along the faces, s uniform in [0, 1]), whose mean square is
+    ``2 b^2 / 3``; a fillet's band lies between that chamfer and the edge,
+    so this bounds it. With ``b`` uniform in ``[b_min, b_max]``: ``sqrt(2
+    E[b^2] / 3)``. The stereo chain carries it as a Type B of every edge
+    point (:func:`partinspect.vision.stereo.edge_band`): it covers both
+    where the step lies on average and how far the two cameras' steps may
+    differ.
+
+    Parameters
+    ----------
+    b_min, b_max : float
+        mm.
+
+    Returns
+    -------
+    float
+    """
+    eb2 = (b_min * b_min + b_min * b_max + b_max * b_max) / 3.0
+    return math.sqrt(2.0 * eb2 / 3.0)

@@ -49,7 +49,7 @@ import numpy as np
 
 from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
-from partinspect.tolerances.edge_break import size_on_broken_rim
+from partinspect.tolerances.edge_break import band_rms, size_on_broken_rim
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
 
 __all__ = [
@@ -584,8 +584,16 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         except FormSimulationError as e:
             return _unmeasured(c, f"the {t} of {c.features[0]} has no uncertainty: its noise-only zone cannot be "
                                   f"simulated ({e})")
-        return _result(c, fr.value, fr.u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
-                       raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
+        details = dict(raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
+        u = fr.u
+        if c.edge_break is not None and _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
+            # Where the step lies on a rounded rim's band changes around it: an
+            # out-of-roundness of the rim seen, not of the wall, up to the break.
+            u_b = band_rms(*c.edge_break)
+            u = math.hypot(u, u_b)
+            details["edge_break"] = {"min": c.edge_break[0], "max": c.edge_break[1], "standard_uncertainty": u_b}
+        return _result(c, fr.value, u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
+                       **details)
     if t in ("distance", "angle"):
         x, cov, info, sizes = _stacked([(p.kind, r, registration.measured_params(p.kind, p.index))
                                         for p, r in zip(picked, rec)])

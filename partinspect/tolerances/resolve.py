@@ -97,8 +97,9 @@ class Characteristic:
     unit : str
         "mm" or "rad".
     edge_break : tuple of 2 float or None
-        Sizes of circles only: the rim's edge break (min, max), mm, from the
-        spec (:mod:`partinspect.tolerances.edge_break`); None for a sharp rim.
+        Sizes and circularity of circles only: the rim's edge break (min,
+        max), mm, from the spec (:mod:`partinspect.tolerances.edge_break`);
+        None for a sharp rim.
     """
 
     id: str
@@ -561,7 +562,7 @@ def characteristics_for(spec, inventory, path=None):
 
 
 def with_edge_breaks(characteristics, resolved):
-    """The characteristics with each size of a rim given its edge break: the feature's own, else the spec's.
+    """The characteristics with each size and circularity of a rim given its edge break: the feature's own, else the spec's.
 
     Parameters
     ----------
@@ -577,6 +578,6 @@ def with_edge_breaks(characteristics, resolved):
            if fs.edge_break is not None and key in resolved.features}
     out = []
     for c in characteristics:
-        eb = own.get(c.features[0], spec.edge_break) if c.type in ("diameter", "radius") else None
+        eb = own.get(c.features[0], spec.edge_break) if c.type in ("diameter", "radius", "circularity") else None
         out.append(replace(c, edge_break=(float(eb.min), float(eb.max))) if eb is not None else c)
     return out

@@ -240,7 +240,7 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
             continue
         nl, nr = len(L.features) + len(lefts), len(R.features) + len(rights)
         f3, why = measure_pair_feature(Match(nl, nr, float("nan"), float("nan"), float("nan"), float("inf")),
-                                       fl, fr, calib, geo, scale)
+                                       fl, fr, calib, geo, scale, stereo.edge_break)
         if f3 is None:
             failed[cid] = why
             continue
@@ -335,7 +335,7 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
         fl, fr = (res.features[i] if not n else line_stretch(res.features[i], keep, scale)
                   for res, i, keep, n in zip((L, R), (f3.left, f3.right), kept, lost))
         new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
-                                      fl, fr, calib, geo, scale)
+                                      fl, fr, calib, geo, scale, stereo.edge_break)
         if new is None:
             continue
         lefts[f3.left], rights[f3.right] = fl, fr

@@ -276,6 +276,9 @@ class StereoResult:
     withdrawn : tuple of (str, str)
         CAD edges whose 3D line was taken out after registration, with the
         reason (:func:`partinspect.vision.posed.cleared_stereo`).
+    edge_break : float or None
+        RMS distance, mm, of a broken edge's apparent step from the sharp
+        edge (:func:`measure_stereo`); None for sharp edges.
     """
 
     left: ImageResult
@@ -287,6 +290,7 @@ class StereoResult:
     calibration_included: bool
     guided_failed: tuple = ()
     withdrawn: tuple = ()
+    edge_break: float | None = None
 
 
 @dataclass(frozen=True)
@@ -475,7 +479,7 @@ def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options
 # ------------------------------------------------------------------ 3D fits
 
 
-def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_std=None):
+def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_std=None, band=None):
     """fit3d Views of a matched pair: ideal points, their
     across-edge standard uncertainties, the cameras of ``calib``.
 
@@ -499,6 +503,10 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
 
     ``correction_std``: the two features' :func:`correction_std`, if
     already computed (they depend on neither the calibration nor ``uv``).
+    ``band``: per view, the Type B standard uncertainty, px, of where a
+    broken edge's step lies across its band (:func:`edge_band`), added in
+    quadrature to every point; along a line it is one offset for the whole
+    view, along a rim correlated as the shading's rest.
     """
     P1, P2 = camera_matrices(calib)
     if correction_std is None:
@@ -523,6 +531,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
         if offset is not None:
             bias = np.hypot(EDGE_BIAS_FACTOR * f.background_bound, EDGE_BIAS_FLOOR)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
+        if band is not None:
+            b = band[len(views)]
+            bias = np.full(len(xy), b) if bias is None else np.hypot(bias, b)
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))
     return views
 
@@ -558,6 +569,30 @@ def type_b_scale(views, fit):
     return float(np.sqrt(max(k2, se)))
 
 
+def edge_band(points, geo, edge_break):
+    """Per view, the standard uncertainty, px, of where a broken edge's step lies across its band.
+
+    ``edge_break`` is the RMS distance, mm, of the apparent step from the
+    sharp edge over the break's band and sizes; at the points' median depth
+    in each camera it is ``edge_break * f / Z`` px. The two cameras see the
+    step at different places on a rounded edge, so each view carries its own.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        The feature's triangulated points, rig frame, mm.
+    geo : EpipolarGeometry
+    edge_break : float
+
+    Returns
+    -------
+    (float, float)
+    """
+    z_left = float(np.median(points[:, 2]))
+    z_right = float(np.median(points @ np.asarray(geo.R)[2] + np.asarray(geo.T).ravel()[2]))
+    return edge_break * geo.K1[0, 0] / z_left, edge_break * geo.K2[0, 0] / z_right
+
+
 def correction_std_of(f, corr_length):
     """Standard deviation of the noise of an arc's corrected points, px (None where no correction is made).
 
@@ -571,7 +606,7 @@ def correction_std_of(f, corr_length):
     return np.hypot(BACKGROUND_CORRECTION * rest, smooth)
 
 
-def views_of(fl, fr, corr_length):
+def views_of(fl, fr, corr_length, band=None):
     """:func:`feature_views` of a pair as a function of the calibration, ``views(calib, remap=False)``.
 
     What depends on neither the calibration nor the points (the
@@ -582,7 +617,7 @@ def views_of(fl, fr, corr_length):
     stds = (correction_std_of(fl, corr_length), correction_std_of(fr, corr_length))
 
     def views(calib, remap=False):
-        return feature_views(fl, fr, corr_length, calib, remap=remap, correction_std=stds)
+        return feature_views(fl, fr, corr_length, calib, remap=remap, correction_std=stds, band=band)
 
     return views
 
@@ -848,7 +883,7 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_sca
 
 
 def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_options=None, edge_options=None,
-                   segment_options=None, parallel=True):
+                   segment_options=None, parallel=True, edge_break=None):
     """Measure the 3D lines and circles of a part from a calibrated stereo pair.
 
     Parameters
@@ -874,6 +909,10 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         measures the left (:func:`partinspect.vision.forked.forked`; made
         here where no child can run). The results are the same either way,
         bit for bit; False runs the two one after the other.
+    edge_break : float, optional
+        The part's edges are broken (rounded or chamfered): the RMS
+        distance, mm, of the apparent step from the sharp edge. Each point
+        of every feature then carries it as a Type B (:func:`edge_band`).
 
     Returns
     -------
@@ -903,15 +942,17 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     say(f"3D fits of {len(matching.matches)} matched features")
     feats, failed = [], []
     for m in matching.matches:
-        f3, why = measure_pair_feature(m, L.features[m.left], R.features[m.right], calib, geo, L.edges.sigma)
+        f3, why = measure_pair_feature(m, L.features[m.left], R.features[m.right], calib, geo, L.edges.sigma,
+                                       edge_break)
         if f3 is None:
             failed.append((m, why))
         else:
             feats.append(f3)
-    return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), bool(uncertainty_directions(calib)))
+    return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), bool(uncertainty_directions(calib)),
+                        edge_break=edge_break)
 
 
-def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
+def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None):
     """The 3D feature of one matched pair of image features.
 
     Parameters
@@ -925,6 +966,8 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
     corr_length : float
         Correlation length of the edge points' noise along the edge, px
         (the edge filter's scale).
+    edge_break : float or None
+        See :func:`measure_stereo`.
 
     Returns
     -------
@@ -936,21 +979,38 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length):
     corr = correspond(fl, fr, geo)
     if len(corr) < 6:
         return None, f"only {len(corr)} corresponding points"
+    band = None if edge_break is None else edge_band(corr.points, geo, edge_break)
     try:
-        views = feature_views(fl, fr, corr_length, calib)
+        views = feature_views(fl, fr, corr_length, calib, band=band)
         fit = fit_feature(fl, fr, views, corr.points, geo)
         if fl.kind == "arc":
             delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
             if p < MISMATCH_P and uncertainty_directions(calib):
                 # One circle seen through a calibration its stated uncertainty allows?
-                r0, J, D, _ = residual_changes(fit, "arc", views_of(fl, fr, corr_length), calib)
+                r0, J, D, _ = residual_changes(fit, "arc", views_of(fl, fr, corr_length, band), calib)
                 delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params), (r0, J, D))
             if p < MISMATCH_P:
                 return None, (f"the two images' arcs are not one circle: its fit's chi-square exceeds "
                               f"the two ellipses' by {delta:.0f} (p = {p:.1e})")
-        scale = type_b_scale(views, fit) if fl.kind == "arc" else 1.0
+        # A broken edge's band moves the whole rim alike, which leaves no
+        # residual: its stated level stands.
+        scale = type_b_scale(views, fit) if fl.kind == "arc" and band is None else 1.0
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
-    G = calibration_responses(fit, fl.kind, views_of(fl, fr, corr_length), calib)
-    return make_feature3d(match, fl, fr, fit, corr, G, geo, views[0], scale), None
+    G = calibration_responses(fit, fl.kind, views_of(fl, fr, corr_length, band), calib)
+    return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band), scale), None
+
+
+def _without_band(view, band):
+    """The left view with a broken edge's band taken out of its Type B, for the form's point errors.
+
+    Along a straight edge the step's place on the band is one offset, which
+    moves no point relative to the others; around a rim its variation is the
+    characteristic's own Type B (:mod:`partinspect.tolerances.edge_break`),
+    not a point error to draw.
+    """
+    if band is None or view.bias is None:
+        return view
+    rest = np.sqrt(np.maximum(np.square(view.bias) - band[0] ** 2, 0.0))
+    return replace(view, bias=rest if np.any(rest > 0) else None)

@@ -32,14 +32,15 @@ def test_a_hole_is_smaller_than_its_rim_and_a_boss_larger():
     assert unknown[3] == pytest.approx(0.1 / np.sqrt(3))  # RMS of s b about zero
 
 
-def test_spec_break_reaches_sizes_only_and_a_feature_overrides_it(plate):  # noqa: F811
+def test_spec_break_reaches_rim_sizes_and_circularity_and_a_feature_overrides_it(plate):  # noqa: F811
     inv = plate[0]
     spec = parse_spec("edge_break: 0.1\nfeatures:\n  circle-4:\n    edge_break: {min: 0.2, max: 0.3}\n"
                       "    diameter: {upper: 0.05, lower: 0}\n", "part.tol.yaml")
     chars = {c.id: c for c in characteristics_for(spec, inv)}
     assert chars["circle-4.diameter"].edge_break == (0.2, 0.3)
     assert chars["circle-2.diameter"].edge_break == (0.0, 0.1)
-    assert chars["circle-2.circularity"].edge_break is None
+    assert chars["circle-2.circularity"].edge_break == (0.0, 0.1)
+    assert all(c.edge_break is None for c in chars.values() if c.type == "straightness")
     assert chars["circle-4.diameter"].to_dict()["edge_break"] == {"min": 0.2, "max": 0.3}
     sharp = {c.id: c for c in characteristics_for(parse_spec("units: mm\n", "p.tol.yaml"), inv)}
     assert sharp["circle-2.diameter"].edge_break is None
@@ -69,3 +70,32 @@ def test_diameters_on_broken_rims_cover_the_wall(plate):  # noqa: F811
     assert 0.75 < np.sqrt(np.mean(z * z)) < 1.25
     assert np.mean(np.abs(z) <= 2) > 0.9
     assert np.sqrt(np.mean(np.square(z_sharp))) > 10
+
+
+def test_apparent_edge_rms_is_the_chamfer_points_rms_distance_from_the_sharp_edge():
+    from partinspect.tolerances.edge_break import apparent_edge_rms
+
+    rng = np.random.default_rng(2)
+    s, b = rng.uniform(0, 1, 200_000), rng.uniform(0.05, 0.2, 200_000)
+    # Points across a 90-degree chamfer: b ((1 - s) u1 + s u2), u1 = x, u2 = y.
+    d2 = (b * (1 - s)) ** 2 + (b * s) ** 2
+    assert apparent_edge_rms(0.05, 0.2) == pytest.approx(np.sqrt(d2.mean()), rel=0.01)
+
+
+def test_the_band_is_carried_in_pixels_at_each_cameras_depth_and_left_out_of_the_form():
+    from partinspect.vision.fit3d import View
+    from partinspect.vision.matching import epipolar_geometry
+    from partinspect.vision.stereo import _without_band, edge_band
+    from partinspect.simulate.rig import default_rig
+
+    rig = default_rig((2448, 2048))
+    geo = epipolar_geometry(rig)
+    X = np.array([[0.0, 0.0, 400.0], [10.0, 0.0, 400.0]])
+    left, right = edge_band(X, geo, 0.1)
+    z_right = float(np.median(X @ np.asarray(geo.R)[2] + np.asarray(geo.T).ravel()[2]))
+    assert left == pytest.approx(0.1 * rig.K1[0, 0] / 400.0)
+    assert right == pytest.approx(0.1 * rig.K2[0, 0] / z_right)
+    line = View(np.zeros((3, 2)), np.full(3, 0.01), np.eye(3, 4), 1.0, np.full(3, left))
+    assert _without_band(line, (left, right)).bias is None
+    rim = View(np.zeros((3, 2)), np.full(3, 0.01), np.eye(3, 4), 1.0, np.hypot([0.02, 0.03, 0.04], left), 5.0)
+    np.testing.assert_allclose(_without_band(rim, (left, right)).bias, [0.02, 0.03, 0.04])
