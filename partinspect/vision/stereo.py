@@ -74,7 +74,7 @@ from partinspect.vision.matching import arc_circle, epipolar_geometry, match_fea
 from partinspect.vision.noise import estimate_noise, noise_level_function
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "views_of", "type_b_scale", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
+           "feature_views", "views_of", "type_b_scale", "edge_band", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
            "as_fitted",
            "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
@@ -554,7 +554,7 @@ def type_b_scale(views, fit):
     Parameters
     ----------
     views : sequence of View
-        The fit's views with the stated Type B (``bias_scale`` 1).
+        The fit's views, with the stated Type B.
     fit : Circle3D
 
     Returns
