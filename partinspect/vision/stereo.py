@@ -101,6 +101,11 @@ a gross misfit, beyond 5 sigma, counts."""
 EDGE_BIAS_CORR_ANGLE = 0.2
 """Correlation length of that remainder along the edge, rad of the ellipse
 (times its semi-major axis gives px)."""
+RIM_DETECTOR_ERROR = 0.005
+"""px: RMS error of rim points beside flat shading on noiseless renders (the
+detector's and the curvature correction's own error, half
+``EDGE_BIAS_FLOOR``); the least Type B a rim's residuals may size its
+centre's share down to (:func:`type_b_scale`)."""
 EDGE_BIAS_FLOOR = 0.01
 """px: Type B standard uncertainty of every rim point however flat the
 shading beside it, added in quadrature to ``EDGE_BIAS_FACTOR`` times the
@@ -545,11 +550,16 @@ def type_b_scale(views, fit):
     and the points' error model (the form) keep the stated level, since a
     displacement common to the whole rim leaves no residual.
 
-    ``sqrt(k^2)`` of :func:`partinspect.vision.bias_evidence.bias_evidence`
-    (the systematic displacement's observed over stated variance at its own
-    correlation length), but never below the square root of that
-    estimate's standard error: a level the residuals cannot tell from zero
-    is stated at what they could just detect, not at nothing.
+    ``k^2`` of :func:`partinspect.vision.bias_evidence.bias_evidence` is
+    the systematic displacement's observed over stated variance at its own
+    correlation length. It is taken at its upper two-standard-error bound:
+    its spread is the noise's (``se``) and the systematic part's own, a
+    variance read over ``nu`` stretches of its correlation length
+    (``2 k^4 / nu``). A smooth shading puts much of its displacement into
+    the longest waves round the rim, which the fit takes up and the
+    residuals do not show, so the level is stated at what the residuals
+    allow, not at their best guess; and never below ``RIM_DETECTOR_ERROR``
+    per point, the detector's own error on a curved edge.
 
     Parameters
     ----------
@@ -566,7 +576,13 @@ def type_b_scale(views, fit):
     if ev is None:
         return 1.0
     k2, se = ev
-    return float(np.sqrt(max(k2, se)))
+    biased = [v for v in views if v.bias is not None]
+    # The systematic part's own sampling spread: a variance read over nu
+    # independent stretches of its correlation length (2 sqrt(pi) l each).
+    nu = sum(len(v.xy) / (2.0 * np.sqrt(np.pi) * v.bias_corr_length) for v in biased)
+    upper = k2 + 2.0 * np.sqrt(se * se + 2.0 * max(k2, 0.0) ** 2 / max(nu, 1.0))
+    stated = np.sqrt(np.mean(np.concatenate([np.square(v.bias) for v in biased])))
+    return float(max(np.sqrt(upper), RIM_DETECTOR_ERROR / stated))
 
 
 def edge_band(points, geo, edge_break):
