@@ -3,8 +3,10 @@
 Every other benchmark renders with an exact calibration, sharp edges, matte
 faces, perfect focus and Gaussian noise. This one renders the sample parts
 at their bundled poses (``examples/*/truth.json``, their ``part.tol.yaml``)
-and NIST parts as ``bench_drift.py`` frames them (ISO 2768-mK spec of
-``bench_stress._nist_spec``) under the realism options of ``inspect
+and NIST parts in ``bench_drift.NIST_VIEW``'s view (ISO 2768-mK spec of
+``bench_stress._nist_spec``; ``ftc_11``, a 63 mm disc framed whole, is the
+one whose view shows enough to align: ``ctc_01``'s, framed on one hole,
+shows one hole) under the realism options of ``inspect
 render``, one at a time and together:
 
 - ``exact``: the plain render (Gaussian noise 2 grey levels, exact calibration);
@@ -17,8 +19,9 @@ render``, one at a time and together:
 - ``defocus``: a 25 mm lens at f/16 focused at the rig's fixation point
   (404.5 mm), the f-number scaled with the image width (f/8 at 1224 px
   wide: the pixel is twice as large) so the blur circle is the same in
-  pixels at every size, about 1-2.5 px at the part's near and far ends
-  (printed per render, from truth.json's ``defocus.coc_px``);
+  pixels at every size: 0 px at the focus, up to 2.5 px (bracket) and
+  3.2 px (plate) at their far ends (printed per render, from truth.json's
+  ``defocus.coc_px``); ftc_11, 3 mm thick, stays nearly in focus;
 - ``photon``: an industrial camera (EMVA 1288 linear model): full well
   10000 e-, gain 0.0255 DN/e- (the full well reads 255 DN, a 200 DN face
   ~7800 e-, about 2.3 DN of noise), read noise 5 e-, cos^4 vignetting;
@@ -46,7 +49,7 @@ Usage::
 
     python3 benchmarks/bench_realism.py --size 1224x1024 --draws 3 --dir /tmp/realism
     python3 benchmarks/bench_realism.py --parts plate --conditions exact,calib-error --draws 100 --dir /tmp/realism
-    python3 benchmarks/bench_realism.py --parts ctc_01 --conditions exact,all
+    python3 benchmarks/bench_realism.py --parts ftc_11 --conditions exact,all --size 1224x1024
 """
 
 from __future__ import annotations
@@ -191,16 +194,36 @@ def decisions(report, truth):
     return out
 
 
-def _error_rms(rows):
-    """Per type: RMS of measured - true (the characteristic's unit)."""
+def _errors(rows):
+    """Per type: RMS and median of |measured - true| (the characteristic's unit, mm or deg)."""
     by = defaultdict(list)
     for r in rows:
         by[r["type"]].append(r["measured"] - r["true"])
-    return {t: float(np.sqrt(np.mean(np.square(e)))) for t, e in by.items()}
+    return {t: (float(np.sqrt(np.mean(np.square(e)))), float(np.median(np.abs(e)))) for t, e in by.items()}
 
 
-def summarise(results, args):
-    print(f"\n#### bench_realism: parts {args.parts}; {args.draws} draws; {args.size}\n")
+def _results():
+    return defaultdict(lambda: {"rows": [], "centres": [], "runs": 0, "failed": 0, "reasons": defaultdict(int),
+                                "decisions": defaultdict(list)})
+
+
+def add(results, entry):
+    """Add one draw's scores (as ``--json`` writes them) to ``results[(condition, part)]``."""
+    r = results[(entry["condition"], entry["part"])]
+    r["runs"] += 1
+    if "refused" in entry:
+        r["failed"] += 1
+        return
+    r["rows"] += entry["rows"]
+    r["centres"] += entry["centres"]
+    for k, v in entry["reasons"].items():
+        r["reasons"][k] += v
+    for k, v in entry["decisions"].items():
+        r["decisions"][k] += v if isinstance(v, list) else [v]
+
+
+def summarise(results, title):
+    print(f"\n#### bench_realism: {title}\n")
     for condition in [c for c in CONDITIONS if any(k[0] == c for k in results)]:
         keys = [k for k in results if k[0] == condition]
         rows = sum((results[k]["rows"] for k in keys), [])
@@ -209,11 +232,11 @@ def summarise(results, args):
         failed = sum(results[k]["failed"] for k in keys)
         print(f"== {condition} ({', '.join(k[1] for k in keys)}; {runs} inspections, {failed} refused)")
         header, trows = honesty_by_type(rows)
-        rms = _error_rms(rows)
-        header = header[:3] + ["error RMS"] + header[3:]
-        trows = [r[:3] + [f"{rms[r[0]]:.4f}" if r[0] in rms else "-"] + r[3:] for r in trows]
+        err = _errors(rows)
+        header = ["type", "n", "error RMS", "median |error|"] + header[3:]
+        trows = [[r[0], r[2], f"{err[r[0]][0]:.4f}", f"{err[r[0]][1]:.4f}"] + r[3:] for r in trows if r[0] in err]
         if len(centres):
-            trows.append(["centre (3D)", len(centres), len(centres), "-", f"{100 * np.mean(centres <= CHI2_3):.1f} %",
+            trows.append(["centre (3D)", len(centres), "-", "-", f"{100 * np.mean(centres <= CHI2_3):.1f} %",
                           f"{np.sqrt(np.mean(centres / 3)):.2f}", "-", f"{np.sqrt(centres.max() / 3):.1f}"])
         table(header, trows)
         reasons = defaultdict(int)
@@ -244,7 +267,19 @@ def main():
     ap.add_argument("--size", default="2448x2048", help="WIDTHxHEIGHT, e.g. 1224x1024 for quicker runs")
     ap.add_argument("--dir", default=None, help="keep the radiance, the pairs and the reports here (reused)")
     ap.add_argument("--json", default=None, help="also write every draw's scores to this file")
+    ap.add_argument("--tables", default=None, metavar="JSON[,JSON...]",
+                    help="print the tables of earlier runs' --json files (draws pooled) and stop")
     args = ap.parse_args()
+    if args.tables:
+        results, seen = _results(), set()
+        for name in args.tables.split(","):
+            for entry in json.loads(Path(name).read_text()):
+                key = (entry["part"], entry["condition"], entry["draw"])
+                if key not in seen:  # a draw is the same in every run that makes it
+                    seen.add(key)
+                    add(results, entry)
+        summarise(results, f"pooled from {args.tables}")
+        return
     from partinspect.errors import InputError
     from partinspect.pipeline import run_inspection
     from partinspect.simulate.rig import default_rig
@@ -257,8 +292,7 @@ def main():
     work = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="realism-"))
     work.mkdir(parents=True, exist_ok=True)
     rig = default_rig(size)
-    results = defaultdict(lambda: {"rows": [], "centres": [], "runs": 0, "failed": 0, "reasons": defaultdict(int),
-                                   "decisions": defaultdict(list)})
+    results = _results()
     log = []
     for part in args.parts.split(","):
         step, _, tolerances = part_setup(part, work, size)
@@ -267,31 +301,25 @@ def main():
             if deviations and part not in OVERSIZE_PARTS:
                 continue
             left, right, truth = radiance(part, key, deviations, work, size)
-            r = results[(condition, part)]
             for draw in range(args.draws):
                 folder = work / f"{part}-{condition}-{size[0]}x{size[1]}-{draw}"
                 write_draw(left, right, condition, draw, rig, folder / "images")
                 t0 = time.perf_counter()
-                r["runs"] += 1
                 try:
                     report = run_inspection(step, folder / "images", folder / "out", tolerances=tolerances).report
                 except InputError as e:
                     print(f"{part} {condition} draw {draw}: refused: {e}", flush=True)
-                    r["failed"] += 1
-                    log.append({"part": part, "condition": condition, "draw": draw, "refused": str(e)})
+                    entry = {"part": part, "condition": condition, "draw": draw, "refused": str(e)}
+                    add(results, entry)
+                    log.append(entry)
                     continue
                 rows, centres = score(report, truth)
                 dec = decisions(report, truth)
                 reasons = _reason_counts(report)
-                r["rows"] += rows
-                r["centres"] += centres
-                for k, v in reasons.items():
-                    r["reasons"][k] += v
-                for k, v in dec.items():
-                    r["decisions"][k] += v if isinstance(v, list) else [v]
-                log.append({"part": part, "condition": condition, "draw": draw, "rows": rows, "centres": centres,
-                            "reasons": reasons, "decisions": dec, "verdict": report["verdict"]
-                            if "verdict" in report else report["summary"].get("verdict")})
+                entry = {"part": part, "condition": condition, "draw": draw, "rows": rows, "centres": centres,
+                         "reasons": reasons, "decisions": dec}
+                add(results, entry)
+                log.append(entry)
                 worst = max(rows, key=lambda x: abs(x["measured"] - x["true"]) / x["u"]) if rows else None
                 print(f"{part} {condition} draw {draw}: {len(rows)} judged in {time.perf_counter() - t0:.0f} s"
                       + (f", worst {worst['id']} {(worst['measured'] - worst['true']) / worst['u']:+.1f} u"
@@ -302,7 +330,7 @@ def main():
                     shutil.rmtree(folder)
             if args.json:
                 Path(args.json).write_text(json.dumps(log, indent=1))
-    summarise(results, args)
+    summarise(results, f"parts {args.parts}; {args.draws} draws; {args.size}")
     if not args.dir:
         shutil.rmtree(work)
 
