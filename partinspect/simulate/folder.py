@@ -15,7 +15,7 @@ from partinspect.simulate.render import SAMPLES
 from partinspect.simulate.rig import FULL_SIZE, PIXEL_PITCH
 from partinspect.cad.raycast import DEFAULT_SHADING, RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
 
-__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder", "shading_with_light"]
+__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder", "render_noiseless", "stated_calibration", "shading_with_light"]
 
 BLUR_SIGMA = 0.6
 """Optics point-spread function, pixels."""
@@ -147,10 +147,7 @@ def render_to_folder(
         Bad pose text, negative noise, a bad option, or an edge break the
         part cannot take anywhere.
     """
-    from partinspect.cad.raycast import build_scene
     from partinspect.simulate.render import render_pair
-    from partinspect.simulate.rig import default_rig
-    from partinspect.simulate.truth import make_truth
 
     say = progress or (lambda message: None)
     realism = _realism(edge_break, material, defocus, photon)
@@ -160,6 +157,85 @@ def render_to_folder(
     noise = 2.0 if noise is None and photon is None else noise
     if noise is not None and noise < 0:
         raise ValueError(f"noise must be >= 0 grey levels, got {noise}")
+
+    def form(rs, rig, part_to_camera, finish, pitch):
+        return render_pair(
+            rs, rig, part_to_camera, noise=noise or 0.0, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES,
+            progress=say, shading=shading, finish=finish, lens=realism["defocus"], photon=realism["photon"],
+            pitch=pitch,
+        )
+
+    (left, right), stated, truth = _form(
+        step_path, form, pose=pose, deviations=deviations, distortion=distortion, image_size=image_size,
+        calib_error=calib_error, drift=drift, realism=realism, shading=shading, noise=noise, seed=seed, say=say,
+    )
+    say(f"writing {out_dir}")
+    _write(out_dir, left, right, stated, truth)
+    return truth
+
+
+def render_noiseless(
+    step_path,
+    *,
+    pose=None,
+    deviations=(),
+    distortion=False,
+    image_size=(2448, 2048),
+    edge_break=None,
+    material=None,
+    defocus=None,
+    light=None,
+    progress=None,
+):
+    """The noiseless radiance pair :func:`render_to_folder` would sense, with its truth and rig.
+
+    For Monte Carlo checks: the rays are cast once, and each draw adds the
+    sensor's noise (:func:`partinspect.simulate.render.sensor`, or
+    :func:`partinspect.simulate.photon.photon_sensor` with
+    :func:`partinspect.simulate.render.camera_vignetting`) and, if wanted,
+    a stated calibration (:func:`stated_calibration`). Parameters are
+    :func:`render_to_folder`'s.
+
+    Returns
+    -------
+    radiance : tuple of two ndarray of float, shape (H, W)
+        Left, right, grey levels before noise and quantisation.
+    rig : StereoCalibration
+        The true rig the pair is formed by.
+    truth : dict
+        The truth (schema ``truth/1``), with ``settings.noise`` None.
+    """
+    from partinspect.simulate.render import scene_radiance_pair
+
+    say = progress or (lambda message: None)
+    realism = _realism(edge_break, material, defocus, None)
+    shading = DEFAULT_SHADING if light is None else shading_with_light(light)
+
+    def form(rs, rig, part_to_camera, finish, pitch):
+        return scene_radiance_pair(
+            rs, rig, part_to_camera, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say, shading=shading,
+            finish=finish, lens=realism["defocus"], pitch=pitch,
+        )
+
+    radiance, rig, truth = _form(
+        step_path, form, pose=pose, deviations=deviations, distortion=distortion, image_size=image_size,
+        calib_error=None, drift=None, realism=realism, shading=shading, noise=None, seed=0, say=say,
+    )
+    return radiance, rig, truth
+
+
+def stated_calibration(rig, seed):
+    """What a board session calibrates ``rig`` to, with its stated uncertainties (``--calib-error SEED``)."""
+    return _stated_calibration(rig, seed)[0]
+
+
+def _form(step_path, form, *, pose, deviations, distortion, image_size, calib_error, drift, realism, shading, noise,
+          seed, say):
+    """The part's scene formed into images by ``form``; (images, the stated calibration, truth)."""
+    from partinspect.cad.raycast import build_scene
+    from partinspect.simulate.rig import default_rig
+    from partinspect.simulate.truth import make_truth
+
     step_path = Path(step_path)
     inv, devs, shape, bounds = _load_part(step_path, deviations, say)
     calibrated = default_rig(image_size, distortion=distortion)
@@ -178,10 +254,7 @@ def render_to_folder(
     rs, finish, extra = _real_part(step_path, shape, inv if not devs else None, truth_scene, realism, say)
     pitch = PIXEL_PITCH * FULL_SIZE[0] / float(image_size[0])
     extra.update(_real_camera(realism, rig, pitch))
-    (left, right), stats = render_pair(
-        rs, rig, part_to_camera, noise=noise or 0.0, seed=seed, blur_sigma=BLUR_SIGMA, samples=SAMPLES, progress=say,
-        shading=shading, finish=finish, lens=realism["defocus"], photon=realism["photon"], pitch=pitch,
-    )
+    images, stats = form(rs, rig, part_to_camera, finish, pitch)
     if "defocus" in extra:
         extra["defocus"]["coc_px"] = {name: stats[name].pop("coc_px") for name in ("left", "right")}
 
@@ -203,10 +276,7 @@ def render_to_folder(
             "rig_after_drift": {name: np.asarray(getattr(rig, name), float).tolist() for name in ("K1", "K2", "R", "T")},
         }
     truth = make_truth(inv, devs, truth_scene, rig, part_to_camera, settings, shading)
-
-    say(f"writing {out_dir}")
-    _write(out_dir, left, right, stated, truth)
-    return truth
+    return images, stated, truth
 
 
 def _realism(edge_break, material, defocus, photon):

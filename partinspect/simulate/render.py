@@ -54,6 +54,8 @@ __all__ = [
     "sensor",
     "render_pair",
     "render_radiance_pair",
+    "scene_radiance_pair",
+    "camera_vignetting",
 ]
 
 SAMPLES = 16
@@ -412,11 +414,67 @@ def render_pair(
         Rays cast and supersampled pixels per camera; with ``lens``, also
         each camera's smallest and largest blur circle (``coc_px``).
     """
+    radiances, stats = scene_radiance_pair(
+        mesh_or_scene, calib, part_to_camera, blur_sigma=blur_sigma, samples=samples, adaptive=adaptive,
+        shading=shading, progress=progress, finish=finish, lens=lens, pitch=pitch,
+    )
+    # The left image's noise is drawn before the right's: the same seed gives the same pair as ever.
+    rng = np.random.default_rng(seed)
+    images = []
+    for index, radiance in enumerate(radiances):
+        if photon is None:
+            images.append(sensor(radiance, noise, rng))
+        else:
+            from partinspect.simulate.photon import photon_sensor
+
+            images.append(photon_sensor(radiance, photon, rng, camera_vignetting(calib, index)))
+    return tuple(images), stats
+
+
+def camera_vignetting(calib, index):
+    """cos^4 relative irradiance of camera ``index`` (0 left, 1 right), shape (H, W)."""
+    from partinspect.simulate.photon import cos4_vignetting
+
+    K, D, _, _ = calib.camera(index)
+    return cos4_vignetting(K, D, calib.image_size)
+
+
+def scene_radiance_pair(
+    mesh_or_scene,
+    calib,
+    part_to_camera,
+    *,
+    blur_sigma=0.6,
+    samples=SAMPLES,
+    adaptive=True,
+    shading=DEFAULT_SHADING,
+    progress=None,
+    finish=None,
+    lens=None,
+    pitch=None,
+):
+    """The noiseless left and right radiance a sensor would read (float grey levels).
+
+    What :func:`render_pair` forms before its sensor: the optics' PSF, a
+    metal ``finish`` and a ``lens``'s depth of field included, no noise, no
+    vignetting, no quantisation. A Monte Carlo check casts the rays once and
+    draws each noise from these (:func:`sensor`, or
+    :func:`partinspect.simulate.photon.photon_sensor` with
+    :func:`camera_vignetting`).
+
+    Parameters are those of :func:`render_pair`.
+
+    Returns
+    -------
+    radiances : tuple of two ndarray of float, shape (H, W)
+        Left, right.
+    stats : dict
+        As :func:`render_pair`'s.
+    """
     rs = mesh_or_scene if isinstance(mesh_or_scene, RaycastScene) else build_scene(mesh_or_scene)
     P = np.asarray(part_to_camera, dtype=float)
     light = P[:3, :3].T @ shading.direction()
-    rng = np.random.default_rng(seed)
-    images, stats = [], {}
+    radiances, stats = [], {}
     for index, name in enumerate(("left", "right")):
         if progress:
             progress(f"ray casting the {name} image")
@@ -432,13 +490,8 @@ def render_pair(
                 progress(f"defocusing the {name} image")
             radiance, coc = defocus_camera(radiance, rs, K, D, R, t, lens, pitch)
             stats[name]["coc_px"] = [float(coc.min()), float(coc.max())]
-        if photon is None:
-            images.append(sensor(radiance, noise, rng))
-        else:
-            from partinspect.simulate.photon import cos4_vignetting, photon_sensor
-
-            images.append(photon_sensor(radiance, photon, rng, cos4_vignetting(K, D, calib.image_size)))
-    return tuple(images), stats
+        radiances.append(radiance)
+    return tuple(radiances), stats
 
 
 def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shading=None, samples=None):

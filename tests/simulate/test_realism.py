@@ -474,3 +474,35 @@ def test_bad_realism_values_are_one_line_exit_2(cube_step, tmp_path, capsys, arg
     assert code == 2
     assert len(err.strip().splitlines()) == 1 and words in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_noiseless_radiance_plus_each_draw_is_the_render(box_step, tmp_path):
+    """render_noiseless + the sensor's draw + stated_calibration give render_to_folder's bytes."""
+    import cv2
+
+    from partinspect.simulate.folder import render_noiseless, render_to_folder, stated_calibration
+    from partinspect.simulate.photon import parse_photon, photon_sensor
+    from partinspect.simulate.render import camera_vignetting, sensor
+    from partinspect.vision.calibration import write_calibration
+
+    size = (320, 256)
+    real = {"material": "aluminium:2", "defocus": "4,380"}
+    render_to_folder(box_step, tmp_path / "r", seed=5, image_size=size, photon="10000,0.0255,5", calib_error=3,
+                     **real)
+    (left, right), rig, truth = render_noiseless(box_step, image_size=size, **real)
+    rng = np.random.default_rng(5)
+    for index, (name, radiance) in enumerate((("left", left), ("right", right))):
+        drawn = photon_sensor(radiance, parse_photon("10000,0.0255,5"), rng, camera_vignetting(rig, index))
+        written = cv2.imread(str(tmp_path / "r" / "images" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(drawn, written)
+    write_calibration(tmp_path / "stated.yaml", stated_calibration(rig, 3))
+    assert (tmp_path / "stated.yaml").read_bytes() == (tmp_path / "r" / "images" / "calibration.yaml").read_bytes()
+    from partinspect.simulate.truth import to_json
+
+    truth, written = json.loads(to_json(truth)), json.loads((tmp_path / "r" / "truth.json").read_text())
+    assert truth["features"] == written["features"] and truth["defocus"] == written["defocus"]
+    # Gaussian noise of the plain render: the left image's noise drawn first
+    render_to_folder(box_step, tmp_path / "p", seed=6, image_size=size, noise=1.5)
+    (left, _), _, _ = render_noiseless(box_step, image_size=size)
+    plain = cv2.imread(str(tmp_path / "p" / "images" / "left.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(sensor(left, 1.5, np.random.default_rng(6)), plain)
