@@ -14,7 +14,9 @@ render``, one at a time and together:
   states it (:func:`partinspect.simulate.folder.stated_calibration`, one
   seed per draw) with its stated uncertainties;
 - ``edge-break``: every convex edge of the rendered solid rounded R 0.1 mm
-  (the STEP file and the spec stay the sharp nominal model);
+  (the STEP file stays the sharp nominal model; the spec states the break,
+  ``edge_break: {min: 0.1, max: 0.1}``, as the drawing would, unless
+  ``--unstated-break``);
 - ``aluminium``: milled aluminium (microfacet highlights, machining marks);
 - ``defocus``: a 25 mm lens at f/16 focused at the rig's fixation point
   (404.5 mm), the f-number scaled with the image width (f/8 at 1224 px
@@ -129,6 +131,16 @@ def part_setup(part, work, size):
     view = plan(20, 0)[STRESS_VIEW[part]] if part in STRESS_VIEW else {"framing": framing, **NIST_VIEW}
     P = _pose({"part": part, **view}, shape, inv, default_rig(size))
     return step, P, _nist_spec(inv, work / f"{part}.tol.yaml")
+
+
+def with_stated_break(step, tolerances, work, part):
+    """The part's spec with the rendered edge break stated (``edge_break``), as the drawing would state it."""
+    base = Path(tolerances) if tolerances else Path(step).with_name(Path(step).stem + ".tol.yaml")
+    text = base.read_text() if base.is_file() else "units: mm\n"
+    size = float(EDGE_BREAK.lstrip("RC"))
+    out = work / f"{part}-edge-break.tol.yaml"
+    out.write_text(text.rstrip("\n") + f"\nedge_break: {{min: {size}, max: {size}}}\n")
+    return out
 
 
 def radiance(part, key, deviations, work, size):
@@ -268,6 +280,8 @@ def main():
                     help="plate, bracket and NIST parts of bench_stress.py (ctc_01, ctc_03, ftc_09, ftc_11)")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--draws", type=int, default=3)
+    ap.add_argument("--unstated-break", action="store_true",
+                    help="inspect edge-broken renders with the part's spec as it is (no edge_break stated)")
     ap.add_argument("--first", type=int, default=0, help="first draw's number (noise seed 7000 + n, calibration seed n)")
     ap.add_argument("--size", default="2448x2048", help="WIDTHxHEIGHT, e.g. 1224x1024 for quicker runs")
     ap.add_argument("--dir", default=None, help="keep the radiance, the pairs and the reports here (reused)")
@@ -311,7 +325,10 @@ def main():
                 write_draw(left, right, condition, draw, rig, folder / "images")
                 t0 = time.perf_counter()
                 try:
-                    report = run_inspection(step, folder / "images", folder / "out", tolerances=tolerances).report
+                    spec = tolerances
+                    if "edge_break" in _options(key, size[0]) and not args.unstated_break:
+                        spec = with_stated_break(step, tolerances, work, part)
+                    report = run_inspection(step, folder / "images", folder / "out", tolerances=spec).report
                 except InputError as e:
                     print(f"{part} {condition} draw {draw}: refused: {e}", flush=True)
                     entry = {"part": part, "condition": condition, "draw": draw, "refused": str(e)}
