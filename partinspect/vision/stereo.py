@@ -1006,8 +1006,10 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
                 r0, J, D, _ = residual_changes(fit, "arc", views_of(fl, fr, corr_length, band), calib)
                 delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params), (r0, J, D))
             if p < MISMATCH_P:
+                hint = ("" if band is not None else "; a rounded or chamfered rim shows each camera its step at "
+                        "a different place: if the part's edges are broken, state edge_break in the tolerance spec")
                 return None, (f"the two images' arcs are not one circle: its fit's chi-square exceeds "
-                              f"the two ellipses' by {delta:.0f} (p = {p:.1e})")
+                              f"the two ellipses' by {delta:.0f} (p = {p:.1e}){hint}")
         # A broken edge's band moves the whole rim alike, which leaves no
         # residual: its stated level stands.
         scale = type_b_scale(views, fit) if fl.kind == "arc" and band is None else 1.0
