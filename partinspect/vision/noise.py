@@ -97,7 +97,8 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
     -----
     Assumes white (pixel-independent) noise of constant level over the
     image; for a sensor whose noise grows with brightness the figure is an
-    average over the unsaturated non-edge pixels.
+    average over the unsaturated non-edge pixels, and
+    :func:`noise_level_function` gives the noise at each grey level.
     """
     img = np.asarray(image)
     if img.ndim == 3:
