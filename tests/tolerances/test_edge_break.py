@@ -11,7 +11,6 @@ from partinspect.tolerances.edge_break import band_offset, size_on_broken_rim
 from partinspect.tolerances.evaluate import evaluate
 from partinspect.tolerances.resolve import characteristics_for
 from partinspect.tolerances.spec import parse_spec
-from tests.tolerances.test_evaluate import plate  # noqa: F401  (the module fixture)
 
 
 @pytest.mark.parametrize("b_min,b_max", [(0.0, 0.1), (0.1, 0.1), (0.05, 0.3)])
@@ -32,7 +31,7 @@ def test_a_hole_is_smaller_than_its_rim_and_a_boss_larger():
     assert unknown[3] == pytest.approx(0.1 / np.sqrt(3))  # RMS of s b about zero
 
 
-def test_spec_break_reaches_rim_sizes_and_circularity_and_a_feature_overrides_it(plate):  # noqa: F811
+def test_spec_break_reaches_rim_sizes_and_circularity_and_a_feature_overrides_it(plate):
     inv = plate[0]
     spec = parse_spec("edge_break: 0.1\nfeatures:\n  circle-4:\n    edge_break: {min: 0.2, max: 0.3}\n"
                       "    diameter: {upper: 0.05, lower: 0}\n", "part.tol.yaml")
@@ -46,7 +45,7 @@ def test_spec_break_reaches_rim_sizes_and_circularity_and_a_feature_overrides_it
     assert sharp["circle-2.diameter"].edge_break is None
 
 
-def test_diameters_on_broken_rims_cover_the_wall(plate):  # noqa: F811
+def test_diameters_on_broken_rims_cover_the_wall(plate):
     # Rims seen anywhere across a 0.1 mm break: the rim's radius is the
     # wall's plus s * 0.1 (s uniform). Stated without the break, the
     # diameter is off by up to 0.2 mm at micrometre uncertainty; with it,

@@ -1,16 +1,12 @@
 """Characteristic values and uncertainties against the truth over repeated noise draws."""
 
-import json
 import math
 
 import numpy as np
 import pytest
 
-from partinspect.cad.features import inventory
 from partinspect.cad.registration import register
 from partinspect.simulate.measured import measure_features
-from partinspect.poses import default_pose
-from partinspect.simulate.rig import default_rig
 from partinspect.tolerances.evaluate import evaluate, monte_carlo, propagate, true_position
 from partinspect.tolerances.form import circularity, straightness
 from partinspect.tolerances.geometry import feature_distance, line_angle
@@ -20,17 +16,6 @@ from partinspect.tolerances.spec import load_spec
 from tests.cad.conftest import EXAMPLES
 
 N_DRAWS = 60
-
-
-@pytest.fixture(scope="module")
-def plate():
-    from partinspect.cad.step import load_step
-
-    shape = load_step(EXAMPLES / "plate" / "part.step")
-    inv = inventory(shape)
-    T = default_pose(shape, default_rig())
-    ids = [f["id"] for f in json.loads((EXAMPLES / "plate" / "truth.json").read_text())["features"] if f["visible_both"]]
-    return inv, T, ids
 
 
 def C(cid, ctype, feats, nominal=0.0, lo=None, up=1.0, unit="mm"):
