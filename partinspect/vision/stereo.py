@@ -558,8 +558,9 @@ def type_b_scale(views, fit):
     (``2 k^4 / nu``). A smooth shading puts much of its displacement into
     the longest waves round the rim, which the fit takes up and the
     residuals do not show, so the level is stated at what the residuals
-    allow, not at their best guess; and never below ``RIM_DETECTOR_ERROR``
-    per point, the detector's own error on a curved edge.
+    allow, not at their best guess, and not above the stated level unless
+    the best guess is; never below ``RIM_DETECTOR_ERROR`` per point, the
+    detector's own error on a curved edge.
 
     Parameters
     ----------
@@ -581,6 +582,9 @@ def type_b_scale(views, fit):
     # independent stretches of its correlation length (2 sqrt(pi) l each).
     nu = sum(len(v.xy) / (2.0 * np.sqrt(np.pi) * v.bias_corr_length) for v in biased)
     upper = k2 + 2.0 * np.sqrt(se * se + 2.0 * max(k2, 0.0) ** 2 / max(nu, 1.0))
+    # Residuals too noisy to bound the level leave the stated one; they raise
+    # it only where their best guess itself lies above it.
+    upper = min(upper, max(1.0, k2))
     stated = np.sqrt(np.mean(np.concatenate([np.square(v.bias) for v in biased])))
     return float(max(np.sqrt(upper), RIM_DETECTOR_ERROR / stated))
 
