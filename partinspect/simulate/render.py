@@ -495,18 +495,12 @@ def scene_radiance_pair(
 
 
 def render_radiance_pair(scene, calib, part_to_camera, *, blur_sigma=0.6, shading=None, samples=None):
-    """The noiseless, blurred left and right images (float32 grey levels).
+    """The noiseless, blurred left and right images (float32 grey levels): :func:`scene_radiance_pair`'s.
 
     Each draw of a Monte Carlo check is ``sensor(image, noise, rng)`` of
     these: the ray casting is done once.
     """
-    shading = shading or DEFAULT_SHADING
-    samples = SAMPLES if samples is None else samples
-    light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
-    out = []
-    for index in (0, 1):
-        K, D, R, t = camera_in_part(calib, index, part_to_camera)
-        img, _ = render_radiance(scene, K, D, R, t, calib.image_size, light, shading=shading, samples=samples,
-                                 psf=blur_sigma)
-        out.append(img)
-    return tuple(out)
+    radiances, _ = scene_radiance_pair(scene, calib, part_to_camera, blur_sigma=blur_sigma,
+                                       shading=shading or DEFAULT_SHADING,
+                                       samples=SAMPLES if samples is None else samples)
+    return radiances
