@@ -1,5 +1,3 @@
-import sys
+from partinspect.cli import console
 
-from partinspect.cli import main
-
-sys.exit(main())
+console()

@@ -145,13 +145,14 @@ a part that moved."""
 
 
 def _registration_inconsistent(s):
-    from scipy import stats
+    # chdtrc is what scipy.stats.chi2.sf calls, without scipy.stats' import time.
+    from scipy.special import chdtrc
 
     w, dof = s.weighted_rms, s.registration_dof
     if s.registration_error or not np.isfinite(w) or dof <= 0 or w <= REGISTRATION_RMS_LIMIT:
         return None
     chi2 = w * w * dof
-    if stats.chi2.sf(chi2, dof) >= 1e-6:
+    if chdtrc(dof, chi2) >= 1e-6:
         return None
     return (f"the matched features scatter about the CAD model {w:.1f} times as much as their uncertainties say "
             f"(weighted RMS; chi-square {chi2:.0f} on {dof} degrees of freedom)")

@@ -10,7 +10,7 @@ characteristics are inconclusive, and no number is ever invented.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,7 @@ import numpy as np
 from partinspect.atomic import check_output_dir, prepare_output_dir
 from partinspect.errors import InputError
 from partinspect.progress import quiet
+from partinspect.timings import Timings
 from partinspect.tolerances.decision import EXIT_CODES
 
 CALIBRATION_NAMES = ("calibration.yaml", "calibration.yml", "intrinsics.yml")
@@ -68,12 +69,13 @@ class Inputs:
     left: np.ndarray
     right: np.ndarray
     bit_depth: int
-    shape: object
+    model: object
     inv: object
     resolved: object
     characteristics: list
     hint: np.ndarray | None
     calib_file: Path | None = None
+    timings: Timings = field(default_factory=Timings)
 
 
 @dataclass
@@ -89,7 +91,7 @@ class Measured:
 
 
 def run_inspection(part, images, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
-                   draws=200, pose_hint=None, load_cad=None):
+                   draws=200, pose_hint=None, load_cad=None, timings=None):
     """Inspect a part from a stereo pair and write the reports.
 
     Parameters
@@ -121,9 +123,12 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         the pose search is skipped, which also settles parts that look
         symmetric to the cameras.
     load_cad : callable, optional
-        ``load_cad(path) -> (shape, inventory)`` in place of loading the STEP
-        file: a batch worker hands a cache, so a part number's model is read
-        once, not once per part.
+        ``load_cad(path) -> partinspect.cad.model.CadModel`` in place of
+        `load_cad_model`: a batch worker keeps each part number's model in
+        memory, so it is read once, not once per part.
+    timings : partinspect.timings.Timings, optional
+        Receives each stage's wall-clock seconds (report.json's ``timings``
+        holds them too); a new one counting from this call by default.
 
     Returns
     -------
@@ -134,23 +139,32 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     InputError
         Any bad input (exit code 2 at the command line); nothing is written.
     """
-    from partinspect.reports.writer import write_reports
+    from partinspect.reports.assemble import with_timings
+    from partinspect.reports.writer import render_reports, report_json, write_texts
     from partinspect.results import figure_data
 
-    inputs = load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad)
+    timings = Timings() if timings is None else timings
+    inputs = load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad, timings)
     check, first = check_calibration(inputs, progress)
     m = measure(inputs, progress, check, first)
     if uncertainty == "montecarlo":
-        m = with_monte_carlo(inputs, m, draws, progress)
-    report, features = evaluate(inputs, m, progress)
+        with timings.stage("Monte Carlo"):
+            m = with_monte_carlo(inputs, m, draws, progress)
+    with timings.stage("evaluating"):
+        report, features = evaluate(inputs, m, progress)
     progress("writing reports")
-    out_dir = prepare_output_dir(out)
-    write_reports(out_dir, report, figure_data(inputs.left, inputs.right, inputs.calib, inputs.inv, m.stereo,
-                                               m.registration, features))
+    with timings.stage("report"):
+        out_dir = prepare_output_dir(out)
+        texts = render_reports(report, figure_data(inputs.left, inputs.right, inputs.calib, inputs.inv, m.stereo,
+                                                   m.registration, features))
+    # Every stage but the writing itself, which is milliseconds.
+    report = with_timings(report, timings)
+    texts["report.json"] = report_json(report)
+    write_texts(out_dir, texts)
     return InspectionResult(report["verdict"], report, out_dir)
 
 
-def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=None):
+def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=None, timings=None):
     """Check and read every input; cheap checks first, so a typo fails before seconds of CAD loading."""
     from partinspect.diagnosis import edges_found
     from partinspect.tolerances.loading import find_tolerances, load_characteristics
@@ -164,30 +178,33 @@ def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=Non
     tol_path = find_tolerances(part, tolerances)
     check_output_dir(out)
 
+    timings = Timings() if timings is None else timings
     progress("reading calibration and images")
-    calib = read_calibration(images)
-    left, right, bit_depth = read_pair(images, calib)
+    with timings.stage("reading calibration and images"):
+        calib = read_calibration(images)
+        left, right, bit_depth = read_pair(images, calib)
 
     progress(f"loading {part.name}")
-    shape, inv = (load_cad or load_cad_model)(part)
+    with timings.stage("loading the CAD model"):
+        model = (load_cad or load_cad_model)(part)
+    inv = model.inventory
     if not inv.features:
         raise InputError(part, f"no line or circle edges to measure ({edges_found(inv)})")
-    hint = _pose_hint(pose_hint, shape, calib)
+    hint = _pose_hint(pose_hint, model.bounds, calib)
     if tol_path is not None:
         progress(f"reading tolerances {tol_path.name}")
-    resolved, characteristics = load_characteristics(inv, tol_path, part=part)
+    with timings.stage("tolerances"):
+        resolved, characteristics = load_characteristics(inv, tol_path, part=part, pmi=model.pmi)
     calib_file = next((images / n for n in CALIBRATION_NAMES if (images / n).is_file()), None)
-    return Inputs(part, images, tol_path, calib, left, right, bit_depth, shape, inv, resolved, characteristics, hint,
-                  calib_file)
+    return Inputs(part, images, tol_path, calib, left, right, bit_depth, model, inv, resolved, characteristics, hint,
+                  calib_file, timings)
 
 
 def load_cad_model(part):
-    """The STEP file's shape and its feature inventory."""
-    from partinspect.cad.features import inventory
-    from partinspect.cad.step import load_step
+    """The STEP file's model: inventory, visibility mesh, bounds and PMI (`partinspect.cad.model`), cached."""
+    from partinspect.cad.model import load_model
 
-    shape = load_step(part)
-    return shape, inventory(shape)
+    return load_model(part)
 
 
 def check_calibration(inputs, progress):
@@ -203,7 +220,8 @@ def check_calibration(inputs, progress):
 
     progress("checking the calibration against the images")
     stereo = _stereo_round(inputs, DEFAULTS, progress)
-    result = check(inputs.calib, matched_arcs(stereo))
+    with inputs.timings.stage("checking the calibration"):
+        result = check(inputs.calib, matched_arcs(stereo))
     if result.verdict == "invalid":
         d = result.drift
         raise InputError(inputs.calib_file or inputs.images,
@@ -221,12 +239,13 @@ def _stereo_round(inputs, params, progress):
     from partinspect.vision.stereo import measure_stereo
 
     eb = inputs.resolved.spec.edge_break
-    return measure_stereo(
-        inputs.left, inputs.right, inputs.calib, sigma=params["sigma"], progress=progress,
-        edge_options={"k_low": params["k_low"], "k_high": params["k_high"]},
-        match_options={"min_points": params["min_points"]},
-        edge_break=None if eb is None else apparent_edge_rms(eb.min, eb.max),
-    )
+    with inputs.timings.stage("measuring the images"):
+        return measure_stereo(
+            inputs.left, inputs.right, inputs.calib, sigma=params["sigma"], progress=progress,
+            edge_options={"k_low": params["k_low"], "k_high": params["k_high"]},
+            match_options={"min_points": params["min_points"]},
+            edge_break=None if eb is None else apparent_edge_rms(eb.min, eb.max),
+        )
 
 
 def measure(inputs, progress, calibration=None, first=None):
@@ -246,7 +265,8 @@ def measure(inputs, progress, calibration=None, first=None):
         stereo = done.pop(tuple(sorted(params.items())), None) or _stereo_round(inputs, params, progress)
         progress(f"registering {len(stereo.features)} measured features to the CAD model")
         try:
-            registration = _register(stereo, inputs, inputs.hint)
+            with inputs.timings.stage("registering"):
+                registration = _register(stereo, inputs, inputs.hint)
         except InputError as e:
             e.stereo = stereo
             raise
@@ -255,7 +275,9 @@ def measure(inputs, progress, calibration=None, first=None):
     def merge(base, new, ids):
         stereo = merged_stereo(base.stereo, new.stereo, new.registration, ids)
         progress(f"registering {len(stereo.features)} features, {len(ids)} of them from the re-run")
-        return settle(inputs, stereo, _register(stereo, inputs, inputs.hint), progress)
+        with inputs.timings.stage("registering"):
+            registration = _register(stereo, inputs, inputs.hint)
+        return settle(inputs, stereo, registration, progress)
 
     best, log, advice = measure_adaptively(run_round, progress=progress, merge=merge)
     return Measured(best.stereo, best.registration, best.visibility, {"rounds": log, "advice": advice},
@@ -276,12 +298,15 @@ def settle(inputs, stereo, registration, progress):
     from partinspect.vision.posed import posed_stereo
 
     def seen_at(pose):
-        return visibility(inputs.shape, inputs.inv, inputs.calib, pose, images=(inputs.left, inputs.right))
+        with inputs.timings.stage("visibility"):
+            return visibility(None, inputs.inv, inputs.calib, pose, mesh=inputs.model.mesh,
+                              images=(inputs.left, inputs.right))
 
     progress("checking which edges the cameras see")
     seen = seen_at(registration.part_to_camera)
     polylines = edge_polylines(inputs.inv, registration.part_to_camera, inputs.calib)
-    more, found, ends, withdrawn = posed_stereo(stereo, registration, seen, inputs.inv, inputs.calib, polylines)
+    with inputs.timings.stage("measuring along the posed edges"):
+        more, found, ends, withdrawn = posed_stereo(stereo, registration, seen, inputs.inv, inputs.calib, polylines)
     if not found and not ends and not withdrawn:
         # ``more`` is ``stereo`` with the stretches found but not measured, if any.
         return more, registration, seen
@@ -293,7 +318,8 @@ def settle(inputs, stereo, registration, progress):
         progress(f"measuring {len(found)} edge(s) on their stretches of longer image lines")
     try:
         # The pose is known: no new search (it is the expensive part).
-        again = _register(more, inputs, registration.part_to_camera)
+        with inputs.timings.stage("registering"):
+            again = _register(more, inputs, registration.part_to_camera)
     except InputError:
         return stereo, registration, seen
     return more, again, seen_at(again.part_to_camera)
@@ -326,12 +352,11 @@ def evaluate(inputs, m, progress):
     from partinspect.reports.assemble import assemble_report, input_entries
     from partinspect.results import characteristic_entry, feature_entries, registration_entry
     from partinspect.tolerances.decision import decide_all, verdict
-    from partinspect.tolerances.evaluate import evaluate as evaluate_all
     from partinspect.vision.images import IMAGE_NAMES
 
     progress(f"evaluating {len(inputs.characteristics)} characteristics")
     judged, not_inspected = split_unseen(inputs.characteristics, m.seen, m.registration)
-    decisions = decide_all(evaluate_all(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
+    decisions = decide_all(_evaluate_on_two_cores(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
     characteristics = [characteristic_entry(d) for d in decisions]
     why = unmeasured_reasons(inputs.inv, m.stereo, m.registration, m.seen, inputs.calib)
     features = feature_entries(inputs.inv, m.stereo, m.registration, m.seen, decisions, why)
@@ -360,6 +385,25 @@ def evaluate(inputs, m, progress):
     return report, features
 
 
+def _evaluate_on_two_cores(characteristics, registration, inv):
+    """`partinspect.tolerances.evaluate.evaluate`, every other characteristic in a forked child.
+
+    Each characteristic's Monte Carlo draws are seeded by its own id, so
+    the split changes no number; alternate ones balance the costly form
+    values between the two processes.
+    """
+    from partinspect.tolerances.evaluate import evaluate as evaluate_all
+    from partinspect.vision.forked import forked
+
+    if len(characteristics) < 2:
+        return evaluate_all(characteristics, registration, inv)
+    out = list(characteristics)
+    with forked(evaluate_all, out[1::2], registration, inv) as odd:
+        out[0::2] = evaluate_all(out[0::2], registration, inv)
+        out[1::2] = odd()
+    return out
+
+
 def _check_part_path(part):
     part = Path(part)
     if not part.is_file():
@@ -367,13 +411,13 @@ def _check_part_path(part):
     return part
 
 
-def _pose_hint(pose_hint, shape, calib):
+def _pose_hint(pose_hint, bounds, calib):
     if pose_hint is None or isinstance(pose_hint, np.ndarray):
         return pose_hint
     from partinspect.poses import parse_pose
 
     try:
-        return parse_pose(pose_hint, shape, calib)
+        return parse_pose(pose_hint, bounds, calib)
     except InputError as e:
         raise InputError(e.path, e.problem.replace("--pose", "--pose-hint")) from None
 

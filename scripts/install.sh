@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Install everything partinspect needs on a fresh Debian machine:
-# the system library Open3D loads (libusb-1.0-0), Chromium for the HTML
-# report's browser test, then the Python package with its dependencies
+# Chromium for the HTML report's browser test, then the Python package with
+# its dependencies
 # (editable, with the test extras) at the versions in constraints.txt.
 # Usage: bash scripts/install.sh [--no-browser | --browser-only]
 #   --no-browser    skip Chromium (the report's browser test is then skipped)
@@ -51,7 +51,6 @@ if [ "$browser" = only ]; then
     install_browser
     exit $?
 fi
-apt_install libusb-1.0.so.0 libusb-1.0-0
 if [ "$browser" = yes ]; then
     install_browser || true
 fi
@@ -61,7 +60,7 @@ fi
 stamp=build/.install-stamp
 want="$("$PYTHON" -c 'import sys;print(sys.executable)') $(cat pyproject.toml constraints.txt | sha256sum | cut -c1-16)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PYTHON" -c "import importlib.metadata as m; m.version(\"partinspect\")" >/dev/null 2>&1 \
-   || ! "$PYTHON" -c 'import importlib.util as u,sys; sys.exit(not all(u.find_spec(m) for m in ("cadquery","open3d","cv2","trimesh","pytest")))'; then
+   || ! "$PYTHON" -c 'import importlib.util as u,sys; sys.exit(not all(u.find_spec(m) for m in ("cadquery","embreex","cv2","trimesh","pytest")))'; then
     echo "install: installing partinspect and its Python dependencies (pip)" >&2
     "$PYTHON" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[test]"
     mkdir -p build && echo "$want" > "$stamp"

@@ -17,6 +17,21 @@ from partinspect.vision import forked as _forked  # noqa: E402
 _forked.MIN_IDLE_CPUS = float("-inf")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def cad_cache(tmp_path_factory):
+    """A CAD model cache of this session's own, for the runs in-process and the CLI's child processes."""
+    import os
+
+    folder = tmp_path_factory.mktemp("cad-cache")
+    old = os.environ.get("PARTINSPECT_CACHE")
+    os.environ["PARTINSPECT_CACHE"] = str(folder)
+    yield folder
+    if old is None:
+        os.environ.pop("PARTINSPECT_CACHE", None)
+    else:
+        os.environ["PARTINSPECT_CACHE"] = old
+
+
 @pytest.fixture(scope="session")
 def repo():
     return REPO

@@ -263,9 +263,16 @@ class Inventory:
     skipped_edges: Mapping[str, int] = field(default_factory=lambda: MappingProxyType({}))
 
     def __post_init__(self):
+        for name in ("edge_counts", "seam_edges", "skipped_edges"):
+            object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
         index = {f.id: f for f in self.features}
         index.update({f.id: f for f in self.faces})
         object.__setattr__(self, "_index", index)
+
+    def __reduce__(self):
+        # MappingProxyType does not pickle: plain dicts go in, __post_init__ wraps them again.
+        return (Inventory, (self.features, self.faces, dict(self.edge_counts), dict(self.seam_edges),
+                            self.degenerated_edges, dict(self.skipped_edges)))
 
     def __getitem__(self, id):
         """The Feature or FaceInfo with this id; KeyError if there is none."""

@@ -16,8 +16,9 @@ the planner and the renderer of :mod:`partinspect.simulate` share it.
 References
 ----------
 .. [1] Wald, I. et al. (2014). Embree: a kernel framework for efficient CPU
-       ray tracing. ACM Trans. Graph. 33(4), 143 (the ray caster behind
-       Open3D's RaycastingScene).
+       ray tracing. ACM Trans. Graph. 33(4), 143 (the ray caster, through
+       the embreex binding that trimesh uses: the same Embree as Open3D's
+       RaycastingScene at a small part of its import time).
 """
 
 from dataclasses import dataclass
@@ -96,11 +97,11 @@ DEFAULT_SHADING = Shading()
 
 @dataclass(frozen=True, eq=False)
 class RaycastScene:
-    """A triangle mesh loaded into Open3D's ray caster, with what shading needs.
+    """A triangle mesh loaded into the Embree ray caster, with what shading needs.
 
     Attributes
     ----------
-    scene : open3d.t.geometry.RaycastingScene
+    scene : embreex.rtcore_scene.EmbreeScene
     vertices : ndarray, shape (V, 3)
         Part frame, mm.
     triangles : ndarray, shape (F, 3)
@@ -158,7 +159,8 @@ def build_scene(mesh):
     -------
     RaycastScene
     """
-    import open3d as o3d
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
 
     vertices = np.asarray(mesh.vertices, dtype=float)
     triangles = np.asarray(mesh.faces, dtype=np.int64)
@@ -170,10 +172,8 @@ def build_scene(mesh):
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     center = 0.5 * (lo + hi)
     radius = float(np.linalg.norm(vertices - center, axis=1).max())
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32))
-    )
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, vertices.astype(np.float32), triangles.astype(np.int32))
     return RaycastScene(scene, vertices, triangles, labels, flat, corner, center, radius)
 
 
@@ -264,8 +264,6 @@ def cast(rs, origin, directions):
     -------
     Hits
     """
-    import open3d as o3d
-
     origin = np.asarray(origin, dtype=float)
     # Start the rays where they enter the bounding sphere (less a margin),
     # computed in float64, so float32 ray origins stay near the part.
@@ -277,17 +275,16 @@ def cast(rs, origin, directions):
     dist = np.empty(n, np.float64)
     for a in range(0, n, RAY_CHUNK):
         d = directions[a : a + RAY_CHUNK]
-        rays = np.empty((len(d), 6), np.float32)
-        rays[:, :3] = origin + skip * d
-        rays[:, 3:] = d
-        out = rs.scene.cast_rays(o3d.core.Tensor(rays))
-        prim = out["primitive_ids"].numpy().astype(np.int64)
-        hit = prim != rs.scene.INVALID_ID
+        o = np.ascontiguousarray(origin + skip * d, dtype=np.float32)
+        out = rs.scene.run(o, np.ascontiguousarray(d, dtype=np.float32), output=1)
+        prim = np.asarray(out["primID"], dtype=np.int64)
+        hit = prim >= 0
         prim[~hit] = 0
         tri[a : a + len(d)] = prim
         label[a : a + len(d)] = np.where(hit, rs.labels[prim], MISS)
-        bary[a : a + len(d)] = out["primitive_uvs"].numpy()
-        dist[a : a + len(d)] = np.where(hit, skip + out["t_hit"].numpy().astype(np.float64), np.inf)
+        bary[a : a + len(d), 0] = out["u"]
+        bary[a : a + len(d), 1] = out["v"]
+        dist[a : a + len(d)] = np.where(hit, skip + np.asarray(out["tfar"], dtype=np.float64), np.inf)
     return Hits(label, tri, bary, dist)
 
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FeatureVisibility", "SEEN_FRACTION", "visibility"]
+__all__ = ["FeatureVisibility", "SEEN_FRACTION", "visibility", "visibility_mesh"]
 
 SEEN_FRACTION = 0.5
 """A feature with less than this fraction of its length in view in either
@@ -101,6 +101,23 @@ def _step(image, uv, normal):
     return np.abs(ga - gb).ravel()
 
 
+def visibility_mesh(shape, inventory=None):
+    """The coarse tessellation the visibility test casts rays at.
+
+    Occlusion need only be decided to a pixel or so, and the renderer's fine
+    mesh would be slow on a large part.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Part frame, mm, with ``face_attributes["cad_face"]``
+        (`partinspect.cad.mesh.tessellate`).
+    """
+    from partinspect.cad.mesh import tessellate
+
+    return tessellate(shape, tolerance=MESH_TOLERANCE, angular_tolerance=0.2, inventory=inventory)
+
+
 def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=None):
     """Visibility of every feature of an inventory in both cameras.
 
@@ -123,15 +140,12 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=Non
     dict of str to FeatureVisibility
         Keyed by feature id.
     """
-    from partinspect.cad.mesh import tessellate
     from partinspect.cad.raycast import build_scene
     from partinspect.cad.sightlines import edge_visibility
     from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 
-    # A coarse mesh: occlusion need only be decided to a pixel or so, and the
-    # renderer's fine mesh would be slow on a large part.
     if mesh is None:
-        mesh = tessellate(shape, tolerance=MESH_TOLERANCE, angular_tolerance=0.2, inventory=inventory)
+        mesh = visibility_mesh(shape, inventory)
     rs = build_scene(mesh)
     out = {}
     for f in inventory.features:

@@ -4,13 +4,12 @@
 :func:`partinspect.pipeline.run_inspection` into ``OUT/SERIAL/`` and returns
 a small picklable record for the results database. A worker stays alive
 across parts, so its heavy imports happen once, and it keeps each STEP
-file's shape and feature inventory (both immutable) keyed by the file's
+file's model (inventory, mesh, PMI; `partinspect.cad.model`) keyed by the file's
 sha256: a part number is loaded once per worker, not once per part.
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 import socket
 import time
@@ -19,6 +18,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from partinspect import __version__
+from partinspect.digest import sha256_file
 from partinspect.errors import InputError
 
 # Models kept per worker; a line runs a few part numbers at a time.
@@ -31,18 +31,14 @@ CHARACTERISTIC_KEYS = ("id", "type", "feature", "unit", "nominal", "measured", "
 
 def sha256(path):
     """Hex sha256 of a file's bytes; None when it cannot be read."""
-    h = hashlib.sha256()
     try:
-        with open(path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
+        return sha256_file(path)
     except OSError:
         return None
-    return h.hexdigest()
 
 
 def cached_model(path):
-    """The STEP file's (shape, inventory), loaded once per content (sha256) in this process."""
+    """The STEP file's CadModel (`partinspect.cad.model`), loaded once per content (sha256) in this process."""
     from partinspect.pipeline import load_cad_model
 
     key = sha256(path)

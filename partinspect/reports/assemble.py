@@ -7,23 +7,26 @@ the time stamp too).
 """
 
 import datetime as _dt
-import hashlib
 import os
 
 import numpy as np
 
-__all__ = ["SCHEMA", "sha256_file", "report_time", "input_entries", "vec", "mat", "assemble_report"]
+from partinspect.digest import sha256_file
+
+__all__ = ["SCHEMA", "sha256_file", "report_time", "with_timings", "input_entries", "vec", "mat", "assemble_report"]
 
 SCHEMA = "report/1"
 
 
-def sha256_file(path):
-    """SHA-256 hex digest of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+def with_timings(report, timings):
+    """report.json with the run's ``timings`` (`partinspect.timings.Timings`) added.
+
+    Left out when ``SOURCE_DATE_EPOCH`` is set: wall-clock seconds would
+    make the file differ from run to run.
+    """
+    if os.environ.get("SOURCE_DATE_EPOCH") is not None:
+        return report
+    return {**report, "timings": timings.to_dict()}
 
 
 def report_time():

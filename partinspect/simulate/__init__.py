@@ -6,5 +6,5 @@
 - `truth`: nominal and as-rendered geometry and visibility of every feature.
 - `folder`: ``render_to_folder``, what ``inspect render`` runs.
 
-Nothing heavy (open3d, cadquery, trimesh) is imported until a render runs.
+Nothing heavy (embreex, cadquery, trimesh) is imported until a render runs.
 """

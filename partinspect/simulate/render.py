@@ -28,8 +28,8 @@ References
        3rd ed., ch. 7 (sampling and reconstruction; stratified and
        n-rooks patterns). Morgan Kaufmann, 2016.
 .. [2] Wald, I. et al. (2014). Embree: a kernel framework for efficient CPU
-       ray tracing. ACM Trans. Graph. 33(4), 143 (the ray caster behind
-       Open3D's RaycastingScene).
+       ray tracing. ACM Trans. Graph. 33(4), 143 (the ray caster, through
+       embreex).
 """
 
 import numpy as np

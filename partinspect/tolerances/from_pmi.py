@@ -419,7 +419,7 @@ def load_pmi_spec(part, inventory):
     return pmi, spec_from_pmi(pmi, inventory)
 
 
-def merge_pmi(resolved, inventory, part):
+def merge_pmi(resolved, inventory, part, pmi=None):
     """A resolved spec with the PMI's characteristics added where it has none.
 
     Item by item, the spec (file) wins: a PMI characteristic is dropped when
@@ -436,6 +436,8 @@ def merge_pmi(resolved, inventory, part):
     inventory : partinspect.cad.features.Inventory
     part : str or os.PathLike
         The STEP file.
+    pmi : partinspect.cad.pmi.Pmi, optional
+        Its PMI, if already read; else it is read here.
 
     Returns
     -------
@@ -454,7 +456,10 @@ def merge_pmi(resolved, inventory, part):
 
     name = Path(part).name
     try:
-        pmi, ps = load_pmi_spec(part, inventory)
+        if pmi is None:
+            pmi, ps = load_pmi_spec(part, inventory)
+        else:
+            ps = spec_from_pmi(pmi, inventory)
         if not ps.sources and not ps.not_evaluated:
             return resolved
         pmi_resolved = resolve_spec(ps.spec(), inventory, None)

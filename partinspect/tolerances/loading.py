@@ -25,12 +25,14 @@ def find_tolerances(part, tolerances=None):
     return None
 
 
-def load_characteristics(inv, tol_path, part=None):
+def load_characteristics(inv, tol_path, part=None, pmi=None):
     """The resolved spec (or the ISO 2768-mK default) and every characteristic to evaluate.
 
     With ``part`` (the STEP file), its semantic PMI fills in what the spec
     does not tolerance itself, item by item, before the general tolerances
-    take the rest (`partinspect.tolerances.from_pmi.merge_pmi`).
+    take the rest (`partinspect.tolerances.from_pmi.merge_pmi`); ``pmi``, the
+    file's PMI if already read (`partinspect.cad.pmi.read_pmi`), saves
+    reading it again.
     """
     from partinspect.tolerances import spec as spec_mod
     from partinspect.tolerances.resolve import general_characteristics, resolve_spec, with_edge_breaks
@@ -40,5 +42,5 @@ def load_characteristics(inv, tol_path, part=None):
     if part is not None:
         from partinspect.tolerances.from_pmi import merge_pmi
 
-        resolved = merge_pmi(resolved, inv, part)
+        resolved = merge_pmi(resolved, inv, part, pmi=pmi)
     return resolved, with_edge_breaks(list(resolved.characteristics) + general_characteristics(inv, resolved), resolved)

@@ -926,9 +926,10 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         Passed to :func:`measure_images` for both images.
     parallel : bool
         Measure the right image in a forked child process while this one
-        measures the left (:func:`partinspect.vision.forked.forked`; made
-        here where no child can run). The results are the same either way,
-        bit for bit; False runs the two one after the other.
+        measures the left, and half of the matched pairs' 3D fits likewise
+        (:func:`partinspect.vision.forked.forked`; made here where no child
+        can run). The results are the same either way, bit for bit; False
+        runs everything one after the other.
     edge_break : float, optional
         The part's edges are broken (rounded or chamfered): the RMS
         distance, mm, of the apparent step from the sharp edge. Each point
@@ -960,16 +961,25 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     say("matching")
     matching = match_features(L.features, R.features, geo, **(match_options or {}))
     say(f"3D fits of {len(matching.matches)} matched features")
-    feats, failed = [], []
-    for m in matching.matches:
-        f3, why = measure_pair_feature(m, L.features[m.left], R.features[m.right], calib, geo, L.edges.sigma,
-                                       edge_break)
-        if f3 is None:
-            failed.append((m, why))
-        else:
-            feats.append(f3)
+    matches = list(matching.matches)
+    args = (L, R, calib, geo, edge_break)
+    if parallel and len(matches) > 1:
+        # Independent fits: half of them in a second process.
+        half = (len(matches) + 1) // 2
+        with forked(_measure_pairs, matches[half:], *args) as second:
+            fitted = _measure_pairs(matches[:half], *args) + second()
+    else:
+        fitted = _measure_pairs(matches, *args)
+    feats = [f3 for f3, _ in fitted if f3 is not None]
+    failed = [(m, why) for m, (f3, why) in zip(matches, fitted) if f3 is None]
     return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), bool(uncertainty_directions(calib)),
                         edge_break=edge_break)
+
+
+def _measure_pairs(matches, L, R, calib, geo, edge_break):
+    """`measure_pair_feature` of each match, in order: a list of (Feature3D or None, reason)."""
+    return [measure_pair_feature(m, L.features[m.left], R.features[m.right], calib, geo, L.edges.sigma, edge_break)
+            for m in matches]
 
 
 def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None):

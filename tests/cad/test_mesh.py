@@ -112,7 +112,7 @@ def test_chord_error_follows_the_tolerance_when_the_angle_does_not_bind(plate_pa
 
 def test_cylinder_walls_are_within_tolerance_of_the_mesh(sample):
     # Points on the exact hole walls, between the rims, against the wall's
-    # triangles (in double precision: open3d's float32 distance query is off
+    # triangles (in double precision: a float32 distance query is off
     # by up to 0.006 mm on these long thin triangles).
     import trimesh
 

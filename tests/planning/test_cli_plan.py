@@ -24,7 +24,7 @@ def rig_file(tmp_path_factory):
 
 def test_help_imports_nothing_heavy():
     code = ("import sys\nfrom partinspect.cli import main\ntry:\n    main(['plan', '--help'])\nexcept SystemExit:\n    pass\n"
-            "print(sorted(m for m in ('cv2', 'open3d', 'cadquery', 'OCP', 'scipy') if m in sys.modules))")
+            "print(sorted(m for m in ('cv2', 'embreex', 'cadquery', 'OCP', 'scipy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "--rig" in out and "--ratio" in out
     assert out.strip().splitlines()[-1] == "[]"
