@@ -103,14 +103,25 @@ class Frame:
 # numbers and strings
 
 
+_TRAILING_ZEROS = re.compile(r"(\.[0-9]*?)0+(?![0-9])")
+_BARE_POINT = re.compile(r"\.(?![0-9])")
+_MINUS_ZERO = re.compile(r"(?<![0-9.])-(0(?![0-9.]))")
+
+
+def _trim(s):
+    """Numbers in ``s`` without trailing zeros, a bare point or the sign of ``-0``."""
+    return _MINUS_ZERO.sub(r"\1", _BARE_POINT.sub("", _TRAILING_ZEROS.sub(r"\1", s)))
+
+
 def _n(v):
     """A coordinate as short text: ``DIGITS`` decimals, no trailing zeros, no ``-0``."""
-    s = f"{v:.{DIGITS}f}".rstrip("0").rstrip(".")
-    return "0" if s in ("-0", "") else s
+    return _trim(f"{v:.{DIGITS}f}")
 
 
 def _xy(xs, ys):
-    return " ".join(f"{_n(a)},{_n(b)}" for a, b in zip(xs, ys))
+    """Coordinate pairs ``x,y`` separated by spaces, as :func:`_n` writes them (one format call per pair)."""
+    pair = f"%.{DIGITS}f,%.{DIGITS}f"
+    return _trim(" ".join(map(pair.__mod__, zip(np.asarray(xs, float).tolist(), np.asarray(ys, float).tolist()))))
 
 
 def esc(s):
