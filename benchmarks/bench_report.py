@@ -67,7 +67,8 @@ def use_baseline(on):
 
     if not hasattr(use_baseline, "svg"):
         use_baseline.svg = (F.residual_figure, F.sigma_figure)
-    F.residual_figure, F.sigma_figure = (mpl_baseline.residual_figure, mpl_baseline.sigma_figure) if on else use_baseline.svg
+    mpl = (mpl_baseline.residual_figure, mpl_baseline.sigma_figure)
+    F.residual_figure, F.sigma_figure = mpl if on else use_baseline.svg
 
 
 def median_time(fn, runs):

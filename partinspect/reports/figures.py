@@ -18,9 +18,9 @@ never change them. In report order, the paper's numbers in brackets:
    from anywhere).
 
 Each :class:`Figure`'s ``body`` is trusted HTML made here, every string from
-the data escaped. Matplotlib is imported only inside the drawing functions,
-on its Agg canvas without pyplot, with fixed SVG ids and no date, so the
-same data give the same bytes.
+the data escaped. The plots (2 and 3) are SVG text written by
+:mod:`partinspect.reports.svgplot` and embedded as ``<img>`` data URIs;
+they hold no ids or dates, so the same data give the same bytes.
 """
 
 from __future__ import annotations
@@ -353,8 +353,10 @@ def _residual_panel(frame_box, label, image, res, sigma, xlabel):
     x = np.linspace(-half, half, 101)
     curve = np.exp(-0.5 * (x / sigma) ** 2) / (sigma * math.sqrt(2 * math.pi)) if sigma else None
     top = max(float(counts.max()), float(curve.max()) if sigma else 0.0) * 1.05 or 1.0
-    fr = svgplot.Frame(*frame_box, xlim=(-1.05 * half, 1.05 * half), ylim=(0.0, top))  # tick labels clear of the next panel
-    parts = [svgplot.stairs(fr, counts, edges, fill="#9fb3c8"), svgplot.stairs(fr, counts, edges, stroke="#6f87a0", width=0.6, cls="hist-edge")]
+    # 5 % margins on x, as a plotting library leaves them: the end tick labels stay clear of the next panel.
+    fr = svgplot.Frame(*frame_box, xlim=(-1.05 * half, 1.05 * half), ylim=(0.0, top))
+    parts = [svgplot.stairs(fr, counts, edges, fill="#9fb3c8"),
+             svgplot.stairs(fr, counts, edges, stroke="#6f87a0", width=0.6, cls="hist-edge")]
     lines, colour, ratio = [f"n = {res.size}", f"rms {rms:.3g} px"], None, None
     if sigma:
         parts.append(svgplot.polyline(fr, x, curve, svgplot.INK, 1.1, cls="curve"))

@@ -371,7 +371,8 @@ def legend(frame, entries, size=7.0, ncols=1):
         r, c = i // ncols, i % ncols
         x, y = x0 + c * col_w, frame.y + 0.6 * size + r * 1.45 * size
         if kind == "patch":
-            parts.append(f'<rect x="{_n(x)}" y="{_n(y - 0.4 * size)}" width="{_n(key * 0.8)}" height="{_n(0.8 * size)}" '
+            parts.append(f'<rect x="{_n(x)}" y="{_n(y - 0.4 * size)}" width="{_n(key * 0.8)}" '
+                         f'height="{_n(0.8 * size)}" '
                          f'fill="{colour}" fill-opacity="0.25" stroke="{colour}" stroke-width="1.1"/>')
         else:
             parts.append(f'<path d="M{_n(x)},{_n(y)}h{_n(key * 0.8)}" stroke="{colour}" stroke-width="1.2"/>')

@@ -197,7 +197,8 @@ def test_residual_panels_paths_and_red_exactly_outside_the_band():
     ratios = [0.5, 0.79, 0.81, 1.0, 1.24, 1.26, 2.0]
     z = np.random.default_rng(7).normal(size=400)
     z /= np.sqrt(np.mean(z**2))
-    items = [{"label": f"line-{i}", "image": "left", "residuals": q * 0.1 * z, "sigma": 0.1} for i, q in enumerate(ratios)]
+    items = [{"label": f"line-{i}", "image": "left", "residuals": q * 0.1 * z, "sigma": 0.1}
+             for i, q in enumerate(ratios)]
     items.append({"label": "no-sigma", "image": "right", "residuals": z, "sigma": None})
     root = _svg_root(F.residual_figure({"residuals": items}))
     panels = _by_class(root, "g", "panel")
