@@ -464,7 +464,8 @@ def _sigma_lines(box, idx, sig_um, bounds, n_features, frame):
     parts = [svgplot.vrules(fr, np.asarray(bounds[1:-1], dtype=float) - 0.5, "#d8dde6", 0.6)]
     for j, (name, colour) in enumerate(AXIS_COLOURS):
         parts.append(svgplot.polyline(fr, idx, sig_um[:, j], colour, 0.8, cls=f"line sigma-{name}"))
-    xt, xs = svgplot.nice_ticks(0, n - 1)
+    xt, xs = svgplot.nice_ticks(0, max(n - 1, 1))
+    xt, xs = xt[xt == np.round(xt)], max(xs, 1.0)  # point numbers are whole
     yt, ys = svgplot.nice_ticks(0, top)
     parts += [
         svgplot.axis_bottom(fr, xt, svgplot.tick_labels(xt, xs),

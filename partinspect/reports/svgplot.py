@@ -238,10 +238,23 @@ def _finite(x, y):
 
 
 def polyline(frame, x, y, colour, width=1.0, cls="line"):
-    """A line through the finite points ``(x, y)`` (data), as one ``<path>``; "" for fewer than 2.
+    """A line through the finite points ``(x, y)``, as one ``<path>``; "" for fewer than 2.
 
     Points that fall on the same rounded coordinates as their predecessor
     are dropped: they add bytes, not ink.
+
+    Parameters
+    ----------
+    frame : Frame
+    x, y : array-like (N,)
+        Data coordinates; a point with a non-finite coordinate is dropped
+        (the line joins its neighbours).
+    colour : str
+        Stroke colour.
+    width : float
+        Stroke width, user units.
+    cls : str
+        The path's class (tests and styles find marks by it).
     """
     x, y = _finite(x, y)
     if len(x) < 2:
@@ -309,7 +322,19 @@ def title(frame, s, size=8.0):
 
 
 def text_box(frame, lines, size=6.5, colour=None, spacing=1.25, cls="box"):
-    """Lines of text right-aligned in the frame's top-right corner, as one ``<text>``."""
+    """Lines of text right-aligned in the frame's top-right corner, as one ``<text>``.
+
+    Parameters
+    ----------
+    frame : Frame
+    lines : sequence of str
+        One ``<tspan>`` each, escaped.
+    size, spacing : float
+        Font size (user units) and line height as a multiple of it.
+    colour : str, optional
+        Fill of all lines; the chart's ink colour when None.
+    cls : str
+    """
     x = frame.right - 0.02 * frame.w
     y0 = frame.y + 0.03 * frame.h + size * 0.8
     spans = "".join(
@@ -319,8 +344,31 @@ def text_box(frame, lines, size=6.5, colour=None, spacing=1.25, cls="box"):
     return f'<text class="{esc(cls)}" font-size="{size:g}" text-anchor="end"{fill}>{spans}</text>'
 
 
+def _inside(ticks, labels, lim):
+    """The ticks (and their labels) within the limits ``lim``."""
+    t = np.asarray(ticks, dtype=float)
+    lo, hi = min(lim), max(lim)
+    pad = 1e-9 * (hi - lo)
+    keep = (t >= lo - pad) & (t <= hi + pad)
+    return t[keep], [s for s, k in zip(labels, keep) if k]
+
+
 def axis_bottom(frame, ticks, labels, label=None, size=7.0, label_size=8.0):
-    """The x axis: a spine along the frame's bottom, ticks, their labels and an axis label."""
+    """The x axis along the frame's bottom: spine, ticks, tick labels and an axis label.
+
+    Parameters
+    ----------
+    frame : Frame
+    ticks : array-like (K,)
+        Tick positions, data units; those outside ``frame.xlim`` are left out.
+    labels : sequence of str
+        One per tick (:func:`tick_labels`).
+    label : str, optional
+        The axis label, centred below the tick labels.
+    size, label_size : float
+        Font sizes of the tick labels and of the axis label, user units.
+    """
+    ticks, labels = _inside(ticks, labels, frame.xlim)
     xs = frame.px(ticks)
     y = frame.bottom
     d = f"M{_n(frame.x)},{_n(y)}H{_n(frame.right)}" + "".join(f"M{_n(x)},{_n(y)}v{TICK_LENGTH}" for x in xs)
@@ -333,7 +381,8 @@ def axis_bottom(frame, ticks, labels, label=None, size=7.0, label_size=8.0):
 
 
 def axis_left(frame, ticks, labels, label=None, size=7.0, label_size=8.0):
-    """The y axis: a spine along the frame's left, ticks, their labels and a vertical axis label."""
+    """The y axis along the frame's left: as :func:`axis_bottom`, the axis label turned upright."""
+    ticks, labels = _inside(ticks, labels, frame.ylim)
     ys = frame.py(ticks)
     x = frame.x
     d = f"M{_n(x)},{_n(frame.y)}V{_n(frame.bottom)}" + "".join(f"M{_n(x)},{_n(y)}h{-TICK_LENGTH}" for y in ys)

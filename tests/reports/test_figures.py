@@ -252,3 +252,11 @@ def test_sigma_figure_drops_non_finite_covariances_and_pools_long_runs():
 def test_figures_svg_same_bytes(data):
     assert F.residual_figure(data).body == F.residual_figure(data).body
     assert F.sigma_figure(data, PART_TO_CAMERA).body == F.sigma_figure(data, PART_TO_CAMERA).body
+
+
+def test_sigma_figure_of_one_point_keeps_its_ticks_inside():
+    fig = F.sigma_figure({"points3d": [{"label": "a", "points": np.zeros((1, 3)), "covs": np.eye(3)[None] * 1e-6}]})
+    root = _svg_root(fig)
+    panel = _by_class(root, "g", "panel")[0]
+    ticks = [t.text for t in panel.iter(SVG + "text") if t.get("text-anchor") == "middle" and not t.get("class")]
+    assert ticks == ["0"]  # the x axis runs from -0.5 to 0.5: no tick at 1 or at fractions of a point

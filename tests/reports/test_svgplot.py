@@ -101,3 +101,9 @@ def test_same_data_same_bytes():
     x = np.linspace(0, 10, 50)
     make = lambda: S.document(300, 200, [S.polyline(FRAME, x, np.sin(x) + 2, "#000"), S.title(FRAME, "t")])
     assert make() == make()
+
+
+def test_axes_leave_out_ticks_outside_the_frame():
+    axis = S.axis_bottom(FRAME, np.array([-2.0, 0.0, 10.0, 12.0]), ["a", "b", "c", "d"])
+    assert re.findall(r">([a-d])</text>", axis) == ["b", "c"]
+    assert re.findall(r">([a-d])</text>", S.axis_left(FRAME, np.array([-1.0, 5.0, 6.0]), ["a", "b", "c"])) == ["b"]
