@@ -70,7 +70,8 @@ class Frame:
     w, h : float
         Width and height, user units.
     xlim, ylim : tuple of float
-        Data values at the left/right and bottom/top edges (linear axes).
+        Data values at the left/right and bottom/top edges (linear axes);
+        equal limits are taken one unit apart.
     """
 
     x: float
@@ -83,12 +84,12 @@ class Frame:
     def px(self, xs):
         """Data x (array-like) to user units."""
         lo, hi = self.xlim
-        return self.x + (np.asarray(xs, dtype=float) - lo) * (self.w / (hi - lo))
+        return self.x + (np.asarray(xs, dtype=float) - lo) * (self.w / ((hi - lo) or 1.0))
 
     def py(self, ys):
         """Data y (array-like) to user units (y grows downwards)."""
         lo, hi = self.ylim
-        return self.y + self.h - (np.asarray(ys, dtype=float) - lo) * (self.h / (hi - lo))
+        return self.y + self.h - (np.asarray(ys, dtype=float) - lo) * (self.h / ((hi - lo) or 1.0))
 
     @property
     def bottom(self):

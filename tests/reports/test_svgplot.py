@@ -107,3 +107,9 @@ def test_axes_leave_out_ticks_outside_the_frame():
     axis = S.axis_bottom(FRAME, np.array([-2.0, 0.0, 10.0, 12.0]), ["a", "b", "c", "d"])
     assert re.findall(r">([a-d])</text>", axis) == ["b", "c"]
     assert re.findall(r">([a-d])</text>", S.axis_left(FRAME, np.array([-1.0, 5.0, 6.0]), ["a", "b", "c"])) == ["b"]
+
+
+def test_equal_limits_give_finite_coordinates():
+    flat = S.Frame(0.0, 0.0, 100.0, 50.0, xlim=(2.0, 2.0), ylim=(0.0, 0.0))
+    path = S.polyline(flat, [2.0, 3.0], [0.0, 0.0], "#000")
+    assert "nan" not in path and "inf" not in path and np.all(np.isfinite(_points(path)))
