@@ -18,21 +18,22 @@ never change them. In report order, the paper's numbers in brackets:
    from anywhere).
 
 Each :class:`Figure`'s ``body`` is trusted HTML made here, every string from
-the data escaped. Matplotlib is imported only inside the drawing functions,
-on its Agg canvas without pyplot, with fixed SVG ids and no date, so the
-same data give the same bytes.
+the data escaped. The plots (2 and 3) are SVG text written by
+:mod:`partinspect.reports.svgplot` and embedded as ``<img>`` data URIs;
+they hold no ids or dates, so the same data give the same bytes.
 """
 
 from __future__ import annotations
 
 import base64
 import html as _html
-import io
 import json
 import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from partinspect.reports import svgplot
 
 __all__ = [
     "Figure",
@@ -192,42 +193,9 @@ def _subsample(xy, n):
     return xy[idx]
 
 
-def _svg_uri(fig):
-    """A matplotlib Figure as a deterministic SVG data URI (text as paths: no font needed)."""
-    import matplotlib
-
-    buf = io.StringIO()
-    with matplotlib.rc_context({"svg.hashsalt": "partinspect", "svg.fonttype": "path"}):
-        fig.savefig(buf, format="svg", metadata={"Date": None, "Creator": None})
-    return "data:image/svg+xml;base64," + base64.b64encode(buf.getvalue().encode("utf-8")).decode("ascii")
-
-
-def _mpl_figure(width_in, height_in):
-    """A matplotlib Figure on the Agg canvas, without pyplot's global state."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure as MplFigure
-
-    fig = MplFigure(figsize=(width_in, height_in), dpi=100)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-_RC = {
-    "font.size": 8,
-    "axes.titlesize": 8,
-    "axes.labelsize": 8,
-    "xtick.labelsize": 7,
-    "ytick.labelsize": 7,
-    "legend.fontsize": 7,
-    "axes.spines.top": False,
-    "axes.spines.right": False,
-    "axes.edgecolor": "#5b6474",
-    "axes.linewidth": 0.6,
-    "xtick.color": "#5b6474",
-    "ytick.color": "#5b6474",
-    "text.color": "#1d2330",
-    "axes.labelcolor": "#1d2330",
-}
+def _svg_uri(svg):
+    """SVG text as a base64 data URI (for an ``<img>``: the page's CSP allows data: images only)."""
+    return "data:image/svg+xml;base64," + base64.b64encode(svg.encode("utf-8")).decode("ascii")
 
 
 def _img_tag(uri, alt, cls="plot"):
@@ -364,6 +332,61 @@ def _has_image(img):
 # Fig. 4: residual histograms
 
 
+RATIO_BAND = (0.8, 1.25)  # rms/sigma taken as honest; outside it the panel's numbers are red
+RED = "#b3261e"
+
+
+def _residual_panel(frame_box, label, image, res, sigma, xlabel):
+    """One residual histogram panel's SVG fragments and its rms/sigma (None without a sigma).
+
+    The histogram is normalised to a density over +-4 predicted sigma (or
+    the 99.5th percentile of |residual|, at most 8 sigma), so that the
+    predicted normal density can be drawn on the same axis.
+    """
+    sigma = float(sigma) if sigma is not None and np.isfinite(sigma) and sigma > 0 else None
+    rms = float(np.sqrt(np.mean(res**2)))
+    scale = sigma or rms or 1.0
+    half = max(4.0 * scale, float(np.percentile(np.abs(res), 99.5)))
+    half = min(half, 8.0 * scale) if sigma else half
+    nb = int(np.clip(np.sqrt(res.size), 8, 36))
+    counts, edges = np.histogram(np.clip(res, -half, half), bins=nb, range=(-half, half), density=True)
+    x = np.linspace(-half, half, 101)
+    curve = np.exp(-0.5 * (x / sigma) ** 2) / (sigma * math.sqrt(2 * math.pi)) if sigma else None
+    top = max(float(counts.max()), float(curve.max()) if sigma else 0.0) * 1.05 or 1.0
+    # 5 % margins on x, as a plotting library leaves them: the end tick labels stay clear of the next panel.
+    fr = svgplot.Frame(*frame_box, xlim=(-1.05 * half, 1.05 * half), ylim=(0.0, top))
+    parts = [svgplot.stairs(fr, counts, edges, fill="#9fb3c8"),
+             svgplot.stairs(fr, counts, edges, stroke="#6f87a0", width=0.6, cls="hist-edge")]
+    lines, colour, ratio = [f"n = {res.size}", f"rms {rms:.3g} px"], None, None
+    if sigma:
+        parts.append(svgplot.polyline(fr, x, curve, svgplot.INK, 1.1, cls="curve"))
+        ratio = rms / sigma
+        lines += [f"σ {sigma:.3g} px", f"rms/σ {ratio:.2f}"]
+        if not RATIO_BAND[0] <= ratio <= RATIO_BAND[1]:
+            colour = RED
+    ticks, step = svgplot.nice_ticks(*fr.xlim, nbins=5, symmetric=True, steps=svgplot.FINE_STEPS)
+    parts.append(svgplot.axis_bottom(fr, ticks, svgplot.tick_labels(ticks, step), xlabel))
+    parts.append(svgplot.text_box(fr, lines, colour=colour))
+    parts.append(svgplot.title(fr, f"{label or 'unmatched'} ({image})" if image else (label or "unmatched")))
+    return '<g class="panel">' + "".join(parts) + "</g>", ratio
+
+
+def _residual_svg(shown):
+    """The residual panels of ``shown`` ``(label, image, residuals, sigma)`` in rows of 4; SVG text, ratios."""
+    ncols = 4 if len(shown) > 3 else len(shown)
+    nrows = math.ceil(len(shown) / ncols)
+    width, height = 720.0, 72.0 * (0.3 + 1.75 * nrows)
+    boxes = svgplot.grid(len(shown), ncols, width, height, (10.8, 7.2, 15.8, 30.2), wspace=0.08, hspace=0.5 / 1.45)
+    parts, ratios = [], []
+    for i, (box, (label, image, res, sigma)) in enumerate(zip(boxes, shown)):
+        lowest = i + ncols >= len(shown)  # the bottom panel of its column carries the axis label
+        part, ratio = _residual_panel(box, label, image, res, sigma, "residual, px" if lowest else None)
+        parts.append(part)
+        if ratio is not None:
+            ratios.append(ratio)
+    return svgplot.document(width, height, parts, "histograms of fit residuals"), ratios
+
+
 def residual_figure(figures):
     """[Fig. 4] Histograms of each fit's residuals with the predicted normal density; a Figure."""
     title = "Fit residuals against the predicted noise"
@@ -376,61 +399,16 @@ def residual_figure(figures):
     if not items:
         return Figure("residuals", title, "Fig. 4", note="Residual histograms: omitted, no fit residuals were given.")
     shown = items[:MAX_RESIDUAL_PANELS]
-    import matplotlib
-
-    from matplotlib.ticker import MaxNLocator
-
-    ncols = 4 if len(shown) > 3 else len(shown)
-    nrows = math.ceil(len(shown) / ncols)
-    ratios = []
-    with matplotlib.rc_context(_RC):
-        fig = _mpl_figure(10.0, 0.3 + 1.75 * nrows)
-        axes = fig.subplots(nrows, ncols, squeeze=False)
-        for ax in axes.ravel()[len(shown):]:
-            ax.set_visible(False)
-        for ax, (label, image, res, sigma) in zip(axes.ravel(), shown):
-            sigma = float(sigma) if sigma is not None and np.isfinite(sigma) and sigma > 0 else None
-            rms = float(np.sqrt(np.mean(res**2)))
-            scale = sigma or rms or 1.0
-            half = max(4.0 * scale, float(np.percentile(np.abs(res), 99.5)))
-            half = min(half, 8.0 * scale) if sigma else half
-            nb = int(np.clip(np.sqrt(res.size), 8, 36))
-            # One filled step patch per panel, not a rectangle per bar: the SVG
-            # of some forty panels is written several times faster.
-            counts, edges = np.histogram(np.clip(res, -half, half), bins=nb, range=(-half, half), density=True)
-            ax.stairs(counts, edges, fill=True, color="#9fb3c8")
-            ax.stairs(counts, edges, color="#6f87a0", linewidth=0.6)
-            text = f"n = {res.size}\nrms {rms:.3g} px"
-            colour = "#1d2330"
-            if sigma:
-                x = np.linspace(-half, half, 201)
-                ax.plot(x, np.exp(-0.5 * (x / sigma) ** 2) / (sigma * math.sqrt(2 * math.pi)), color="#1d2330", lw=1.1)
-                ratio = rms / sigma
-                ratios.append(ratio)
-                text += f"\nσ {sigma:.3g} px\nrms/σ {ratio:.2f}"
-                if not 0.8 <= ratio <= 1.25:
-                    colour = "#b3261e"
-            ax.text(0.98, 0.97, text, transform=ax.transAxes, ha="right", va="top", fontsize=6.5, color=colour,
-                    linespacing=1.25)
-            ax.set_title(f"{label or 'unmatched'} ({image})" if image else (label or "unmatched"), loc="left")
-            ax.set_yticks([])
-            ax.spines["left"].set_visible(False)
-            ax.xaxis.set_major_locator(MaxNLocator(5, symmetric=True))
-        for ax in axes[-1]:
-            ax.set_xlabel("residual, px")
-        # Fixed margins, not tight_layout: that costs a whole extra draw.
-        h = 0.3 + 1.75 * nrows
-        fig.subplots_adjust(left=0.015, right=0.99, bottom=0.42 / h, top=1 - 0.22 / h, wspace=0.08, hspace=0.5 / 1.45)
-        uri = _svg_uri(fig)
+    svg, ratios = _residual_svg(shown)
     note = None
     if len(items) > len(shown):
         note = f"Showing the first {len(shown)} of {len(items)} fits; the others are left out to keep the report short."
     summary = ""
     if ratios:
-        inside = sum(0.8 <= q <= 1.25 for q in ratios)
+        inside = sum(RATIO_BAND[0] <= q <= RATIO_BAND[1] for q in ratios)
         summary = (
             f" Median rms/σ over the {len(ratios)} fits shown: {np.median(ratios):.2f}; "
-            f"{inside} of {len(ratios)} lie within 0.8-1.25 (outside: red)."
+            f"{inside} of {len(ratios)} lie within {RATIO_BAND[0]}-{RATIO_BAND[1]} (outside: red)."
         )
     caption = (
         "Signed orthogonal distances of the edge points from their fitted line or ellipse (bars, "
@@ -438,7 +416,7 @@ def residual_figure(figures):
         "rms/σ near 1 means the predicted uncertainty, which every measured number inherits, is honest."
         + summary
     )
-    body = _img_tag(uri, "histograms of fit residuals")
+    body = _img_tag(_svg_uri(svg), "histograms of fit residuals")
     return Figure("residuals", title, "Fig. 4", body=body, caption=caption, note=note)
 
 
@@ -475,6 +453,61 @@ def _point_sigmas(points3d, rotation=None):
     return np.concatenate(sig), np.concatenate(principal), bounds, labels
 
 
+AXIS_COLOURS = (("X", "#3b6fb6"), ("Y", "#2f9e6e"), ("Z", "#c2412d"))
+
+
+def _sigma_lines(box, idx, sig_um, bounds, n_features, frame):
+    """Panel (a): each axis's sigma per point (um) with rules between features; SVG fragment."""
+    n = int(bounds[-1])
+    top = max(float(np.max(sig_um)) * 1.05, 1e-6)
+    fr = svgplot.Frame(*box, xlim=(-0.5, n - 0.5), ylim=(0.0, top))
+    parts = [svgplot.vrules(fr, np.asarray(bounds[1:-1], dtype=float) - 0.5, "#d8dde6", 0.6)]
+    for j, (name, colour) in enumerate(AXIS_COLOURS):
+        parts.append(svgplot.polyline(fr, idx, sig_um[:, j], colour, 0.8, cls=f"line sigma-{name}"))
+    xt, xs = svgplot.nice_ticks(0, max(n - 1, 1))
+    xt, xs = xt[xt == np.round(xt)], max(xs, 1.0)  # point numbers are whole
+    yt, ys = svgplot.nice_ticks(0, top)
+    parts += [
+        svgplot.axis_bottom(fr, xt, svgplot.tick_labels(xt, xs),
+                            f"point, feature after feature ({n_features} features, {n} points)"),
+        svgplot.axis_left(fr, yt, svgplot.tick_labels(yt, ys), "standard deviation, µm"),
+        svgplot.legend(fr, [(f"σ{name}", colour, "line") for name, colour in AXIS_COLOURS], ncols=3),
+        svgplot.title(fr, f"(a) σ per point, {frame}"),
+    ]
+    return '<g class="panel">' + "".join(parts) + "</g>"
+
+
+def _sigma_hists(box, sig_um, med):
+    """Panel (b): the distributions of each axis's sigma (um), medians in the legend; SVG fragment."""
+    hi = max(float(np.max(sig_um)) * 1.05, 1e-6)
+    edges = np.linspace(0, hi, 40)
+    counts = [np.histogram(sig_um[:, j], bins=edges)[0] for j in range(3)]
+    top = max(max(float(c.max()) for c in counts) * 1.05, 1.0)
+    fr = svgplot.Frame(*box, xlim=(0.0, hi), ylim=(0.0, top))
+    parts = []
+    for c, (_, colour) in zip(counts, AXIS_COLOURS):
+        parts.append(svgplot.stairs(fr, c, edges, fill=colour, opacity=0.25))
+        parts.append(svgplot.stairs(fr, c, edges, stroke=colour, width=1.1, cls="hist-edge"))
+    xt, xs = svgplot.nice_ticks(0, hi)
+    yt, ys = svgplot.nice_ticks(0, top)
+    entries = [(f"σ{name}: median {m:.3g} µm", colour, "patch") for (name, colour), m in zip(AXIS_COLOURS, med)]
+    parts += [
+        svgplot.axis_bottom(fr, xt, svgplot.tick_labels(xt, xs), "standard deviation, µm"),
+        svgplot.axis_left(fr, yt, svgplot.tick_labels(yt, ys), "points"),
+        svgplot.legend(fr, entries),
+        svgplot.title(fr, "(b) distribution"),
+    ]
+    return '<g class="panel">' + "".join(parts) + "</g>"
+
+
+def _sigma_svg(idx, sig_plot_um, sig_um, bounds, n_features, frame, med):
+    """The two panels of the sigma figure side by side; SVG text."""
+    width, height = 720.0, 216.0
+    a, b = svgplot.grid(2, 2, width, height, (43.2, 7.2, 19.4, 32.4), wspace=0.22, width_ratios=(2.1, 1))
+    parts = [_sigma_lines(a, idx, sig_plot_um, bounds, n_features, frame), _sigma_hists(b, sig_um, med)]
+    return svgplot.document(width, height, parts, "standard deviations of 3D points along X, Y, Z")
+
+
 def sigma_figure(figures, part_to_camera=None):
     """[Figs. 5-6] Standard deviations of the 3D points along X, Y, Z; a Figure.
 
@@ -493,10 +526,6 @@ def sigma_figure(figures, part_to_camera=None):
                       note="Point standard deviations: omitted, no 3D point covariances were given.")
     sig, principal, bounds, labels = got
     frame = "left camera frame (Z = depth)" if rotation is not None else "part frame"
-    axes_names = ("X", "Y", "Z")
-    colours = ("#3b6fb6", "#2f9e6e", "#c2412d")
-    import matplotlib
-
     n = len(sig)
     idx = np.arange(n)
     if n > 3000:  # keep the SVG small: every k-th point, the maxima of each stretch kept by max-pooling
@@ -507,34 +536,7 @@ def sigma_figure(figures, part_to_camera=None):
     else:
         idx_plot, sig_plot = idx, sig
     med = np.median(sig, axis=0) * 1000.0  # micrometres
-    with matplotlib.rc_context(_RC):
-        fig = _mpl_figure(10.0, 3.0)
-        gs = fig.add_gridspec(1, 2, width_ratios=(2.1, 1))
-        ax = fig.add_subplot(gs[0, 0])
-        for j in range(3):
-            ax.plot(idx_plot, sig_plot[:, j] * 1000.0, color=colours[j], lw=0.8, label=f"σ{axes_names[j]}")
-        for b in bounds[1:-1]:
-            ax.axvline(b - 0.5, color="#d8dde6", lw=0.6, zorder=0)
-        ax.set_ylim(0, None)
-        ax.set_xlim(-0.5, n - 0.5)
-        ax.set_xlabel(f"point, feature after feature ({len(labels)} features, {n} points)")
-        ax.set_ylabel("standard deviation, µm")
-        ax.set_title(f"(a) σ per point, {frame}", loc="left")
-        ax.legend(loc="upper right", ncols=3, frameon=False)
-        ax2 = fig.add_subplot(gs[0, 1])
-        hi = max(float(np.max(sig)) * 1000 * 1.05, 1e-6)
-        bins = np.linspace(0, hi, 40)
-        for j in range(3):
-            ax2.hist(sig[:, j] * 1000, bins=bins, histtype="stepfilled", alpha=0.25, color=colours[j])
-            ax2.hist(sig[:, j] * 1000, bins=bins, histtype="step", lw=1.1, color=colours[j],
-                     label=f"σ{axes_names[j]}: median {med[j]:.3g} µm")
-        ax2.set_xlim(0, hi)
-        ax2.set_xlabel("standard deviation, µm")
-        ax2.set_ylabel("points")
-        ax2.set_title("(b) distribution", loc="left")
-        ax2.legend(loc="upper right", frameon=False)
-        fig.subplots_adjust(left=0.06, right=0.99, bottom=0.15, top=0.91, wspace=0.22)
-        uri = _svg_uri(fig)
+    svg = _sigma_svg(idx_plot, sig_plot * 1000.0, sig * 1000.0, bounds, len(labels), frame, med)
     if rotation is not None:
         lateral = max(med[0], med[1])
         ratio = med[2] / lateral if lateral > 0 else float("inf")
@@ -549,7 +551,7 @@ def sigma_figure(figures, part_to_camera=None):
         f"its propagated 3×3 covariance (image noise; on rims also the shading correction's noise and its Type B "
         f"rest); medians X {med[0]:.3g}, Y {med[1]:.3g}, Z {med[2]:.3g} µm. {verdict}"
     )
-    body = _img_tag(uri, "standard deviations of 3D points along X, Y, Z")
+    body = _img_tag(_svg_uri(svg), "standard deviations of 3D points along X, Y, Z")
     return Figure("sigmas", title, "Figs. 5-6", body=body, caption=caption)
 
 

@@ -183,3 +183,80 @@ def test_report_with_full_size_images_stays_under_3_mb():
 def test_same_data_same_bytes():
     data = make_figures(seed=6, width=612, height=512, n_pts=40)
     assert render_html(make_report(), data) == render_html(make_report(), data)
+
+
+def _svg_root(fig):
+    return ET.fromstring(_data_uri(fig.body, "image/svg+xml"))
+
+
+def _by_class(root, tag, cls):
+    return [e for e in root.iter(SVG + tag) if cls in (e.get("class") or "").split()]
+
+
+def test_residual_panels_paths_and_red_exactly_outside_the_band():
+    ratios = [0.5, 0.79, 0.81, 1.0, 1.24, 1.26, 2.0]
+    z = np.random.default_rng(7).normal(size=400)
+    z /= np.sqrt(np.mean(z**2))
+    items = [{"label": f"line-{i}", "image": "left", "residuals": q * 0.1 * z, "sigma": 0.1}
+             for i, q in enumerate(ratios)]
+    items.append({"label": "no-sigma", "image": "right", "residuals": z, "sigma": None})
+    root = _svg_root(F.residual_figure({"residuals": items}))
+    panels = _by_class(root, "g", "panel")
+    assert len(panels) == 8
+    assert len(_by_class(root, "path", "hist")) == 8 and len(_by_class(root, "path", "hist-edge")) == 8
+    assert len(_by_class(root, "path", "curve")) == 7  # no predicted curve without a sigma
+    red = [p.find(f"{SVG}text[@class='box']").get("fill") == F.RED for p in panels]
+    assert red == [True, True, False, False, False, True, True, False]
+    box = [t.text for t in panels[0].find(f"{SVG}text[@class='box']")]
+    assert box == ["n = 400", "rms 0.05 px", "σ 0.1 px", "rms/σ 0.50"]
+    titles = [t.text for t in _by_class(root, "text", "title")]
+    assert titles[0] == "line-0 (left)" and titles[-1] == "no-sigma (right)"
+    # Rows of 4: the x label under the lowest panel of each column.
+    assert len(_by_class(root, "text", "xlabel")) == 4
+
+
+def test_residual_figure_drops_non_finite_and_escapes_labels():
+    res = np.r_[np.linspace(-0.1, 0.1, 30), np.nan, np.inf, -np.inf]
+    fig = F.residual_figure({"residuals": [{"label": "<&>", "image": "a&b", "residuals": res, "sigma": 0.05}]})
+    root = _svg_root(fig)  # well-formed despite the label
+    assert [t.text for t in _by_class(root, "text", "title")] == ["<&> (a&b)"]
+    assert root.find(f".//{SVG}text[@class='box']")[0].text == "n = 30"
+
+
+def test_sigma_figure_panels_lines_rules_and_legend(data):
+    fig = F.sigma_figure(data, PART_TO_CAMERA)
+    root = _svg_root(fig)
+    assert len(_by_class(root, "g", "panel")) == 2
+    assert [e.get("class") for e in _by_class(root, "path", "line")] == ["line sigma-X", "line sigma-Y", "line sigma-Z"]
+    n_feats = len(data["points3d"])
+    assert _by_class(root, "path", "rule")[0].get("d").count("M") == n_feats - 1  # between features
+    assert len(_by_class(root, "path", "hist")) == 3 and len(_by_class(root, "path", "hist-edge")) == 3
+    legend = [t.text for g in _by_class(root, "g", "legend") for t in g.iter(SVG + "text")]
+    med = re.search(r"medians X ([0-9.]+), Y ([0-9.]+), Z ([0-9.]+) µm", fig.caption).groups()
+    assert legend == ["σX", "σY", "σZ"] + [f"σ{a}: median {m} µm" for a, m in zip("XYZ", med)]
+    n = sum(len(p["points"]) for p in data["points3d"])
+    assert f"({n_feats} features, {n} points)" in "".join(t.text or "" for t in _by_class(root, "text", "xlabel"))
+
+
+def test_sigma_figure_drops_non_finite_covariances_and_pools_long_runs():
+    covs = np.tile(np.eye(3) * 1e-6, (5000, 1, 1))
+    covs[:10] = np.nan
+    fig = F.sigma_figure({"points3d": [{"label": "a", "points": np.zeros((5000, 3)), "covs": covs},
+                                       {"label": "b", "points": np.zeros((2, 3)), "covs": np.full((2, 3, 3), np.inf)}]})
+    root = _svg_root(fig)
+    assert "(1 features, 4990 points)" in "".join(t.text or "" for t in _by_class(root, "text", "xlabel"))
+    assert all(2 <= e.get("d").count(",") <= 3000 for e in _by_class(root, "path", "line"))
+    assert _by_class(root, "path", "rule") == []  # one feature: no boundary
+
+
+def test_figures_svg_same_bytes(data):
+    assert F.residual_figure(data).body == F.residual_figure(data).body
+    assert F.sigma_figure(data, PART_TO_CAMERA).body == F.sigma_figure(data, PART_TO_CAMERA).body
+
+
+def test_sigma_figure_of_one_point_keeps_its_ticks_inside():
+    fig = F.sigma_figure({"points3d": [{"label": "a", "points": np.zeros((1, 3)), "covs": np.eye(3)[None] * 1e-6}]})
+    root = _svg_root(fig)
+    panel = _by_class(root, "g", "panel")[0]
+    ticks = [t.text for t in panel.iter(SVG + "text") if t.get("text-anchor") == "middle" and not t.get("class")]
+    assert ticks == ["0"]  # the x axis runs from -0.5 to 0.5: no tick at 1 or at fractions of a point
