@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import sparse
-from scipy.spatial import cKDTree
 
 __all__ = ["correlation_matrix", "bias_evidence"]
 
@@ -62,6 +61,8 @@ def correlation_matrix(xy, length, scale=4.0):
     -------
     scipy.sparse.csr_matrix, shape (N, N)
     """
+    from scipy.spatial import cKDTree
+
     n = len(xy)
     tree = cKDTree(xy)
     pairs = tree.query_pairs(CUTOFF * length * np.sqrt(scale / 4.0), output_type="ndarray")
@@ -73,27 +74,59 @@ def correlation_matrix(xy, length, scale=4.0):
     return sparse.csr_matrix((np.r_[w, w, np.ones(n)], (rows, cols)), shape=(n, n))
 
 
-def _scaled(R, a, b=None):
-    """``diag(a) R diag(b)`` of a sparse R."""
-    b = a if b is None else b
-    return sparse.diags(a) @ R @ sparse.diags(b)
+DENSE_MAX = 3000
+"""Views of at most this many points are handled as dense matrices: a
+rim's smoothing over its Type B correlation length couples a good part of
+its points, and dense products of a few hundred rows beat sparse ones
+many times; larger views stay sparse, for memory."""
 
 
-def _expected_squares(A, Q):
-    """``S -> tr(A M S M^T A^T)`` with ``M = I - Q Q^T``: the smoothed residuals' expected square.
+def _hadamard_sum(X, Y):
+    """``sum(X * Y)`` elementwise, X and Y both sparse or both dense."""
+    return float(X.multiply(Y).sum()) if sparse.issparse(X) else float(np.sum(X * Y))
 
-    ``tr(A S A^T)`` is taken as the sum of ``(A^T A) * S`` elementwise,
-    which needs neither product of two wide matrices.
+
+def _dense_correlation(d2, length, scale=4.0):
+    """`correlation_matrix` as a dense array, with the same cutoff, from the squared distances (n, n)."""
+    w = np.exp(d2 * (-1.0 / (scale * length * length)))
+    w[d2 > (CUTOFF * length) ** 2 * (scale / 4.0)] = 0.0
+    return w
+
+
+def _view_operators(v):
+    """One view's smoothing A (rows summing to one, per weighted residual) and its S_n, S_b.
+
+    All (n, n), in units of the weighted residuals; dense when the view
+    has at most ``DENSE_MAX`` points, sparse otherwise.
     """
-    AtA = (A.T @ A).tocsr()
-    AtAQ = AtA @ Q
-    QtAtAQ = Q.T @ AtAQ
+    n = len(v.xy)
+    dense = n <= DENSE_MAX
+    xy = np.asarray(v.xy, float)
 
-    def expected(S):
-        SQ = S @ Q
-        return float(AtA.multiply(S).sum() - 2.0 * np.sum(SQ * AtAQ) + np.sum((Q.T @ SQ) * QtAtAQ))
+    if dense:
+        d2 = np.subtract.outer(xy[:, 0], xy[:, 0]) ** 2 + np.subtract.outer(xy[:, 1], xy[:, 1]) ** 2
 
-    return expected
+    def corr(length, scale=4.0):
+        return _dense_correlation(d2, length, scale) if dense else correlation_matrix(xy, length, scale)
+
+    def scaled(R, a):  # diag(a) R diag(a)
+        a = np.broadcast_to(np.asarray(a, float), (n,))
+        return a[:, None] * R * a[None, :] if dense else (sparse.diags(a) @ R @ sparse.diags(a)).tocsr()
+
+    def zero():
+        return np.zeros((n, n)) if dense else sparse.csr_matrix((n, n))
+
+    t = np.broadcast_to(np.asarray(v.total_sigma, float), (n,))
+    A = zero()
+    if v.bias is not None:
+        G = corr(v.bias_corr_length or 1.0, scale=2.0)
+        rows = np.asarray(G.sum(axis=1)).ravel()
+        A = G / rows[:, None] * t[None, :] if dense else (sparse.diags(1.0 / rows) @ G @ sparse.diags(t)).tocsr()
+    Sn = scaled(corr(v.corr_length or 1e-6), np.asarray(v.sigma, float) / t)
+    if v.sigma_correction is not None:
+        Sn = Sn + scaled(corr(v.correction_corr_length), np.asarray(v.sigma_correction, float) / t)
+    Sb = scaled(corr(v.bias_corr_length), np.asarray(v.bias, float) / t) if v.bias is not None else zero()
+    return A, Sn, Sb
 
 
 def bias_evidence(views, residuals, jacobian):
@@ -117,39 +150,43 @@ def bias_evidence(views, residuals, jacobian):
     se : float
         Its standard error under the image noise alone.
     None if no view carries a systematic part.
+
+    Notes
+    -----
+    A, S_n and S_b are block diagonal over the views; only the residual
+    maker ``M = I - Q Q^T`` couples them, through Q's (N, p) rows. With
+    ``B = A^T A`` per view, ``tr(A M S M^T A^T) = sum_v <B_v, S_v> - 2
+    sum_v <S_v Q_v, B_v Q_v> + <sum_v Q_v^T S_v Q_v, sum_v Q_v^T B_v Q_v>``
+    (``<X, Y>`` the elementwise product's sum), which needs no product of
+    two wide matrices across views.
     """
-    blocks_A, blocks_n, blocks_b, t_all = [], [], [], []
-    for v in views:
-        n = len(v.xy)
-        t = np.broadcast_to(np.asarray(v.total_sigma, float), (n,))
-        sigma = np.broadcast_to(np.asarray(v.sigma, float), (n,))
-        G = correlation_matrix(v.xy, v.bias_corr_length or 1.0, scale=2.0) if v.bias is not None else None
-        if G is None:
-            G = sparse.csr_matrix((n, n))
-        G = sparse.diags(1.0 / np.maximum(np.asarray(G.sum(axis=1)).ravel(), 1e-300)) @ G
-        Sn = _scaled(correlation_matrix(v.xy, v.corr_length or 1e-6), sigma)
-        if v.sigma_correction is not None:
-            Sn = Sn + _scaled(correlation_matrix(v.xy, v.correction_corr_length), v.sigma_correction)
-        if v.bias is not None:
-            Sb = _scaled(correlation_matrix(v.xy, v.bias_corr_length), np.broadcast_to(v.bias, (n,)))
-        else:
-            Sb = sparse.csr_matrix((n, n))
-        blocks_A.append(G @ sparse.diags(t))
-        blocks_n.append(Sn)
-        blocks_b.append(Sb)
-        t_all.append(t)
     if all(v.bias is None for v in views):
         return None
-    A = sparse.block_diag(blocks_A, format="csr")
-    tinv = sparse.diags(1.0 / np.concatenate(t_all))
-    Sn = (tinv @ sparse.block_diag(blocks_n) @ tinv).tocsr()
-    Sb = (tinv @ sparse.block_diag(blocks_b) @ tinv).tocsr()
     Q, _ = np.linalg.qr(np.asarray(jacobian, float))
-    observed = float(np.sum((A @ residuals) ** 2))
-    expected = _expected_squares(A, Q)
-    En, Eb = expected(Sn), expected(Sb)
+    residuals = np.asarray(residuals, float)
+    p = Q.shape[1]
+    observed, se2, start = 0.0, 0.0, 0
+    direct = {"n": 0.0, "b": 0.0}
+    cross = {"n": 0.0, "b": 0.0}
+    small = {"n": np.zeros((p, p)), "b": np.zeros((p, p))}
+    QBQ = np.zeros((p, p))
+    for v in views:
+        n = len(v.xy)
+        Qv, ev = Q[start:start + n], residuals[start:start + n]
+        start += n
+        A, Sn, Sb = _view_operators(v)
+        B = A.T @ A
+        BQ = B @ Qv
+        QBQ += Qv.T @ BQ
+        observed += float(np.sum((A @ ev) ** 2))
+        for key, S in (("n", Sn), ("b", Sb)):
+            SQ = S @ Qv
+            direct[key] += _hadamard_sum(B, S)
+            cross[key] += float(np.sum(SQ * BQ))
+            small[key] += Qv.T @ SQ
+        C = A @ Sn @ A.T
+        se2 += 2.0 * _hadamard_sum(C, C)
+    En, Eb = (direct[k] - 2.0 * cross[k] + float(np.sum(small[k] * QBQ)) for k in ("n", "b"))
     if not Eb > 0:
         return None
-    C = A @ Sn @ A.T
-    se = float(np.sqrt(2.0 * C.multiply(C).sum())) / Eb
-    return (observed - En) / Eb, se
+    return (observed - En) / Eb, float(np.sqrt(se2)) / Eb
