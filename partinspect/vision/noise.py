@@ -59,6 +59,22 @@ def _max3x3_at(a, step):
     return np.maximum(np.maximum(rows[:, 0:W - 2:step], rows[:, 1:W - 1:step]), rows[:, 2:W:step])
 
 
+def _filtered(img):
+    """The image as float32, its Immerkaer responses and its Sobel gradient magnitude, (H, W) each."""
+    f = img.astype(np.float32)
+    resp = cv2.filter2D(f, cv2.CV_32F, _MASK, borderType=cv2.BORDER_REFLECT)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
+    return f, resp, cv2.magnitude(gx, gy)
+
+
+def _grey(image):
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return img
+
+
 def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
     """Standard deviation of the additive image noise, in grey levels.
 
@@ -100,25 +116,24 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
     average over the unsaturated non-edge pixels, and
     :func:`noise_level_function` gives the noise at each grey level.
     """
-    img = np.asarray(image)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    img = _grey(image)
     if img.ndim != 2 or min(img.shape) < 3:
         raise ValueError(f"need a 2-D image of at least 3x3 pixels, got shape {img.shape}")
+    return _estimate_noise(img, _filtered(img), clip, edge_k, iterations)
+
+
+def _estimate_noise(img, filtered, clip=3.0, edge_k=4.0, iterations=3):
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
-    f = img.astype(np.float32)
     # A regular subsample of the interior is plenty (the relative precision
     # of the estimate from n samples is about 1 / sqrt(2 n)) and keeps the
     # robust iterations cheap on large images.
     step = max(1, int(np.sqrt(img.size / 4e5)))
     sub = (slice(1, -1, step), slice(1, -1, step))
-    resp = cv2.filter2D(f, cv2.CV_32F, _MASK, borderType=cv2.BORDER_REFLECT)[sub]
-    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
-    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
+    resp = filtered[1][sub]
     # A pixel is next to an edge when the largest gradient in its 3x3
     # neighbourhood exceeds the threshold: that maximum is taken once here,
     # at the subsample's pixels only, and thresholded at each iteration.
-    grad_max = _max3x3_at(cv2.magnitude(gx, gy), step)
+    grad_max = _max3x3_at(filtered[2], step)
     valid = np.ones(resp.shape, bool)
     if top is not None:
         valid &= ~_max3x3_at((img == 0) | (img == top), step)
@@ -223,10 +238,13 @@ def _bin_variances(resp, grey, n_bins):
     """
     edges = np.unique(np.quantile(grey, np.linspace(0.0, 1.0, n_bins + 1)))
     idx = np.clip(np.searchsorted(edges, grey, side="right") - 1, 0, max(len(edges) - 2, 0))
+    # Each bin's pixels as one contiguous run of the bin-sorted order.
+    order = np.argsort(idx, kind="stable")
+    bounds = np.searchsorted(idx[order], np.arange(max(len(edges) - 1, 1) + 1))
     out = []
     for k in range(max(len(edges) - 1, 1)):
-        sel = idx == k
-        n = int(np.count_nonzero(sel))
+        sel = order[bounds[k]:bounds[k + 1]]
+        n = len(sel)
         if n < NLF_MIN_PIXELS:
             continue
         r2 = (resp[sel].astype(np.float64) / _MASK_NORM) ** 2
@@ -266,7 +284,9 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
     ----------
     image : ndarray, shape (H, W) or (H, W, C)
     noise : float, optional
-        :func:`estimate_noise` of the image, if already known.
+        :func:`estimate_noise` of the image, if already known; else it is
+        estimated here (from the same filtered image), and the result's
+        ``noise`` holds it.
     edge_k : float
         Gradient significance for the edge mask, in local noise standard
         deviations (as in :func:`estimate_noise`).
@@ -276,19 +296,16 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
     -------
     NoiseLevel
     """
-    img = np.asarray(image)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    noise = float(estimate_noise(img)) if noise is None else float(noise)
+    img = _grey(image)
+    filtered = _filtered(img)
+    noise = float(_estimate_noise(img, filtered)) if noise is None else float(noise)
     constant = NoiseLevel(noise * noise, 0.0, 0.0, noise, False)
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
-    f = img.astype(np.float32)
+    f, resp_full, magnitude = filtered
     sub = (slice(1, -1, 3), slice(1, -1, 3))
-    resp = cv2.filter2D(f, cv2.CV_32F, _MASK, borderType=cv2.BORDER_REFLECT)[sub]
+    resp = resp_full[sub]
     grey = cv2.blur(f, (3, 3), borderType=cv2.BORDER_REFLECT)[sub]
-    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
-    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
-    grad_max = _max3x3_at(cv2.magnitude(gx, gy), 3)
+    grad_max = _max3x3_at(magnitude, 3)
     valid = np.ones(resp.shape, bool)
     if top is not None:
         valid &= ~_max3x3_at((img == 0) | (img == top), 3)

@@ -71,7 +71,7 @@ from partinspect.vision.fit3d import (View, circle_consistency, circle_residuals
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import MAX_OUTLIER_FRACTION, ImageFeature, chauvenet_z, image_features
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
-from partinspect.vision.noise import estimate_noise, noise_level_function
+from partinspect.vision.noise import noise_level_function
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
            "feature_views", "views_of", "type_b_scale", "edge_band", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
@@ -473,8 +473,8 @@ def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    noise = float(estimate_noise(img))
-    level = noise_level_function(img, noise)
+    level = noise_level_function(img)
+    noise = level.noise
     edges = edge_points(img, sigma, noise=noise, noise_level=level, **(edge_options or {}))
     segments = segment_contours(edges, chain_edges(edges), **(segment_options or {}))
     feats = [_with_edge_data(f, edges) for f in image_features(edges, segments, K, D)]
