@@ -49,7 +49,7 @@ __all__ = [
     "gradient_noise_std",
     "edge_error_correlation",
     "background_shift_std",
-    "point_noise_scale",
+    "noise_scale_map",
 ]
 
 # Variance of a point's position along the edge, px^2. The along-edge
@@ -464,35 +464,34 @@ def background_shift_std(edges, index):
     return W * np.sqrt(BACKGROUND_NOISE) * grad_noise / (edges.strength[index] * np.sqrt(2.0 * np.pi))
 
 
-def point_noise_scale(image, pixel, noise_level, sigma=1.0):
-    """The image noise's standard deviation at edge points, relative to ``noise_level.noise``.
+def noise_scale_map(image, noise_level, sigma=1.0):
+    """The image noise's standard deviation at every pixel, relative to ``noise_level.noise``.
 
-    A point's position is read through the derivative filter from both
-    sides of the step, whose weights are symmetric about it, so its noise
-    variance is the filter-weighted mean of the pixels' variances; with a
-    variance linear in the grey level and the square of it (photon noise,
-    PRNU), that is the variance function at the local means of ``I`` and
-    ``I^2`` over the filter's Gaussian footprint.
+    A point's position (and a pixel's gradient) is read through the
+    derivative filter from both sides of the step, whose weights are
+    symmetric about it, so its noise variance is the filter-weighted mean
+    of the pixels' variances; with a variance linear in the grey level and
+    the square of it (photon noise, PRNU), that is the variance function at
+    the local means of ``I`` and ``I^2`` over the filter's Gaussian
+    footprint.
 
     Parameters
     ----------
     image : ndarray, shape (H, W)
-    pixel : ndarray, shape (N, 2), int
-        (row, col) of the points.
     noise_level : NoiseLevel
     sigma : float
         The edge filter's scale, px.
 
     Returns
     -------
-    ndarray, shape (N,) or None
+    ndarray, shape (H, W) or None
         None where the noise does not depend on the grey level.
     """
     if not noise_level.signal_dependent:
         return None
     f = np.asarray(image, np.float64)
-    m1 = cv2.GaussianBlur(f, (0, 0), sigma)[pixel[:, 0], pixel[:, 1]]
-    m2 = cv2.GaussianBlur(f * f, (0, 0), sigma)[pixel[:, 0], pixel[:, 1]]
+    m1 = cv2.GaussianBlur(f, (0, 0), sigma)
+    m2 = cv2.GaussianBlur(f * f, (0, 0), sigma)
     var = noise_level.b + noise_level.a * m1 + noise_level.c * m2
     return np.sqrt(np.maximum(var, QUANTISATION_STD ** 2)) / noise_level.noise
 
@@ -516,9 +515,12 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
         with probability exp(-k^2 / 2) (3e-4 for k = 4, 1e-14 for k = 8).
     noise_level : NoiseLevel, optional
         The noise as a function of the grey level
-        (:func:`partinspect.vision.noise.noise_level_function`); each
-        point's covariance then follows the noise at its grey level
-        (:func:`point_noise_scale`), while the thresholds keep ``noise``.
+        (:func:`partinspect.vision.noise.noise_level_function`); where it
+        depends on the grey level, each pixel's thresholds and each point's
+        covariance follow the noise there (:func:`noise_scale_map`): a
+        bright face's larger noise (photon noise, PRNU) must not pass the
+        thresholds set for the average one, and a dark face's edges must
+        not be held to them.
 
     Returns
     -------
@@ -554,9 +556,10 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
     high = k_high * sg if high is None else float(high)
     if high < low:
         raise ValueError("high threshold below low threshold")
+    scale_map = None if noise_level is None else noise_scale_map(img, noise_level, sigma)
 
     # Only pixels above the low threshold can be edge points: work on those.
-    cand = mag > max(low, 1e-12)
+    cand = mag > (max(low, 1e-12) if scale_map is None else np.maximum(low * scale_map, 1e-12))
     cand[0, :] = cand[-1, :] = cand[:, 0] = cand[:, -1] = False
     flat = np.flatnonzero(cand)
     magf = mag.ravel()
@@ -576,7 +579,7 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
     n_lab, labels = cv2.connectedComponents(mask.reshape(H, W), connectivity=8, ltype=cv2.CV_32S)
     lab = labels.ravel()[flat]
     strong = np.zeros(n_lab, bool)
-    strong[lab[b > high]] = True
+    strong[lab[b > (high if scale_map is None else high * scale_map.ravel()[flat])]] = True
     keep = strong[lab]
     flat, horiz, a, b, c, gxf, gyf = (v[keep] for v in (flat, horiz, a, b, c, gxf, gyf))
 
@@ -593,7 +596,7 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
 
     var_n = noise * noise * _normal_variance(J, n_ax, sigma)
     pixel = np.column_stack([rows, cols]).astype(np.int32)
-    scale = None if noise_level is None else point_noise_scale(img, pixel, noise_level, sigma)
+    scale = None if scale_map is None else scale_map[rows, cols].astype(np.float64)
     if scale is not None:
         var_n = var_n * scale * scale
     t = np.column_stack([-nrm[:, 1], nrm[:, 0]])

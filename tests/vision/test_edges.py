@@ -241,3 +241,31 @@ def test_stated_std_spread_predicts_how_the_stated_uncertainties_scatter():
     np.testing.assert_allclose(std, g.normal_std, rtol=1e-3)  # the noise-free statement itself
     assert 0.85 < measured / np.sqrt(np.mean(cv ** 2)) < 1.15, (measured, np.sqrt(np.mean(cv ** 2)))
     assert 0.02 < measured < 0.1
+
+
+def test_thresholds_follow_grey_dependent_noise():
+    """A 1 % gain pattern on a bright face at noise 0.5: no spurious edges there, the rim kept whole.
+
+    Held to the image-wide noise figure, the bright face's pattern (2 grey
+    levels against 0.5) passes the thresholds as short edges beside the rim.
+    """
+    from partinspect.vision.noise import noise_level_function
+
+    rng = np.random.default_rng(4)
+    # A face shaded from 80 to 230 grey levels, so the noise's grey dependence can be read.
+    face = render_optics([(Disc(100.3, 99.6, 40.0), 0.0)], 200, 200, background=1.0, blur=0.6)
+    clean = 20.0 + face * (np.linspace(80.0, 230.0, 200)[None, :] - 20.0)
+    img = clean * (1.0 + 0.01 * rng.standard_normal(clean.shape)) + 0.5 * rng.standard_normal(clean.shape)
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    level = noise_level_function(img)
+    assert level.signal_dependent
+
+    def away_and_on(e):
+        d = np.abs(np.hypot(e.xy[:, 0] - 100.3, e.xy[:, 1] - 99.6) - 40.0)
+        return int(np.sum(d > 3.0)), int(np.sum(d < 1.0))
+
+    spurious_global, rim_global = away_and_on(edge_points(img, 1.0, noise=level.noise))
+    spurious_local, rim_local = away_and_on(edge_points(img, 1.0, noise=level.noise, noise_level=level))
+    assert spurious_global > 20  # what the image-wide thresholds let through
+    assert spurious_local == 0
+    assert rim_local >= rim_global - 2 and rim_local > 200
