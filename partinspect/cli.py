@@ -158,6 +158,10 @@ def _render_parser():
                    help="direction towards the light in the left camera frame (default near the cameras: "
                    "0.351,-0.084,-0.933); moves shading and highlights")
     p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
+    p.add_argument("--views", metavar="RX,RY,RZ;...", default=None,
+                   help="several views, one pair each in OUT_DIR/view-1/, view-2/, ...: the part turned in its own "
+                   "frame by RX,RY,RZ degrees about its bounding-box centre (0,0,120: a turntable's 120 degrees about "
+                   "its Z), on top of --pose; e.g. \"0,0,0;0,0,120;0,0,240\"")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -546,12 +550,19 @@ def _run_render(args):
     _check_realism(args)
     size = _parse_size(args.size)
     drift = _parse_drift(args.drift)
-    from partinspect.simulate.folder import render_to_folder
+    from partinspect.simulate.folder import render_to_folder, render_views_to_folder
 
     progress = _progress(args.quiet)
-    render_to_folder(
+    if args.views is not None:
+        from partinspect.poses import parse_views
+
+        render, views = render_views_to_folder, {"views": parse_views(args.views)}
+    else:
+        render, views = render_to_folder, {}
+    render(
         args.part,
         args.out,
+        **views,
         pose=args.pose,
         noise=args.noise,
         seed=args.seed,
@@ -567,7 +578,10 @@ def _run_render(args):
         light=args.light,
         progress=progress,
     )
-    if not args.quiet:
+    if not args.quiet and views:
+        print(f"rendered {len(views['views'])} views, each a pair with its truth: "
+              f"{os.path.join(args.out, 'view-1')} ... view-{len(views['views'])}")
+    elif not args.quiet:
         print(f"rendered {os.path.join(args.out, 'images')} and {os.path.join(args.out, 'truth.json')}")
     return EXIT_PASS
 
