@@ -26,7 +26,9 @@ Inspect a machined part against its STEP model from one calibrated stereo
 image pair. Writes report.html, report.json and junit.xml into OUT.
 
 IMAGES_DIR holds left.png, right.png and calibration.yaml (or OpenCV
-stereo_calib's intrinsics.yml + extrinsics.yml). Tolerances come from
+stereo_calib's intrinsics.yml + extrinsics.yml); or several views, one
+sub-folder per pair (view-1/, view-2/, ...) with a shared calibration.yaml
+or one each: each view is measured, and the features fused. Tolerances come from
 --tolerances, else PART.tol.yaml beside the STEP file (part.tol.yaml for
 part.step); the STEP file's semantic PMI (AP242) for what that leaves out;
 ISO 2768-mK general tolerances for the rest.
@@ -458,13 +460,14 @@ def _silence_stdout():
 
 
 def _run_inspect(args):
+    from partinspect.multiview import is_views_folder, run_views
     from partinspect.pipeline import run_inspection
 
     if not args.output:
         raise InputError(None, "-o: the output folder name is empty")
     if args.draws < 10:
         raise InputError(None, f"--draws {args.draws}: a Monte Carlo needs at least 10 draws")
-    result = run_inspection(
+    result = (run_views if is_views_folder(args.images) else run_inspection)(
         args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet),
         uncertainty=args.uncertainty, draws=args.draws, pose_hint=args.pose_hint,
     )

@@ -63,3 +63,63 @@ def test_each_view_alone_inspects_as_a_pair(plate_views, repo, tmp_path):
     result = run_inspection(repo / "examples/plate/part.step", out / "view-2", tmp_path / "o")
     assert result.report["summary"]["features_measured"] >= 12
     assert "views" not in result.report
+
+
+@pytest.fixture(scope="session")
+def plate_views_report(plate_views, repo, tmp_path_factory):
+    from partinspect.multiview import run_views
+
+    out, _ = plate_views
+    return run_views(repo / "examples/plate/part.step", out, tmp_path_factory.mktemp("views-out"))
+
+
+def test_a_views_folder_is_one_inspection_with_fused_features(plate_views_report, plate_views):
+    import jsonschema
+    from importlib import resources
+
+    report = plate_views_report.report
+    views = report["views"]
+    assert [v["name"] for v in views] == ["view-1", "view-2"] and all(v["used"] for v in views)
+    per_view = [v["features_measured"] for v in views]
+    measured = {f["id"] for f in report["features"] if f["measured"] is not None}
+    # the turned view sees edges the first does not: more features measured than in either alone
+    assert len(measured) > max(per_view)
+    assert measured == set(views[0]["features"]) | set(views[1]["features"])
+    both = set(views[0]["features"]) & set(views[1]["features"])
+    assert both, "the two views share features (the top face's holes)"
+    by_id = {c["id"]: c for c in report["characteristics"]}
+    for c in report["characteristics"]:
+        assert set(c["views"]) <= {"view-1", "view-2"}
+        assert (c["measured"] is None) == (not c["views"])
+    # a hole on the top face is seen in both views: its diameter is combined, with a u below each view's
+    d = by_id["circle-4.diameter"]
+    if "circle-4" not in {f["feature"] for f in report["fusion"]["left_out"]}:
+        assert d["views"] == ["view-1", "view-2"] and "combined over 2 views" in d["method"]
+    # no characteristic of an edge that some view measured is "not inspected"
+    for c in report["not_inspected"]:
+        assert not set(c["features"]) & measured
+    schema = json.loads(resources.files("partinspect.reports").joinpath("schemas/report-1.schema.json").read_text())
+    jsonschema.validate(report, schema)
+    html = (plate_views_report.out_dir / "report.html").read_text()
+    assert 'id="views"' in html and "view-2" in html
+
+
+def test_shared_calibration_at_the_top_of_the_views_folder(plate_views, repo, tmp_path):
+    import shutil
+
+    from partinspect.multiview import is_views_folder
+    from partinspect.pipeline import load_inputs
+
+    out, _ = plate_views
+    views = tmp_path / "views"
+    for k in (1, 2):
+        (views / f"view-{k}").mkdir(parents=True)
+        for name in ("left.png", "right.png"):
+            shutil.copy(out / f"view-{k}" / name, views / f"view-{k}" / name)
+    shutil.copy(out / "view-1/calibration.yaml", views / "calibration.yaml")
+    assert is_views_folder(views) and not is_views_folder(views / "view-1")
+    inputs = load_inputs(repo / "examples/plate/part.step", views / "view-2", tmp_path / "o", None, None,
+                         lambda m: None, calibration_dir=views)
+    assert inputs.calib_file == views / "calibration.yaml"
+    with pytest.raises(InputError, match="no calibration.yaml"):
+        load_inputs(repo / "examples/plate/part.step", views / "view-2", tmp_path / "o", None, None, lambda m: None)

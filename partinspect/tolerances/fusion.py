@@ -45,7 +45,7 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -54,13 +54,13 @@ from partinspect.frames import orthonormal_frame
 from partinspect.tolerances.evaluate import (
     COVERAGE_FACTOR,
     N_MC,
-    _pick,
-    _result,
-    _unmeasured,
     evaluate_characteristic,
     measured_angle,
     measured_distance,
+    measured_result,
+    pick_feature,
     propagate,
+    unmeasured_result,
 )
 
 __all__ = ["SIGNIFICANCE", "FusedFeature", "reduce", "expand", "combine", "consistent_views", "fuse_feature",
@@ -346,7 +346,7 @@ def fuse(view_parts, inventory, rank=None, significance=SIGNIFICANCE):
     """
     out = {}
     for f in inventory.features:
-        measured = [(v, p) for v, parts in enumerate(view_parts) if (p := _pick(parts, f.id)) is not None]
+        measured = [(v, p) for v, parts in enumerate(view_parts) if (p := pick_feature(parts, f.id)) is not None]
         if measured:
             out[f.id] = fuse_feature(f.id, f, measured, rank, significance)
     return out
@@ -451,7 +451,7 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
         fs = [fused.get(fid) for fid in c.features]
         if any(f is None for f in fs):
             missing = [fid for fid, f in zip(c.features, fs) if f is None]
-            evaluations.append(_unmeasured(c, f"{', '.join(missing)} not measured in any view (not visible in both "
+            evaluations.append(unmeasured_result(c, f"{', '.join(missing)} not measured in any view (not visible in both "
                                               f"images or not matched)"))
             used.append(())
             continue
@@ -469,6 +469,8 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
         else:
             view = _FusedView(fs[0], registrations, _form_view(fs[0], registrations))
             ev = evaluate_characteristic(c, fs, view, inventory, k=k, seed=seed, n_mc=n_mc)
+            if ev.measured is not None:
+                ev = replace(ev, method=f"{ev.method}; combined over {len(views)} views (generalised least squares)")
             evaluations.append(ev)
         used.append(tuple(views))
     return evaluations, used
@@ -488,5 +490,6 @@ def _pair(c, fs, registrations, k):
     try:
         value, u = propagate(f, x, cov)
     except ValueError as e:
-        return _unmeasured(c, f"{c.type} of the measured features undefined: {e}")
-    return _result(c, value, u, k, "first order, part frame, each view's pose covariance included")
+        return unmeasured_result(c, f"{c.type} of the measured features undefined: {e}")
+    return measured_result(c, value, u, k, "first order, part frame, features combined over views, each view's pose "
+                                   "covariance included")
