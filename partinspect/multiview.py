@@ -21,7 +21,7 @@ from pathlib import Path
 from partinspect.errors import InputError
 from partinspect.progress import quiet
 
-__all__ = ["is_views_folder", "view_folders", "run_views", "View"]
+__all__ = ["is_views_folder", "view_folders", "run_views", "measure_views", "evaluate_views", "View"]
 
 
 def _is_pair(folder):
@@ -104,24 +104,8 @@ def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=qu
             cad["model"] = (load_cad or pipeline.load_cad_model)(path)
         return cad["model"]
 
-    folders = view_folders(views_dir)
-    views = []
-    for folder in folders:
-        def say(message, name=folder.name):
-            progress(f"{name}: {message}")
-
-        inputs = pipeline.load_inputs(part, folder, out, tolerances, None, say, cached, calibration_dir=views_dir)
-        view = View(folder.name, folder, inputs)
-        try:
-            check, first = pipeline.check_calibration(inputs, say)
-            m = pipeline.measure(inputs, say, check, first)
-            if uncertainty == "montecarlo":
-                m = pipeline.with_monte_carlo(inputs, m, draws, say)
-            view.measured = m
-        except InputError as e:
-            view.problem = e.problem
-            say(f"left out: {e.problem}")
-        views.append(view)
+    views = measure_views(part, views_dir, out, tolerances=tolerances, progress=progress,
+                          uncertainty=uncertainty, draws=draws, load_cad=cached)
     used = [v for v in views if v.measured is not None]
     if not used:
         raise InputError(views_dir, "no view could be measured: " + "; ".join(f"{v.name}: {v.problem}" for v in views))
@@ -133,6 +117,38 @@ def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=qu
                                                first.inputs.inv, first.measured.stereo,
                                                first.measured.registration, features))
     return pipeline.InspectionResult(report["verdict"], report, out_dir)
+
+
+def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, uncertainty="first-order", draws=200,
+                  load_cad=None):
+    """Each view of a views folder read and measured with the single-pair stages; a list of :class:`View`.
+
+    A view whose chain cannot be made (its calibration does not fit its
+    images, the CAD model cannot be aligned) keeps its ``problem`` and no
+    measurement; bad input in any view raises.
+    """
+    from partinspect import pipeline
+
+    folders = view_folders(views_dir)
+    views = []
+    for folder in folders:
+        def say(message, name=folder.name):
+            progress(f"{name}: {message}")
+
+        inputs = pipeline.load_inputs(part, folder, out, tolerances, None, say, load_cad,
+                                      calibration_dir=views_dir)
+        view = View(folder.name, folder, inputs)
+        try:
+            check, first = pipeline.check_calibration(inputs, say)
+            m = pipeline.measure(inputs, say, check, first)
+            if uncertainty == "montecarlo":
+                m = pipeline.with_monte_carlo(inputs, m, draws, say)
+            view.measured = m
+        except InputError as e:
+            view.problem = e.problem
+            say(f"left out: {e.problem}")
+        views.append(view)
+    return views
 
 
 def evaluate_views(views, progress):
