@@ -24,7 +24,8 @@ Printed, per part:
 - time per draw against the number of views.
 
 Run: ``python benchmarks/bench_views.py [--parts plate,bracket] [--draws 8]
-[--size 816x683] [--noise 2] [--single 1] [--work DIR]``.
+[--size 816x683] [--noise 2] [--single 1] [--views "RX,RY,RZ;..."] [--work DIR]``
+(``--views`` as ``inspect render --views``; default the turntable above).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_stress import honesty_by_type, table, true_value  # noqa: E402
 
 TURNS = [(0.0, 0.0, 0.0), (0.0, 0.0, 120.0), (0.0, 0.0, 240.0)]
+"""Default views (``--views`` as ``inspect render --views`` takes them)."""
 
 
 def radiance(part, k, turn, size, work):
@@ -54,7 +56,7 @@ def radiance(part, k, turn, size, work):
     from partinspect.simulate.rig import default_rig
     from partinspect.simulate.truth import to_json
 
-    tag = work / f"{part}-view{k}-{size[0]}x{size[1]}"
+    tag = work / f"{part}-view{k}-{'_'.join(f'{a:g}' for a in turn)}-{size[0]}x{size[1]}"
     rig = default_rig(size)
     if tag.with_suffix(".npz").is_file():
         z = np.load(tag.with_suffix(".npz"))
@@ -78,7 +80,7 @@ def write_views(part, size, noise, draw, work):
     from partinspect.simulate.render import sensor
     from partinspect.vision.calibration import write_calibration
 
-    folder = work / f"{part}-draw{draw}"
+    folder = work / f"{part}-{'_'.join(','.join(f'{a:g}' for a in t) for t in TURNS)}-draw{draw}"
     truths = []
     for k, turn in enumerate(TURNS, 1):
         left, right, rig, truth = radiance(part, k, turn, size, work)
@@ -151,13 +153,18 @@ def main():
     ap.add_argument("--noise", type=float, default=2.0)
     ap.add_argument("--single", type=int, default=1, help="draws whose views are also inspected alone")
     ap.add_argument("--work", default="/tmp/bench_views")
+    ap.add_argument("--views", default=None, help="RX,RY,RZ;... (default turntable 0,0,0;0,0,120;0,0,240)")
     args = ap.parse_args()
+    if args.views:
+        from partinspect.poses import parse_views
+
+        TURNS[:] = [tuple(v) for v in parse_views(args.views)]
     size = tuple(int(v) for v in args.size.split("x"))
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     from partinspect.pipeline import load_cad_model
 
-    print(f"=== bench_views: {len(TURNS)} turntable views {', '.join(f'{t[2]:g}' for t in TURNS)} deg, {size[0]}x{size[1]}, "
+    print(f"=== bench_views: {len(TURNS)} views {'; '.join(','.join(f'{a:g}' for a in t) for t in TURNS)} deg, {size[0]}x{size[1]}, "
           f"noise {args.noise:g} grey levels, {args.draws} draws ===", flush=True)
     for part in args.parts.split(","):
         step = ROOT / "examples" / part / "part.step"
@@ -194,7 +201,7 @@ def main():
 
         print(f"\n--- {part} ---")
         nf = len(report["features"])
-        table(["", "view-1", "view-2", "view-3", "fused"],
+        table(["", *[f"view-{k}" for k in range(1, len(TURNS) + 1)], "fused"],
               [["features measured (mean of draws, of " + str(nf) + ")",
                 *[f"{np.mean([p[i] for p in per_view]):.1f}" for i in range(len(TURNS))], f"{np.mean(fused_n):.1f}"],
                ["not inspected (single runs / fused mean)",

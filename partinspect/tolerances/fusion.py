@@ -22,7 +22,10 @@ disagree neither is more suspect by the test alone: the one the caller
 ranks lower (e.g. the worse registration fit) is left out.
 
 The consistent estimates are combined by generalised least squares,
-``C = (sum C_v^-1)^-1``, ``y = C sum C_v^-1 y_v`` (:func:`combine`) [1]_.
+``C = (sum C_v^-1)^-1``, ``y = C sum C_v^-1 y_v`` (:func:`combine`) [1]_;
+a circle's radius is weighted apart from its centre and axis
+(``SIZE_APART``), the combination's covariance still the full one of the
+weighted sum.
 Two combined features are correlated where the same view measured both,
 through its pose: ``Cov(y_a, y_b) = sum_v W_av K_v W_bv^T`` with ``W`` the
 weights and ``K_v`` the view's cross-covariance of the two
@@ -63,11 +66,20 @@ from partinspect.tolerances.evaluate import (
     unmeasured_result,
 )
 
-__all__ = ["SIGNIFICANCE", "FusedFeature", "reduce", "expand", "combine", "consistent_views", "fuse_feature",
+__all__ = ["SIGNIFICANCE", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine", "consistent_views", "fuse_feature",
            "fuse", "fused_cross_covariance", "evaluate_fused"]
 
 SIGNIFICANCE = 0.99
 """Probability that a consistent view passes the test (per view and feature)."""
+
+SIZE_APART = ((0, 5), (5, 6))
+"""A circle's reduced parameters weighted in two blocks: centre and axis, and
+the radius on its own. Within one view the radius is correlated with the
+centre's depth and the axis through the ellipse fit and the rim's
+systematic displacement, the part of the error model least sure of its
+correlations; weighting by them lets views correct each other's radius
+through their centres. The weights leave them out; the combined covariance
+keeps them (:func:`combine`)."""
 
 _STEP = 1e-7
 
@@ -133,7 +145,7 @@ def _jacobian(f, x):
     return np.stack(cols, axis=1)
 
 
-def combine(ys, covs):
+def combine(ys, covs, blocks=None):
     """Generalised least-squares combination of independent estimates of one quantity.
 
     Parameters
@@ -141,20 +153,30 @@ def combine(ys, covs):
     ys : sequence of ndarray, shape (n,)
     covs : sequence of ndarray, shape (n, n)
         Each positive definite.
+    blocks : sequence of (int, int), optional
+        Index ranges combined each on its own: the weights come from the
+        covariances' diagonal blocks, the correlations between blocks left
+        out of the weighting (but not of the result's covariance). None:
+        one block, the full GLS.
 
     Returns
     -------
     y : ndarray, shape (n,)
     cov : ndarray, shape (n, n)
-        ``(sum C_i^-1)^-1``.
+        ``sum W_i C_i W_i^T``: with one block ``(sum C_i^-1)^-1``.
     weights : list of ndarray, shape (n, n)
-        ``W_i = cov C_i^-1``: ``y = sum W_i y_i``.
+        ``y = sum W_i y_i``; ``W_i = (sum B_j^-1)^-1 B_i^-1`` with ``B_i``
+        the block-diagonal part of ``C_i``.
     """
-    infos = [np.linalg.inv(C) for C in covs]
-    cov = np.linalg.inv(sum(infos))
-    cov = 0.5 * (cov + cov.T)
-    weights = [cov @ I for I in infos]
-    return sum(W @ y for W, y in zip(weights, ys)), cov, weights
+    n = len(ys[0])
+    mask = np.zeros((n, n), bool)
+    for a, b in blocks or [(0, n)]:
+        mask[a:b, a:b] = True
+    infos = [np.linalg.inv(np.where(mask, C, 0.0)) for C in covs]
+    total = np.linalg.inv(sum(infos))
+    weights = [total @ I for I in infos]
+    cov = sum(W @ C @ W.T for W, C in zip(weights, covs))
+    return sum(W @ y for W, y in zip(weights, ys)), 0.5 * (cov + cov.T), weights
 
 
 def _chi2_quantile(p, dof):
@@ -305,7 +327,7 @@ def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE
     covs = [J @ p.param_cov @ J.T for (_, J), (_, p) in zip(red, measured)]
     views = [v for v, _ in measured]
     kept, rejected = consistent_views(ys, covs, None if rank is None else [rank[v] for v in views], significance)
-    y, C, W = combine([ys[i] for i in kept], [covs[i] for i in kept])
+    y, C, W = combine([ys[i] for i in kept], [covs[i] for i in kept], SIZE_APART if kind == "circle" else None)
     E = _jacobian(lambda z: expand(kind, z, nominal), y)
     params = expand(kind, y, nominal)
     cov = E @ C @ E.T

@@ -29,6 +29,20 @@ def test_combine_two_equal_views_shrinks_u_by_sqrt_two_and_unequal_ones_by_their
     assert y[0] == pytest.approx(0.6) and cov[0, 0] == pytest.approx(0.8)
 
 
+def test_combining_in_blocks_weights_each_block_alone_and_keeps_the_full_covariance():
+    # two views whose radius (index 1) correlates with the centre (index 0) in opposite senses
+    C1 = np.array([[1.0, 0.9], [0.9, 1.0]])
+    C2 = np.array([[1.0, -0.9], [-0.9, 1.0]])
+    ys = [np.array([0.0, 0.0]), np.array([1.0, 1.0])]
+    _, full, _ = combine(ys, [C1, C2])
+    y, cov, W = combine(ys, [C1, C2], blocks=[(0, 1), (1, 2)])
+    # the full GLS lets each view's centre correct the other's radius: 0.095, a fifth of the scalar 0.5
+    assert full[1, 1] == pytest.approx(0.095)
+    # apart, each block is the scalar combination of the marginals; the covariance is the weighted sum's
+    assert cov[1, 1] == pytest.approx(0.5) and y[1] == pytest.approx(0.5)
+    np.testing.assert_allclose(cov, sum(w @ c @ w.T for w, c in zip(W, [C1, C2])))
+
+
 def test_consistency_test_passes_chance_and_names_an_outlier_view():
     rng = np.random.default_rng(0)
     A = rng.standard_normal((3, 3))
