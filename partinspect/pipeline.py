@@ -53,8 +53,17 @@ class InspectionResult:
             f"{counts['features_measured']} of {counts['features']} features measured"
             + (f", {counts['not_inspected']} general-tolerance characteristics of edges out of view not inspected; "
                if counts.get("not_inspected") else "; ")
+            + self._views_note()
             + f"report: {self.out_dir / 'report.html'}"
         )
+
+    def _views_note(self):
+        views = self.report.get("views")
+        if not views:
+            return ""
+        out = [v["name"] for v in views if not v["used"]]
+        return (f"{len(views) - len(out)} of {len(views)} views fused"
+                + (f" ({', '.join(out)} left out: see the report)" if out else "") + "; ")
 
 
 @dataclass

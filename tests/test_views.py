@@ -123,3 +123,26 @@ def test_shared_calibration_at_the_top_of_the_views_folder(plate_views, repo, tm
     assert inputs.calib_file == views / "calibration.yaml"
     with pytest.raises(InputError, match="no calibration.yaml"):
         load_inputs(repo / "examples/plate/part.step", views / "view-2", tmp_path / "o", None, None, lambda m: None)
+
+
+def test_a_view_that_cannot_be_measured_is_left_out_with_its_reason(plate_views, repo, tmp_path):
+    import shutil
+
+    import cv2
+
+    from partinspect.multiview import run_views
+
+    out, _ = plate_views
+    views = tmp_path / "views"
+    shutil.copytree(out / "view-1", views / "view-1")
+    (views / "view-2").mkdir()
+    shutil.copy(out / "view-1/calibration.yaml", views / "view-2")
+    rng = np.random.default_rng(0)
+    for name in ("left.png", "right.png"):  # a pair without the part in it
+        cv2.imwrite(str(views / "view-2" / name), np.clip(40 + 2 * rng.standard_normal(SIZE[::-1]), 0, 255).astype(np.uint8))
+    result = run_views(repo / "examples/plate/part.step", views, tmp_path / "o")
+    entries = {v["name"]: v for v in result.report["views"]}
+    assert entries["view-1"]["used"] and not entries["view-2"]["used"]
+    assert "cannot align" in entries["view-2"]["reason"]
+    assert "1 of 2 views fused (view-2 left out" in result.summary_line()
+    assert all(c["views"] in ([], ["view-1"]) for c in result.report["characteristics"])
