@@ -25,11 +25,12 @@ __all__ = ["is_views_folder", "view_folders", "run_views", "measure_views", "eva
 
 
 def _is_pair(folder):
-    return (folder / "left.png").is_file() and (folder / "right.png").is_file()
+    # Either image makes it a view: one without its partner is then refused by name, not skipped.
+    return (folder / "left.png").exists() or (folder / "right.png").exists()
 
 
 def view_folders(path):
-    """The sub-folders of ``path`` holding a pair, in natural order (view-2 before view-10)."""
+    """The sub-folders of ``path`` holding a pair (or half of one), in natural order (view-2 before view-10)."""
     path = Path(path)
     subs = [p for p in path.iterdir() if p.is_dir() and _is_pair(p)] if path.is_dir() else []
     return sorted(subs, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
@@ -129,15 +130,15 @@ def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, unce
     """
     from partinspect import pipeline
 
-    folders = view_folders(views_dir)
-    views = []
-    for folder in folders:
-        def say(message, name=folder.name):
-            progress(f"{name}: {message}")
+    def teller(name):
+        return lambda message: progress(f"{name}: {message}")
 
-        inputs = pipeline.load_inputs(part, folder, out, tolerances, None, say, load_cad,
-                                      calibration_dir=views_dir)
-        view = View(folder.name, folder, inputs)
+    # Every view's inputs read first: a bad one fails before seconds of measuring the others.
+    views = [View(folder.name, folder, pipeline.load_inputs(part, folder, out, tolerances, None, teller(folder.name),
+                                                            load_cad, calibration_dir=views_dir))
+             for folder in view_folders(views_dir)]
+    for view in views:
+        inputs, say = view.inputs, teller(view.name)
         try:
             check, first = pipeline.check_calibration(inputs, say)
             m = pipeline.measure(inputs, say, check, first)
@@ -147,7 +148,6 @@ def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, unce
         except InputError as e:
             view.problem = e.problem
             say(f"left out: {e.problem}")
-        views.append(view)
     return views
 
 

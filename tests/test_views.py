@@ -146,3 +146,21 @@ def test_a_view_that_cannot_be_measured_is_left_out_with_its_reason(plate_views,
     assert "cannot align" in entries["view-2"]["reason"]
     assert "1 of 2 views fused (view-2 left out" in result.summary_line()
     assert all(c["views"] in ([], ["view-1"]) for c in result.report["characteristics"])
+
+
+def test_a_view_missing_an_image_or_a_pose_hint_is_refused_by_name(plate_views, repo, tmp_path):
+    import shutil
+
+    from partinspect.multiview import run_views
+
+    out, _ = plate_views
+    views = tmp_path / "views"
+    shutil.copytree(out / "view-1", views / "view-1")
+    shutil.copytree(out / "view-2", views / "view-2")
+    with pytest.raises(InputError, match="pose-hint"):
+        run_views(repo / "examples/plate/part.step", views, tmp_path / "o", pose_hint="0,0,0,0,0,300")
+    (views / "view-2" / "right.png").unlink()
+    with pytest.raises(InputError) as e:
+        run_views(repo / "examples/plate/part.step", views, tmp_path / "o")
+    assert "view-2" in str(e.value) and "right.png" in str(e.value)
+    assert not (tmp_path / "o" / "report.json").exists()
