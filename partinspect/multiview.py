@@ -163,7 +163,8 @@ def evaluate_views(views, progress):
     from partinspect.reports.assemble import assemble_report, input_entries
     from partinspect.results import characteristic_entry, fused_feature_entries, registration_entry, view_entry
     from partinspect.tolerances.decision import decide_all, verdict
-    from partinspect.tolerances.fusion import SIGNIFICANCE, evaluate_fused, fuse
+    from partinspect.tolerances.evaluate_fused import evaluate_fused
+    from partinspect.tolerances.fusion import SIGNIFICANCE, fuse
     from partinspect.vision.images import IMAGE_NAMES
 
     used = [v for v in views if v.measured is not None]

@@ -31,13 +31,11 @@ through its pose: ``Cov(y_a, y_b) = sum_v W_av K_v W_bv^T`` with ``W`` the
 weights and ``K_v`` the view's cross-covariance of the two
 (:meth:`~partinspect.cad.registration.Registration.cross_covariance`); a
 distance between features seen in different views carries both views'
-pose uncertainty in full (:func:`evaluate_fused`).
+pose uncertainty in full (:mod:`.evaluate_fused`).
 
 Not represented: the rig's calibration error, which all views share, is
 taken as independent between views (exact where the calibration states
-no uncertainty); a feature's form (straightness, circularity) is judged on
-one view's edge points (the view with the most), not on points merged
-across views.
+no uncertainty); edge points are not merged across views.
 
 References
 ----------
@@ -48,26 +46,15 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
-from types import SimpleNamespace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from partinspect.frames import orthonormal_frame
-from partinspect.tolerances.evaluate import (
-    COVERAGE_FACTOR,
-    N_MC,
-    evaluate_characteristic,
-    measured_angle,
-    measured_distance,
-    measured_result,
-    pick_feature,
-    propagate,
-    unmeasured_result,
-)
+from partinspect.tolerances.evaluate import pick_feature
 
-__all__ = ["SIGNIFICANCE", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine", "consistent_views", "fuse_feature",
-           "fuse", "fused_cross_covariance", "evaluate_fused"]
+__all__ = ["SIGNIFICANCE", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine", "consistent_views",
+           "fuse_feature", "fuse", "fused_cross_covariance"]
 
 SIGNIFICANCE = 0.99
 """Probability that a consistent view passes the test (per view and feature)."""
@@ -393,125 +380,3 @@ def fused_cross_covariance(a, b, registrations):
             if va == vb:
                 inner += Wa @ Ja @ registrations[va].cross_covariance(pa, pb) @ Jb.T @ Wb.T
     return a.expand_jacobian @ inner @ b.expand_jacobian.T
-
-
-def _rebuilt(kind, x, extent):
-    if kind == "line":
-        p, d = x[:3], x[3:6] / np.linalg.norm(x[3:6])
-        return SimpleNamespace(kind="line", start=p + extent[0] * d, end=p + extent[1] * d)
-    return SimpleNamespace(kind="circle", center=x[:3], normal=x[3:6], radius=x[6])
-
-
-def _extent(f):
-    if f.kind != "line" or f.start is None:
-        return None
-    return float((f.start - f.point) @ f.direction), float((f.end - f.point) @ f.direction)
-
-
-class _FusedView:
-    """What :func:`~partinspect.tolerances.evaluate.evaluate_characteristic` reads of a registration, for fused features."""
-
-    def __init__(self, fused, registrations, form_view):
-        self._fused = fused
-        self.part_to_camera = registrations[form_view].part_to_camera
-        self.datums = tuple(sorted({d for v in fused.views for d in registrations[v].datums}))
-        # Edge points (for a form value) from the view with the most; the size from the combination.
-        source = next(p for v, p, _, _ in fused.contributions if v == form_view)
-        rec = registrations[form_view].measured_feature(source.kind, source.index)
-        self._record = SimpleNamespace(
-            radius=fused.radius, radius_std=fused.radius_std, start=fused.start, end=fused.end,
-            points=getattr(rec, "points", None), point_covs=getattr(rec, "point_covs", None),
-            point_errors=getattr(rec, "point_errors", None))
-
-    def measured_feature(self, kind, index):
-        return self._record
-
-
-def _form_view(fused, registrations):
-    """The combined view whose record of the feature has the most edge points."""
-    def n_points(item):
-        v, p = item[0], item[1]
-        pts = getattr(registrations[v].measured_feature(p.kind, p.index), "points", None)
-        return (0 if pts is None else len(pts), -v)
-
-    return max(fused.contributions, key=n_points)[0]
-
-
-def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC):
-    """Evaluate characteristics on features combined over several views.
-
-    A characteristic whose features were all measured in one view only, the
-    same one, is evaluated on that view alone, exactly as a single pair is.
-    Otherwise on the combined features: sizes, positions and profiles on
-    the combination (its covariance, each view's pose included); a
-    distance or angle between two features from their joint covariance in
-    the part frame (:func:`fused_cross_covariance`: correlated through a
-    view that measured both, independent otherwise, so each view's pose
-    uncertainty is carried); a form value on the edge points of the view
-    with the most.
-
-    Parameters
-    ----------
-    characteristics : sequence of Characteristic
-    fused : dict
-        :func:`fuse`'s result.
-    registrations : sequence of Registration
-        Per view.
-    inventory : Inventory
-    k, seed, n_mc
-        As :func:`~partinspect.tolerances.evaluate.evaluate`.
-
-    Returns
-    -------
-    evaluations : list of Evaluation
-    views : list of tuple of int
-        Per characteristic, the views its value came from.
-    """
-    parts = [r.features_in_part_frame() for r in registrations]
-    evaluations, used = [], []
-    for c in characteristics:
-        fs = [fused.get(fid) for fid in c.features]
-        if any(f is None for f in fs):
-            missing = [fid for fid, f in zip(c.features, fs) if f is None]
-            evaluations.append(unmeasured_result(c, f"{', '.join(missing)} not measured in any view (not visible in both "
-                                              f"images or not matched)"))
-            used.append(())
-            continue
-        views = sorted({v for f in fs for v in f.views})
-        one = len(views) == 1
-        if c.type in ("straightness", "circularity"):
-            v = _form_view(fs[0], registrations)
-            one, views = True, [v]
-        if one:
-            v = views[0]
-            evaluations.append(evaluate_characteristic(c, parts[v], registrations[v], inventory, k=k, seed=seed,
-                                                       n_mc=n_mc))
-        elif c.type in ("distance", "angle"):
-            evaluations.append(_pair(c, fs, registrations, k))
-        else:
-            view = _FusedView(fs[0], registrations, _form_view(fs[0], registrations))
-            ev = evaluate_characteristic(c, fs, view, inventory, k=k, seed=seed, n_mc=n_mc)
-            if ev.measured is not None:
-                ev = replace(ev, method=f"{ev.method}; combined over {len(views)} views (generalised least squares)")
-            evaluations.append(ev)
-        used.append(tuple(views))
-    return evaluations, used
-
-
-def _pair(c, fs, registrations, k):
-    a, b = fs
-    K = fused_cross_covariance(a, b, registrations)
-    x = np.r_[a.params, b.params]
-    cov = np.block([[a.param_cov, K], [K.T, b.param_cov]])
-    na, ea, eb = len(a.params), _extent(a), _extent(b)
-    g = measured_distance if c.type == "distance" else measured_angle
-
-    def f(z):
-        return g(_rebuilt(a.kind, z[:na], ea), _rebuilt(b.kind, z[na:], eb))
-
-    try:
-        value, u = propagate(f, x, cov)
-    except ValueError as e:
-        return unmeasured_result(c, f"{c.type} of the measured features undefined: {e}")
-    return measured_result(c, value, u, k, "first order, part frame, features combined over views, each view's pose "
-                                   "covariance included")

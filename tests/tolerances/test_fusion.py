@@ -8,7 +8,8 @@ import pytest
 from partinspect.cad.registration import register
 from partinspect.poses import turned_pose
 from partinspect.simulate.measured import measure_features
-from partinspect.tolerances.fusion import _pair, combine, consistent_views, evaluate_fused, expand, fuse, reduce
+from partinspect.tolerances.evaluate_fused import evaluate_fused, pair_value
+from partinspect.tolerances.fusion import combine, consistent_views, expand, fuse, reduce
 from partinspect.tolerances.geometry import feature_distance
 from partinspect.tolerances.resolve import Characteristic
 
@@ -162,6 +163,6 @@ def test_a_distance_between_features_of_different_views_carries_both_poses(plate
     one = fuse([parts[0]], inv)
     (ev1,), _ = evaluate_fused([c], one, regs[:1], inv)
     assert ev1.method == "first order (pose-invariant)"
-    joint = _pair(c, [one["circle-2"], one["circle-4"]], regs[:1], 2.0)
+    joint = pair_value(c, [one["circle-2"], one["circle-4"]], regs[:1], 2.0)
     assert joint.standard_uncertainty == pytest.approx(ev1.standard_uncertainty, rel=0.03)
     assert joint.measured == pytest.approx(ev1.measured, abs=1e-9)
