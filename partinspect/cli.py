@@ -30,7 +30,9 @@ Inspect a machined part against its STEP model from one calibrated stereo
 image pair. Writes report.html, report.json and junit.xml into OUT.
 
 IMAGES_DIR holds left.png, right.png and calibration.yaml (or OpenCV
-stereo_calib's intrinsics.yml + extrinsics.yml). Tolerances come from
+stereo_calib's intrinsics.yml + extrinsics.yml); or several views, one
+sub-folder per pair (view-1/, view-2/, ...) with a shared calibration.yaml
+or one each: each view is measured, and the features fused. Tolerances come from
 --tolerances, else PART.tol.yaml beside the STEP file (part.tol.yaml for
 part.step); the STEP file's semantic PMI (AP242) for what that leaves out;
 ISO 2768-mK general tolerances for the rest.
@@ -164,6 +166,10 @@ def _render_parser():
                    help="direction towards the light in the left camera frame (default near the cameras: "
                    "0.351,-0.084,-0.933); moves shading and highlights")
     p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
+    p.add_argument("--views", metavar="RX,RY,RZ;...", default=None,
+                   help="several views, one pair each in OUT_DIR/view-1/, view-2/, ...: the part turned in its own "
+                   "frame by RX,RY,RZ degrees about its bounding-box centre (0,0,120: a turntable's 120 degrees about "
+                   "its Z), on top of --pose; e.g. \"0,0,0;0,0,120;0,0,240\"")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -460,6 +466,7 @@ def _silence_stdout():
 
 
 def _run_inspect(args):
+    from partinspect.multiview import is_views_folder, run_views
     from partinspect.pipeline import run_inspection
     from partinspect.timings import Timings
 
@@ -467,7 +474,7 @@ def _run_inspect(args):
         raise InputError(None, "-o: the output folder name is empty")
     if args.draws < 10:
         raise InputError(None, f"--draws {args.draws}: a Monte Carlo needs at least 10 draws")
-    result = run_inspection(
+    result = (run_views if is_views_folder(args.images) else run_inspection)(
         args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet),
         uncertainty=args.uncertainty, draws=args.draws, pose_hint=args.pose_hint, timings=(timings := Timings(_START)),
     )
@@ -555,12 +562,19 @@ def _run_render(args):
     _check_realism(args)
     size = _parse_size(args.size)
     drift = _parse_drift(args.drift)
-    from partinspect.simulate.folder import render_to_folder
+    from partinspect.simulate.folder import render_to_folder, render_views_to_folder
 
     progress = _progress(args.quiet)
-    render_to_folder(
+    if args.views is not None:
+        from partinspect.poses import parse_views
+
+        render, views = render_views_to_folder, {"views": parse_views(args.views)}
+    else:
+        render, views = render_to_folder, {}
+    render(
         args.part,
         args.out,
+        **views,
         pose=args.pose,
         noise=args.noise,
         seed=args.seed,
@@ -576,7 +590,10 @@ def _run_render(args):
         light=args.light,
         progress=progress,
     )
-    if not args.quiet:
+    if not args.quiet and views:
+        print(f"rendered {len(views['views'])} views, each a pair with its truth: "
+              f"{os.path.join(args.out, 'view-1')} ... view-{len(views['views'])}")
+    elif not args.quiet:
         print(f"rendered {os.path.join(args.out, 'images')} and {os.path.join(args.out, 'truth.json')}")
     return EXIT_PASS
 

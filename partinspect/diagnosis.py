@@ -148,7 +148,7 @@ def edges_found(inv):
     return "its edges: " + ", ".join(parts) if parts else "it has no edges"
 
 
-def split_unseen(characteristics, seen, registration):
+def split_unseen(characteristics, seen, registration, measured=None):
     """The characteristics to judge, and those of edges out of view not inspected.
 
     General tolerances cover the whole part, but a stereo pair sees one
@@ -157,13 +157,18 @@ def split_unseen(characteristics, seen, registration):
     reason, rather than judged. A characteristic the spec names explicitly
     is always judged (inconclusive when unseen).
 
+    ``measured``: the CAD ids measured, when not the registration's
+    (several views: measured in any); ``seen`` then holds, per feature,
+    whether any view had it in view.
+
     Returns
     -------
     judged : list of Characteristic
     not_inspected : list of dict
         report.json's "not_inspected" entries.
     """
-    measured = set(registration.assignment["circle"].values()) | set(registration.assignment["line"].values())
+    if measured is None:
+        measured = set(registration.assignment["circle"].values()) | set(registration.assignment["line"].values())
     judged, not_inspected = [], []
     for c in characteristics:
         hidden = [fid for fid in c.features if not seen[fid].in_view]

@@ -54,8 +54,17 @@ class InspectionResult:
             f"{counts['features_measured']} of {counts['features']} features measured"
             + (f", {counts['not_inspected']} general-tolerance characteristics of edges out of view not inspected; "
                if counts.get("not_inspected") else "; ")
+            + self._views_note()
             + f"report: {self.out_dir / 'report.html'}"
         )
+
+    def _views_note(self):
+        views = self.report.get("views")
+        if not views:
+            return ""
+        out = [v["name"] for v in views if not v["used"]]
+        return (f"{len(views) - len(out)} of {len(views)} views fused"
+                + (f" ({', '.join(out)} left out: see the report)" if out else "") + "; ")
 
 
 @dataclass
@@ -99,7 +108,8 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     part : str or Path
         STEP file of the part.
     images : str or Path
-        Folder with left.png, right.png and the calibration.
+        Folder with left.png, right.png and the calibration (a views
+        folder, one sub-folder per pair, is :func:`partinspect.multiview.run_views`'s).
     out : str or Path
         Output folder; created if needed. report.html, report.json and
         junit.xml are each written atomically.
@@ -164,8 +174,12 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     return InspectionResult(report["verdict"], report, out_dir)
 
 
-def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=None, timings=None):
-    """Check and read every input; cheap checks first, so a typo fails before seconds of CAD loading."""
+def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=None, calibration_dir=None, timings=None):
+    """Check and read every input; cheap checks first, so a typo fails before seconds of CAD loading.
+
+    ``calibration_dir``: where the calibration is read when ``images``
+    holds none (a views folder's shared calibration.yaml).
+    """
     from partinspect.diagnosis import edges_found
     from partinspect.tolerances.loading import find_tolerances, load_characteristics
     from partinspect.vision.calibration import read_calibration
@@ -180,8 +194,11 @@ def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=Non
 
     timings = Timings() if timings is None else timings
     progress("reading calibration and images")
+    calib_dir = images
+    if calibration_dir is not None and not any((images / n).is_file() for n in CALIBRATION_NAMES):
+        calib_dir = Path(calibration_dir)
     with timings.stage("reading calibration and images"):
-        calib = read_calibration(images)
+        calib = read_calibration(calib_dir)
         left, right, bit_depth = read_pair(images, calib)
 
     progress(f"loading {part.name}")
@@ -195,7 +212,7 @@ def load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad=Non
         progress(f"reading tolerances {tol_path.name}")
     with timings.stage("tolerances"):
         resolved, characteristics = load_characteristics(inv, tol_path, part=part, pmi=model.pmi)
-    calib_file = next((images / n for n in CALIBRATION_NAMES if (images / n).is_file()), None)
+    calib_file = next((calib_dir / n for n in CALIBRATION_NAMES if (calib_dir / n).is_file()), None)
     return Inputs(part, images, tol_path, calib, left, right, bit_depth, model, inv, resolved, characteristics, hint,
                   calib_file, timings)
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from partinspect.errors import InputError
 
-__all__ = ["PoseError", "VIEW_ELEVATION", "VIEW_AZIMUTH", "VIEW_ROLL", "bounds_of", "view_rotation", "default_pose", "parse_pose", "euler_pose", "fixation_point"]
+__all__ = ["PoseError", "VIEW_ELEVATION", "VIEW_AZIMUTH", "VIEW_ROLL", "bounds_of", "view_rotation", "default_pose", "parse_pose", "euler_pose", "fixation_point", "parse_views", "turned_pose"]
 
 class PoseError(InputError, ValueError):
     """A ``--pose`` text that cannot be read.
@@ -271,3 +271,63 @@ def parse_pose(text, mesh_or_bounds=None, rig=None):
     except (TypeError, ValueError):
         raise InputError(path, "part_to_camera must be a 4x4 array of numbers") from None
     return _check_matrix(path, P)
+
+
+def parse_views(text):
+    """Read ``--views``: one ``RX,RY,RZ`` turn of the part per view, separated by ``;``.
+
+    Parameters
+    ----------
+    text : str
+        E.g. ``"0,0,0;0,0,120;0,0,240"`` (degrees; a turntable at 0, 120
+        and 240 degrees about the part's Z).
+
+    Returns
+    -------
+    list of ndarray, shape (3,)
+        Degrees, one per view, in the order given.
+
+    Raises
+    ------
+    PoseError
+        An empty list, or a view that is not three numbers.
+    """
+    views = []
+    for k, item in enumerate(str(text).split(";"), 1):
+        if not item.strip():
+            continue
+        if not _NUMBERS.match(item) or len(item.split(",")) != 3:
+            raise PoseError(f"--views: view {k} must be RX,RY,RZ (degrees), got {item.strip()!r}")
+        views.append(np.array([float(v) for v in item.split(",")]))
+    if not views:
+        raise PoseError(f"--views: expected RX,RY,RZ;RX,RY,RZ;... (degrees), got {text!r}")
+    return views
+
+
+def turned_pose(part_to_camera, angles_deg, mesh_or_bounds=None):
+    """A pose with the part first turned in its own frame, as on a turntable or re-placed on the fixture.
+
+    Parameters
+    ----------
+    part_to_camera : ndarray, shape (4, 4)
+        The pose without the turn.
+    angles_deg : sequence of 3 float
+        Extrinsic rotations, degrees, about the part frame's fixed X, then
+        Y, then Z axes through the bounding-box centre (``0,0,120``: a
+        turntable's 120 degrees about the part's Z).
+    mesh_or_bounds : optional
+        See :func:`bounds_of`; without it the turn is about the part
+        frame's origin.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        ``part_to_camera @ Turn``: a part point ``X`` is turned to
+        ``c + R (X - c)`` and then seen as the unturned part was.
+    """
+    bounds = np.zeros((2, 3)) if mesh_or_bounds is None else bounds_of(mesh_or_bounds)
+    c = 0.5 * (bounds[0] + bounds[1])
+    turn = np.eye(4)
+    turn[:3, :3] = _rotation_xyz(*np.deg2rad(np.asarray(angles_deg, dtype=float)))
+    turn[:3, 3] = c - turn[:3, :3] @ c
+    return np.asarray(part_to_camera, float) @ turn

@@ -13,7 +13,7 @@ import numpy as np
 from partinspect.reports.assemble import mat, vec
 
 __all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "feature_entries", "curve_3d",
-           "figure_data"]
+           "figure_data", "fused_feature_entries", "view_entry"]
 
 
 def nominal_geometry(feature):
@@ -95,6 +95,90 @@ def feature_entries(inv, stereo, registration, seen, decisions, reasons):
                                    "line with it merge into one there), the stretch its CAD edge's image covers")
         out.append(entry)
     return out
+
+
+def _worst_decisions(decisions):
+    worst = {}
+    rank = {"pass": 0, "inconclusive": 1, "fail": 2}
+    for d in decisions:
+        for fid in d.evaluation.characteristic.features:
+            if rank[d.decision] >= rank.get(worst.get(fid), -1):
+                worst[fid] = d.decision
+    return worst
+
+
+def fused_feature_entries(inv, fused, measured, names, seen, decisions, reasons):
+    """report.json's "features" of a multi-view run: each measured feature combined over its views.
+
+    Parameters
+    ----------
+    inv : Inventory
+    fused : dict
+        CAD id -> :class:`~partinspect.tolerances.fusion.FusedFeature`.
+    measured : list
+        Per view, its measurement (``stereo``, ``registration``).
+    names : list of str
+        The views' names, same order.
+    seen : dict
+        CAD id -> visibility over the views (``seen``: the best view's
+        fractions, left and right).
+    decisions : list of Decision
+    reasons : dict
+        CAD id -> why no view measured it.
+    """
+    worst = _worst_decisions(decisions)
+    out = []
+    for f in inv.features:
+        entry = {"id": f.id, "kind": f.kind, "nominal": nominal_geometry(f), "visibility": {
+            "left": round(seen[f.id].seen[0], 3), "right": round(seen[f.id].seen[1], 3)}}
+        p = fused.get(f.id)
+        if p is None:
+            entry.update(measured=None, status="not measured", reason=reasons[f.id])
+            out.append(entry)
+            continue
+        if p.kind == "circle":
+            m = {"center": vec(p.center), "normal": vec(p.normal), "radius": round(p.radius, 9),
+                 "covariance": mat(p.covariance), "radius_std": float(f"{p.radius_std:.6g}")}
+        else:
+            m = {"point": vec(p.point), "direction": vec(p.direction),
+                 **({"start": vec(p.start), "end": vec(p.end)} if p.start is not None else {}),
+                 "covariance": mat(p.covariance)}
+        n_points, datum, kinds = 0, False, set()
+        for v, part, _, _ in p.contributions:
+            stereo = measured[v].stereo
+            f3 = [g for g in stereo.features if (g.kind == "line") == (part.kind == "line")][part.index]
+            n_points += len(f3.correspondences)
+            datum |= bool(part.datum)
+            kinds.add(f3.kind)
+        m.update(n_points=int(n_points), datum=datum, measured_as="/".join(sorted(kinds)),
+                 views=[names[v] for v in p.views])
+        if p.rejected:
+            m["left_out"] = [{"view": names[r["view"]], "reason": r["reason"]} for r in p.rejected]
+        entry.update(measured=m, status=worst.get(f.id, "measured"))
+        out.append(entry)
+    return out
+
+
+def view_entry(name, folder, registration, fused, index, problem=None):
+    """report.json's entry of one view: its folder, pose and fit, the features it gave, or why it was left out."""
+    entry = {"name": name, "folder": str(folder)}
+    if registration is None:
+        entry.update(used=False, reason=problem)
+        return entry
+    ids = sorted(p.cad_id for p in registration.features_in_part_frame() if p.cad_id is not None)
+    entry.update(
+        used=True,
+        part_to_camera=mat(registration.part_to_camera, 12),
+        rotation_std_deg=vec(np.degrees(registration.pose_std[:3]), 9),
+        translation_std=vec(registration.pose_std[3:], 9),
+        rms=round(float(registration.rms), 9),
+        weighted_rms=round(float(registration.weighted_rms), 6),
+        features_measured=len(set(ids)),
+        features=sorted(set(ids)),
+        features_combined=sorted(fid for fid, f in fused.items() if index in f.views),
+        features_left_out=sorted(fid for fid, f in fused.items() if any(r["view"] == index for r in f.rejected)),
+    )
+    return entry
 
 
 def curve_3d(f, n=96):

@@ -19,8 +19,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "partinspect"
 # itself); vision knows nothing of the CAD model or the tolerances; the
 # reports only format what they are given; the production layer (batches,
 # results database, SPC) sits beside the pipeline, above it only the command line.
-UPPER = ["partinspect.cli", "partinspect.pipeline", "partinspect.diagnosis", "partinspect.results",
-         "partinspect.production"]
+UPPER = ["partinspect.cli", "partinspect.pipeline", "partinspect.multiview", "partinspect.diagnosis",
+         "partinspect.results", "partinspect.production"]
 FORBIDDEN = {
     "partinspect.vision": ["partinspect.cad", "partinspect.tolerances", "partinspect.planning", "partinspect.reports",
                            "partinspect.simulate", "partinspect.adaptive", *UPPER],
@@ -34,9 +34,14 @@ FORBIDDEN = {
     "partinspect.adaptive": ["partinspect.simulate", *UPPER],
     "partinspect.frames": ["partinspect."],
     "partinspect.poses": ["partinspect.simulate", "partinspect.vision", "partinspect.cad", *UPPER],
-    "partinspect.diagnosis": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline", "partinspect.production"],
-    "partinspect.results": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline", "partinspect.production"],
+    "partinspect.diagnosis": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline", "partinspect.multiview",
+                              "partinspect.production"],
+    "partinspect.results": ["partinspect.simulate", "partinspect.cli", "partinspect.pipeline", "partinspect.multiview",
+                            "partinspect.production"],
     "partinspect.pipeline": ["partinspect.simulate", "partinspect.cli", "partinspect.planning", "partinspect.production"],
+    # Several views: orchestration beside the pipeline, whose stages it calls per view.
+    "partinspect.multiview": ["partinspect.simulate", "partinspect.cli", "partinspect.planning",
+                              "partinspect.production"],
     # Batches orchestrate like the pipeline (which they call once per part);
     # the SPC maths is plain functions on arrays: no I/O, no other layer.
     "partinspect.production": ["partinspect.simulate", "partinspect.cli", "partinspect.planning"],

@@ -2,7 +2,9 @@
 
 Writes ``OUT_DIR/images/left.png``, ``OUT_DIR/images/right.png``,
 ``OUT_DIR/images/calibration.yaml`` and ``OUT_DIR/truth.json``, each
-atomically; the same arguments give the same bytes.
+atomically; the same arguments give the same bytes. With several views
+(``--views``), ``OUT_DIR/view-1/``, ``OUT_DIR/view-2/``, ... each hold a
+pair, its calibration and its truth.
 """
 
 import os
@@ -15,7 +17,7 @@ from partinspect.simulate.render import SAMPLES
 from partinspect.simulate.rig import FULL_SIZE, PIXEL_PITCH
 from partinspect.cad.raycast import DEFAULT_SHADING, RENDER_ANGULAR_TOLERANCE, RENDER_TOLERANCE
 
-__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder", "render_noiseless", "stated_calibration", "shading_with_light"]
+__all__ = ["BLUR_SIGMA", "SAMPLES", "render_to_folder", "render_views_to_folder", "render_noiseless", "stated_calibration", "shading_with_light"]
 
 BLUR_SIGMA = 0.6
 """Optics point-spread function, pixels."""
@@ -70,6 +72,7 @@ def render_to_folder(
     photon=None,
     light=None,
     progress=None,
+    images_dir="images",
 ):
     """Render a stereo pair of a STEP part and write it with its ground truth.
 
@@ -133,6 +136,9 @@ def render_to_folder(
         light near the cameras (:class:`partinspect.cad.raycast.Shading`).
     progress : callable or None
         ``progress(message)`` at each stage.
+    images_dir : str
+        Sub-folder of ``out_dir`` for the images and the calibration; ``""``
+        writes them beside ``truth.json`` (a view of a views folder).
 
     Returns
     -------
@@ -170,8 +176,58 @@ def render_to_folder(
         calib_error=calib_error, drift=drift, realism=realism, shading=shading, noise=noise, seed=seed, say=say,
     )
     say(f"writing {out_dir}")
-    _write(out_dir, left, right, stated, truth)
+    _write(out_dir, left, right, stated, truth, images_dir)
     return truth
+
+
+def render_views_to_folder(step_path, out_dir, views, *, pose=None, seed=0, image_size=(2448, 2048),
+                           distortion=False, progress=None, **options):
+    """Render the part in several views, one image folder each, with the same rig.
+
+    Parameters
+    ----------
+    step_path : str or Path
+    out_dir : str or Path
+        Receives ``view-1/``, ``view-2/``, ...: each holds ``left.png``,
+        ``right.png``, ``calibration.yaml`` and ``truth.json``, and alone is
+        an images folder ``inspect`` reads.
+    views : sequence of (3,) or str
+        Each view's turn of the part in its own frame (degrees, see
+        :func:`partinspect.poses.turned_pose`), or ``--views`` text
+        (:func:`partinspect.poses.parse_views`).
+    pose : None, str, Path or ndarray (4, 4)
+        The pose the turns are applied to, as :func:`render_to_folder`
+        takes it (None: the default pose).
+    seed : int
+        View ``k`` (from 1) is rendered with noise seed ``seed + 1000 (k - 1)``:
+        each pair has its own noise, as separate exposures do.
+    image_size, distortion, progress
+        As :func:`render_to_folder`.
+    **options
+        Any other :func:`render_to_folder` option (``noise``,
+        ``deviations``, ``calib_error``, ...), the same for every view.
+
+    Returns
+    -------
+    list of dict
+        Each view's truth, as written.
+    """
+    from partinspect.cad.step import load_step
+    from partinspect.poses import bounds_of, parse_views, turned_pose
+    from partinspect.simulate.rig import default_rig
+
+    say = progress or (lambda message: None)
+    turns = parse_views(views) if isinstance(views, str) else [np.asarray(v, float) for v in views]
+    bounds = bounds_of(load_step(Path(step_path)))
+    base = _resolve_pose(pose, bounds, default_rig(image_size, distortion=distortion))
+    truths = []
+    for k, turn in enumerate(turns, 1):
+        say(f"view {k} of {len(turns)}: the part turned {','.join(f'{a:g}' for a in turn)} degrees")
+        truth = render_to_folder(step_path, Path(out_dir) / f"view-{k}", pose=turned_pose(base, turn, bounds),
+                                 seed=seed + 1000 * (k - 1), image_size=image_size, distortion=distortion,
+                                 progress=progress, images_dir="", **options)
+        truths.append(truth)
+    return truths
 
 
 def render_noiseless(
@@ -438,14 +494,14 @@ def _stated_calibration(rig, seed):
     return stated, note
 
 
-def _write(out_dir, left, right, rig, truth):
+def _write(out_dir, left, right, rig, truth, images_dir="images"):
     """The images, the calibration and truth.json, each written atomically."""
     from partinspect.atomic import prepare_output_dir, write_bytes_atomic, write_text_atomic
     from partinspect.simulate.truth import to_json
     from partinspect.vision.calibration import write_calibration
 
     out = prepare_output_dir(out_dir)
-    images = prepare_output_dir(out / "images")
+    images = prepare_output_dir(out / images_dir) if images_dir else out
     write_bytes_atomic(images / "left.png", _png(left))
     write_bytes_atomic(images / "right.png", _png(right))
     write_calibration(images / "calibration.yaml", rig)

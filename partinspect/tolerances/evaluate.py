@@ -65,6 +65,9 @@ __all__ = [
     "circle_profile",
     "measured_distance",
     "measured_angle",
+    "pick_feature",
+    "measured_result",
+    "unmeasured_result",
 ]
 
 COVERAGE_FACTOR = 2.0
@@ -153,11 +156,13 @@ def _seen_from_its_face(inventory, feature_id, part_to_camera):
     return not planes or any(float((camera - f.center) @ p.normal) > 0 for p in planes)
 
 
-def _unmeasured(c, reason):
+def unmeasured_result(c, reason):
+    """The :class:`Evaluation` of a characteristic that could not be measured, with why."""
     return Evaluation(c, None, None, None, None, method="", reason=reason)
 
 
-def _result(c, value, u, k, method, **details):
+def measured_result(c, value, u, k, method, **details):
+    """The :class:`Evaluation` of a measured value with standard uncertainty ``u`` and ``U = k u``."""
     return Evaluation(c, float(value), float(value - c.nominal), float(u), float(k * u), k, method, None, details)
 
 
@@ -432,7 +437,7 @@ def _pair_function(g, info, sizes):
 # ---------------------------------------------------------------------------
 
 
-def _pick(part_features, cad_id):
+def pick_feature(part_features, cad_id):
     """The measured feature taken for a CAD id: the longest line stretch, or the circle."""
     cands = [p for p in part_features if p.cad_id == cad_id]
     if not cands:
@@ -525,7 +530,7 @@ def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_S
     """
     if c.type not in ("straightness", "circularity"):
         return None
-    p = _pick(parts, c.features[0])
+    p = pick_feature(parts, c.features[0])
     if p is None:
         return None
     rec = registration.measured_feature(p.kind, p.index)
@@ -547,42 +552,42 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
     :func:`partinspect.tolerances.form.straightness`), for the planner's
     noise-only prediction; by default the whole uncertainty.
     """
-    picked = [_pick(parts, fid) for fid in c.features]
+    picked = [pick_feature(parts, fid) for fid in c.features]
     missing = [fid for fid, p in zip(c.features, picked) if p is None]
     if missing:
-        return _unmeasured(c, f"{', '.join(missing)} not measured (not visible in both images or not matched)")
+        return unmeasured_result(c, f"{', '.join(missing)} not measured (not visible in both images or not matched)")
     rng = _rng(seed, c.id)
     rec = [registration.measured_feature(p.kind, p.index) for p in picked]
     pf = picked[0]
     t = c.type
     if t in ("diameter", "radius"):
         if pf.kind != "circle":
-            return _unmeasured(c, f"{c.features[0]} is not measured as a circle")
+            return unmeasured_result(c, f"{c.features[0]} is not measured as a circle")
         f = 2.0 if t == "diameter" else 1.0
         if c.edge_break is None:
-            return _result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k, "first order (pose-invariant)")
+            return measured_result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k, "first order (pose-invariant)")
         convex = _cylinder_side(inventory, c.features[0])
         if not _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
             # A rim seen through its hole (or past its boss) shows the wall's
             # own silhouette, where the break has not begun.
-            return _result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k,
+            return measured_result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k,
                            "first order (pose-invariant); the wall's silhouette, seen through the hole past its "
                            "broken rim")
         r, u, corr, u_b = size_on_broken_rim(float(rec[0].radius), float(rec[0].radius_std), convex, *c.edge_break)
         wall = {False: "the hole's wall", True: "the boss's wall", None: "the wall (material side unknown)"}[convex]
-        return _result(c, f * r, f * u, k, "first order (pose-invariant), edge break Type B",
+        return measured_result(c, f * r, f * u, k, "first order (pose-invariant), edge break Type B",
                        edge_break={"min": c.edge_break[0], "max": c.edge_break[1], "correction": f * corr,
                                    "standard_uncertainty": f * u_b, "rim": f * float(rec[0].radius),
                                    "measured_as": f"{wall}, from its broken rim"})
     if t in ("straightness", "circularity"):
         points = _form_points(rec[0])
         if points is None:
-            return _unmeasured(c, f"no edge points with covariances for the {t} of {c.features[0]}")
+            return unmeasured_result(c, f"no edge points with covariances for the {t} of {c.features[0]}")
         try:
             fr = (straightness if t == "straightness" else circularity)(
                 *points, rng, **_simulation(rec[0], one_scene))
         except FormSimulationError as e:
-            return _unmeasured(c, f"the {t} of {c.features[0]} has no uncertainty: its noise-only zone cannot be "
+            return unmeasured_result(c, f"the {t} of {c.features[0]} has no uncertainty: its noise-only zone cannot be "
                                   f"simulated ({e})")
         details = dict(raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
         u = fr.u
@@ -592,7 +597,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
             u_b = band_rms(*c.edge_break)
             u = math.hypot(u, u_b)
             details["edge_break"] = {"min": c.edge_break[0], "max": c.edge_break[1], "standard_uncertainty": u_b}
-        return _result(c, fr.value, u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
+        return measured_result(c, fr.value, u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        **details)
     if t in ("distance", "angle"):
         x, cov, info, sizes = _stacked([(p.kind, r, registration.measured_params(p.kind, p.index))
@@ -601,19 +606,19 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         try:
             value, u = propagate(_pair_function(g, info, sizes), x, cov)
         except ValueError as e:
-            return _unmeasured(c, f"{t} of the measured features undefined: {e}")
-        return _result(c, value, u, k, "first order (pose-invariant)")
+            return unmeasured_result(c, f"{t} of the measured features undefined: {e}")
+        return measured_result(c, value, u, k, "first order (pose-invariant)")
     nominal = inventory[c.features[0]]
     if t == "position":
         if pf.kind != "circle":
-            return _unmeasured(c, f"{c.features[0]} is not measured as a circle")
+            return unmeasured_result(c, f"{c.features[0]} is not measured as a circle")
         value, u = true_position(pf.center, pf.covariance, nominal.center, nominal.normal, rng, n_mc)
-        return _result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", datums=list(registration.datums))
+        return measured_result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", datums=list(registration.datums))
     if t == "profile":
         form_fn = straightness if pf.kind == "line" else (circularity if nominal.kind == "circle" else None)
         if pf.kind == "line":
             if pf.start is None:
-                return _unmeasured(c, f"{c.features[0]}: the measured line has no extent")
+                return unmeasured_result(c, f"{c.features[0]}: the measured line has no extent")
             s0, s1 = (float((pf.start - pf.point) @ pf.direction), float((pf.end - pf.point) @ pf.direction))
             value, u = line_profile(pf.point, pf.direction, pf.param_cov, s0, s1, nominal.start, nominal.end, rng, n_mc)
         else:
@@ -624,10 +629,10 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
             try:
                 fr = form_fn(*points, rng, **_simulation(rec[0], one_scene))
             except FormSimulationError as e:
-                return _unmeasured(c, f"the profile of {c.features[0]} has no uncertainty: its form's noise-only "
+                return unmeasured_result(c, f"the profile of {c.features[0]} has no uncertainty: its form's noise-only "
                                       f"zone cannot be simulated ({e})")
             value, u = value + fr.value, math.hypot(u, fr.u)
             details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
                            n_excluded=fr.n_excluded)
-        return _result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", **details)
-    return _unmeasured(c, f"unknown characteristic type {t!r}")
+        return measured_result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", **details)
+    return unmeasured_result(c, f"unknown characteristic type {t!r}")

@@ -1,0 +1,234 @@
+"""One inspection from several views of the part: each view measured as a pair, the features fused.
+
+A views folder holds one sub-folder per image pair (``view-1/``,
+``view-2/``, ...), each with ``left.png`` and ``right.png``, and either its
+own calibration or the folder's shared ``calibration.yaml``. Each view goes
+through the single-pair stages of :mod:`partinspect.pipeline` (the CAD
+model loaded once): calibration check, adaptive measurement, registration
+with its pose covariance. A view whose chain cannot be made (its
+calibration does not fit its images, the model cannot be aligned) is left
+out and named. The views' features are then fused
+(:mod:`partinspect.tolerances.fusion`) and the characteristics evaluated on
+them; this module only orchestrates.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from partinspect.errors import InputError
+from partinspect.progress import quiet
+
+__all__ = ["is_views_folder", "view_folders", "run_views", "measure_views", "evaluate_views", "View"]
+
+
+def _is_pair(folder):
+    # Either image makes it a view: one without its partner is then refused by name, not skipped.
+    return (folder / "left.png").exists() or (folder / "right.png").exists()
+
+
+def view_folders(path):
+    """The sub-folders of ``path`` holding a pair (or half of one), in natural order (view-2 before view-10)."""
+    path = Path(path)
+    subs = [p for p in path.iterdir() if p.is_dir() and _is_pair(p)] if path.is_dir() else []
+    return sorted(subs, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+
+
+def is_views_folder(path):
+    """True for a folder without a pair of its own whose sub-folders hold pairs."""
+    path = Path(path)
+    return path.is_dir() and not (path / "left.png").exists() and bool(view_folders(path))
+
+
+@dataclass
+class View:
+    """One view of a multi-view run: its folder, inputs, measurement, or why it was left out."""
+
+    name: str
+    folder: Path
+    inputs: object
+    measured: object = None
+    problem: str | None = None
+
+
+class _SeenInViews:
+    """A feature's visibility over views: in view if any view has it in view."""
+
+    def __init__(self, records, names):
+        self.records, self.names = records, names
+
+    @property
+    def in_view(self):
+        return any(r.in_view for r in self.records)
+
+    @property
+    def seen(self):
+        return tuple(max(r.seen[i] for r in self.records) for i in (0, 1))
+
+    def reason(self):
+        return "; ".join(f"{n}: {r.reason()}" for n, r in zip(self.names, self.records) if not r.in_view)
+
+
+def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
+              draws=200, pose_hint=None, load_cad=None):
+    """Inspect a part from a views folder; parameters as :func:`partinspect.pipeline.run_inspection`.
+
+    Returns
+    -------
+    InspectionResult
+        report.json as for one pair, the features and characteristics
+        fused over the views, plus ``views`` (per view: folder, pose,
+        registration RMS, features measured, or why it was left out) and
+        ``fusion`` (the consistency test and the views it left out per
+        feature); each characteristic names its ``views``.
+
+    Raises
+    ------
+    InputError
+        Bad input in any view (nothing is written), a pose hint (one pose
+        does not fit several views), or no view that could be measured.
+    """
+    from partinspect import pipeline
+    from partinspect.atomic import prepare_output_dir
+    from partinspect.reports.writer import write_reports
+    from partinspect.results import figure_data
+
+    views_dir = Path(views_dir)
+    if pose_hint is not None:
+        raise InputError(views_dir, "--pose-hint fits one pair; the views of a views folder are each aligned by search")
+    cad = {}
+
+    def cached(path):
+        if not cad:
+            cad["model"] = (load_cad or pipeline.load_cad_model)(path)
+        return cad["model"]
+
+    views = measure_views(part, views_dir, out, tolerances=tolerances, progress=progress,
+                          uncertainty=uncertainty, draws=draws, load_cad=cached)
+    used = [v for v in views if v.measured is not None]
+    if not used:
+        raise InputError(views_dir, "no view could be measured: " + "; ".join(f"{v.name}: {v.problem}" for v in views))
+    report, features = evaluate_views(views, progress)
+    progress("writing reports")
+    out_dir = prepare_output_dir(out)
+    first = used[0]
+    write_reports(out_dir, report, figure_data(first.inputs.left, first.inputs.right, first.inputs.calib,
+                                               first.inputs.inv, first.measured.stereo,
+                                               first.measured.registration, features))
+    return pipeline.InspectionResult(report["verdict"], report, out_dir)
+
+
+def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, uncertainty="first-order", draws=200,
+                  load_cad=None):
+    """Each view of a views folder read and measured with the single-pair stages; a list of :class:`View`.
+
+    A view whose chain cannot be made (its calibration does not fit its
+    images, the CAD model cannot be aligned) keeps its ``problem`` and no
+    measurement; bad input in any view raises.
+    """
+    from partinspect import pipeline
+
+    def teller(name):
+        return lambda message: progress(f"{name}: {message}")
+
+    # Every view's inputs read first: a bad one fails before seconds of measuring the others.
+    views = [View(folder.name, folder, pipeline.load_inputs(part, folder, out, tolerances, None, teller(folder.name),
+                                                            load_cad, calibration_dir=views_dir))
+             for folder in view_folders(views_dir)]
+    for view in views:
+        inputs, say = view.inputs, teller(view.name)
+        try:
+            check, first = pipeline.check_calibration(inputs, say)
+            m = pipeline.measure(inputs, say, check, first)
+            if uncertainty == "montecarlo":
+                m = pipeline.with_monte_carlo(inputs, m, draws, say)
+            view.measured = m
+        except InputError as e:
+            view.problem = e.problem
+            say(f"left out: {e.problem}")
+    return views
+
+
+def evaluate_views(views, progress):
+    """Fuse the measured views' features, evaluate and decide every characteristic, assemble report.json.
+
+    Returns
+    -------
+    report : dict
+    features : list of dict
+    """
+    from partinspect.diagnosis import split_unseen, unmeasured_reasons
+    from partinspect.reports.assemble import assemble_report, input_entries
+    from partinspect.results import characteristic_entry, fused_feature_entries, registration_entry, view_entry
+    from partinspect.tolerances.decision import decide_all, verdict
+    from partinspect.tolerances.evaluate_fused import evaluate_fused
+    from partinspect.tolerances.fusion import SIGNIFICANCE, fuse
+    from partinspect.vision.images import IMAGE_NAMES
+
+    used = [v for v in views if v.measured is not None]
+    names = [v.name for v in used]
+    inputs = used[0].inputs
+    inv = inputs.inv
+    regs = [v.measured.registration for v in used]
+    progress(f"fusing the features of {len(used)} views")
+    fused = fuse([r.features_in_part_frame() for r in regs], inv, rank={i: r.weighted_rms for i, r in enumerate(regs)})
+    seen = {f.id: _SeenInViews([v.measured.seen[f.id] for v in used], names) for f in inv.features}
+    judged, not_inspected = split_unseen(inputs.characteristics, seen, None, measured=set(fused))
+    progress(f"evaluating {len(inputs.characteristics)} characteristics")
+    evaluations, sources = evaluate_fused(judged, fused, regs, inv)
+    decisions = decide_all(evaluations, inputs.resolved.decision_rule)
+    characteristics = []
+    for d, src in zip(decisions, sources):
+        entry = characteristic_entry(d)
+        entry["views"] = [names[i] for i in src]
+        characteristics.append(entry)
+    why = {}
+    for v in used:
+        m = v.measured
+        for fid, reason in unmeasured_reasons(inv, m.stereo, m.registration, m.seen, v.inputs.calib).items():
+            why.setdefault(fid, []).append(f"{v.name}: {reason}")
+    why = {fid: "; ".join(r) for fid, r in why.items() if fid not in fused}
+    features = fused_feature_entries(inv, fused, [v.measured for v in used], names, seen, decisions, why)
+    for c in characteristics:
+        if c["measured"] is None:
+            c["reason"] = "not measured: " + "; ".join(f"{fid}: {why[fid]}" for fid in c["features"] if fid in why)
+    inputs_list = []
+    for v in views:
+        entries = input_entries(inputs.part, v.folder / IMAGE_NAMES[0], v.folder / IMAGE_NAMES[1],
+                                v.inputs.calib_file, inputs.tol_path)
+        inputs_list.extend({**e, "view": v.name} for e in entries if e["role"] not in ("part", "tolerances")
+                           or v is views[0])
+    report = assemble_report(
+        part=inputs.part.name,
+        verdict=verdict(decisions),
+        inputs=inputs_list,
+        calibration=None if used[0].measured.calibration is None else used[0].measured.calibration.to_dict(),
+        image={"width": inputs.left.shape[1], "height": inputs.left.shape[0], "bit_depth": inputs.bit_depth},
+        tolerances={"file": None if inputs.tol_path is None else str(inputs.tol_path),
+                    "general": inputs.resolved.general, "decision_rule": inputs.resolved.decision_rule,
+                    "not_evaluated": [n.to_dict() for n in inputs.resolved.not_evaluated]},
+        uncertainty={**used[0].measured.uncertainty,
+                     "views": "each view's features in the part frame with its pose covariance, tested for "
+                              "consistency across views and combined by generalised least squares"},
+        adaptive=used[0].measured.adaptive,
+        registration=registration_entry(regs[0]),
+        features=features,
+        characteristics=characteristics,
+        not_inspected=not_inspected,
+        skipped_edges=inv.to_dict().get("skipped", {}),
+    )
+    index = {v.name: i for i, v in enumerate(used)}
+    report["views"] = [view_entry(v.name, v.folder, None if v.measured is None else v.measured.registration,
+                                  fused, index.get(v.name), v.problem) for v in views]
+    report["fusion"] = {
+        "significance": SIGNIFICANCE,
+        "test": "each view's feature against the combination of the other views': chi-square of the difference "
+                "against the sum of their covariances (minimal parameters: circle 6, line 4)",
+        "reference_view": names[0],
+        "left_out": [{"feature": fid, "view": names[r["view"]], "chi2": round(r["chi2"], 3), "dof": r["dof"],
+                      "threshold": round(r["threshold"], 3), "reason": r["reason"]}
+                     for fid, f in fused.items() for r in f.rejected],
+    }
+    return report, features

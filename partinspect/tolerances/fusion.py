@@ -1,0 +1,382 @@
+"""One part seen in several views: each feature's measurements checked against each other and combined.
+
+Each view's chain and registration give its measured features in the part
+frame, each with a covariance that includes that view's pose covariance
+(:meth:`~partinspect.cad.registration.Registration.features_in_part_frame`).
+A CAD feature measured in several views has several such estimates. They
+are compared in a minimal parametrisation about the nominal feature
+(:func:`reduce`): a circle by its centre, the tilt of its normal and its
+radius (6 numbers), a line by its offset and slope where it crosses the
+plane through the nominal midpoint normal to it (4 numbers), so that the
+arbitrary point along a line and the sign of an axis do not count as
+differences.
+
+The test (:func:`consistent_views`): each view's estimate against the
+combination of the others, ``chi2 = d^T (C_v + C_others)^-1 d`` with ``d``
+their difference; the views' errors are independent (separate images,
+separate pose estimates), so the difference's covariance is the sum. A
+view beyond the ``significance`` quantile of chi-square (as many degrees
+of freedom as parameters) disagrees beyond chance: the worst such is left
+out for that feature and named, and the test repeated. Of two views that
+disagree neither is more suspect by the test alone: the one the caller
+ranks lower (e.g. the worse registration fit) is left out.
+
+The consistent estimates are combined by generalised least squares,
+``C = (sum C_v^-1)^-1``, ``y = C sum C_v^-1 y_v`` (:func:`combine`) [1]_;
+a circle's radius is weighted apart from its centre and axis
+(``SIZE_APART``), the combination's covariance still the full one of the
+weighted sum.
+Two combined features are correlated where the same view measured both,
+through its pose: ``Cov(y_a, y_b) = sum_v W_av K_v W_bv^T`` with ``W`` the
+weights and ``K_v`` the view's cross-covariance of the two
+(:meth:`~partinspect.cad.registration.Registration.cross_covariance`); a
+distance between features seen in different views carries both views'
+pose uncertainty in full (:mod:`.evaluate_fused`).
+
+Not represented: the rig's calibration error, which all views share, is
+taken as independent between views (exact where the calibration states
+no uncertainty); edge points are not merged across views.
+
+References
+----------
+.. [1] Aitken, A. C. (1935). On least squares and linear combination of
+       observations. Proc. Royal Society of Edinburgh 55, 42-48.
+.. [2] JCGM 100:2008 (GUM), 5.2: correlated input quantities.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from partinspect.frames import orthonormal_frame
+from partinspect.tolerances.evaluate import pick_feature
+
+__all__ = ["SIGNIFICANCE", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine", "consistent_views",
+           "fuse_feature", "fuse", "fused_cross_covariance"]
+
+SIGNIFICANCE = 0.99
+"""Probability that a consistent view passes the test (per view and feature)."""
+
+SIZE_APART = ((0, 5), (5, 6))
+"""A circle's reduced parameters weighted in two blocks: centre and axis, and
+the radius on its own. Within one view the radius is correlated with the
+centre's depth and the axis through the ellipse fit and the rim's
+systematic displacement, the part of the error model least sure of its
+correlations; weighting by them lets views correct each other's radius
+through their centres. The weights leave them out; the combined covariance
+keeps them (:func:`combine`)."""
+
+_STEP = 1e-7
+
+
+def _frame(nominal):
+    """The nominal axis (circle normal or line direction), two unit vectors across it, and the reference point."""
+    if nominal.kind == "line":
+        a, b = np.asarray(nominal.start, float), np.asarray(nominal.end, float)
+        axis, ref = (b - a) / np.linalg.norm(b - a), 0.5 * (a + b)
+    else:
+        axis, ref = np.asarray(nominal.normal, float), np.asarray(nominal.center, float)
+    e1, e2, n = orthonormal_frame(axis)
+    return e1, e2, n, ref
+
+
+def reduce(kind, params, nominal):
+    """A measured feature's parameters in the minimal form the views are compared in.
+
+    Parameters
+    ----------
+    kind : {"circle", "line"}
+    params : ndarray, shape (7,) or (6,)
+        ``(center, normal, radius)`` or ``(point, direction)``, part frame.
+    nominal : Feature-like
+        The CAD feature (``kind``, ``center``/``normal`` or ``start``/``end``).
+
+    Returns
+    -------
+    ndarray, shape (6,) or (4,)
+        Circles: centre (mm), the normal's components across the nominal
+        normal, radius (mm). Lines: the offset (mm) across the nominal line
+        where the measured one crosses the plane through the nominal
+        midpoint normal to it, and its slope (dimensionless) across it.
+        The axis's sign is taken from the nominal one.
+    """
+    e1, e2, n, ref = _frame(nominal)
+    x = np.asarray(params, float)
+    axis = x[3:6] / np.linalg.norm(x[3:6])
+    axis = axis if axis @ n >= 0 else -axis
+    if kind == "circle":
+        return np.r_[x[:3], axis @ e1, axis @ e2, x[6]]
+    q = x[:3] + ((ref - x[:3]) @ n) / (axis @ n) * axis - ref
+    return np.array([q @ e1, q @ e2, (axis @ e1) / (axis @ n), (axis @ e2) / (axis @ n)])
+
+
+def expand(kind, y, nominal):
+    """The inverse of :func:`reduce`: full parameters (part frame) from the minimal ones."""
+    e1, e2, n, ref = _frame(nominal)
+    if kind == "circle":
+        tilt = y[3] * e1 + y[4] * e2
+        return np.r_[y[:3], tilt + np.sqrt(max(1.0 - tilt @ tilt, 0.0)) * n, y[5]]
+    axis = n + y[2] * e1 + y[3] * e2
+    return np.r_[ref + y[0] * e1 + y[1] * e2, axis / np.linalg.norm(axis)]
+
+
+def _jacobian(f, x):
+    x = np.asarray(x, float)
+    cols = []
+    for i in range(x.size):
+        e = np.zeros(x.size)
+        e[i] = _STEP
+        cols.append((f(x + e) - f(x - e)) / (2 * _STEP))
+    return np.stack(cols, axis=1)
+
+
+def combine(ys, covs, blocks=None):
+    """Generalised least-squares combination of independent estimates of one quantity.
+
+    Parameters
+    ----------
+    ys : sequence of ndarray, shape (n,)
+    covs : sequence of ndarray, shape (n, n)
+        Each positive definite.
+    blocks : sequence of (int, int), optional
+        Index ranges combined each on its own: the weights come from the
+        covariances' diagonal blocks, the correlations between blocks left
+        out of the weighting (but not of the result's covariance). None:
+        one block, the full GLS.
+
+    Returns
+    -------
+    y : ndarray, shape (n,)
+    cov : ndarray, shape (n, n)
+        ``sum W_i C_i W_i^T``: with one block ``(sum C_i^-1)^-1``.
+    weights : list of ndarray, shape (n, n)
+        ``y = sum W_i y_i``; ``W_i = (sum B_j^-1)^-1 B_i^-1`` with ``B_i``
+        the block-diagonal part of ``C_i``.
+    """
+    n = len(ys[0])
+    mask = np.zeros((n, n), bool)
+    for a, b in blocks or [(0, n)]:
+        mask[a:b, a:b] = True
+    infos = [np.linalg.inv(np.where(mask, C, 0.0)) for C in covs]
+    total = np.linalg.inv(sum(infos))
+    weights = [total @ I for I in infos]
+    cov = sum(W @ C @ W.T for W, C in zip(weights, covs))
+    return sum(W @ y for W, y in zip(weights, ys)), 0.5 * (cov + cov.T), weights
+
+
+def _chi2_quantile(p, dof):
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(p, dof))
+
+
+def consistent_views(ys, covs, rank=None, significance=SIGNIFICANCE):
+    """Which estimates agree within chance; the others left out, worst first, with their test.
+
+    Parameters
+    ----------
+    ys, covs : sequences of ndarray
+        Independent estimates of one quantity and their covariances.
+    rank : sequence of float, optional
+        Lower is trusted more; decides which of two disagreeing estimates
+        is left out. Default: the order given.
+    significance : float
+        A consistent estimate passes with this probability.
+
+    Returns
+    -------
+    kept : list of int
+    rejected : list of dict
+        ``{"index", "chi2", "dof", "threshold", "pair"}``; ``pair`` True
+        when two disagreed and ``rank`` chose.
+    """
+    kept = list(range(len(ys)))
+    rank = list(range(len(ys))) if rank is None else list(rank)
+    dof = len(ys[0])
+    threshold = _chi2_quantile(significance, dof)
+    rejected = []
+    while len(kept) >= 2:
+        tests = []
+        for i in kept:
+            others = [j for j in kept if j != i]
+            y_o, C_o, _ = combine([ys[j] for j in others], [covs[j] for j in others])
+            d = ys[i] - y_o
+            tests.append((float(d @ np.linalg.solve(covs[i] + C_o, d)), i))
+        worst, i = max(tests)
+        if worst <= threshold:
+            break
+        pair = len(kept) == 2
+        if pair:
+            i = max(kept, key=lambda j: (rank[j], j))
+        rejected.append({"index": i, "chi2": worst, "dof": dof, "threshold": threshold, "pair": pair})
+        kept.remove(i)
+    return kept, rejected
+
+
+@dataclass(frozen=True, eq=False)
+class FusedFeature:
+    """A CAD feature's measurement combined over the views that agree (part frame).
+
+    Has the attributes of a
+    :class:`~partinspect.cad.registration.PartFeature` that
+    :mod:`.evaluate` reads, so a characteristic is evaluated on it as on
+    one view's feature.
+
+    Attributes
+    ----------
+    kind : {"circle", "line"}
+    cad_id : str
+    params : ndarray, shape (7,) or (6,)
+    param_cov : ndarray
+        Its covariance, each view's pose covariance included.
+    views : tuple of int
+        The views combined (indices into the caller's list).
+    rejected : tuple of dict
+        Views left out: ``{"view", "chi2", "dof", "threshold", "reason"}``.
+    start, end : ndarray, shape (3,) or None
+        Lines: the union of the views' measured extents on the combined line.
+    contributions : tuple
+        ``(view, PartFeature, J, W)`` per view combined: ``J`` the
+        derivative of :func:`reduce` at its parameters, ``W`` its weight.
+    expand_jacobian : ndarray
+        Derivative of :func:`expand` at the combined minimal parameters.
+    """
+
+    kind: str
+    cad_id: str
+    params: np.ndarray
+    param_cov: np.ndarray
+    views: tuple
+    rejected: tuple = ()
+    start: np.ndarray | None = None
+    end: np.ndarray | None = None
+    contributions: tuple = field(default=(), repr=False)
+    expand_jacobian: np.ndarray | None = field(default=None, repr=False)
+    index: int = 0
+    datum: bool = False
+    points = None
+    point_covs = None
+
+    @property
+    def center(self):
+        return self.params[:3] if self.kind == "circle" else None
+
+    @property
+    def normal(self):
+        return self.params[3:6] if self.kind == "circle" else None
+
+    @property
+    def radius(self):
+        return float(self.params[6]) if self.kind == "circle" else None
+
+    @property
+    def point(self):
+        return self.params[:3] if self.kind == "line" else None
+
+    @property
+    def direction(self):
+        return self.params[3:6] if self.kind == "line" else None
+
+    @property
+    def covariance(self):
+        return self.param_cov[:3, :3]
+
+    @property
+    def radius_std(self):
+        return float(np.sqrt(self.param_cov[6, 6])) if self.kind == "circle" else None
+
+
+def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE):
+    """One CAD feature's views tested for consistency and the agreeing ones combined.
+
+    Parameters
+    ----------
+    cad_id : str
+    nominal : Feature-like
+        The CAD feature.
+    measured : sequence of (int, PartFeature)
+        Each view that measured it, and its measurement (part frame,
+        ``params`` and ``param_cov`` with the view's pose covariance).
+    rank : mapping int -> float, optional
+        Per view, lower trusted more (see :func:`consistent_views`).
+    significance : float
+
+    Returns
+    -------
+    FusedFeature
+    """
+    kind = measured[0][1].kind
+    red = [(reduce(kind, p.params, nominal), _jacobian(lambda x, k=p.kind: reduce(k, x, nominal), p.params))
+           for _, p in measured]
+    ys = [y for y, _ in red]
+    covs = [J @ p.param_cov @ J.T for (_, J), (_, p) in zip(red, measured)]
+    views = [v for v, _ in measured]
+    kept, rejected = consistent_views(ys, covs, None if rank is None else [rank[v] for v in views], significance)
+    y, C, W = combine([ys[i] for i in kept], [covs[i] for i in kept], SIZE_APART if kind == "circle" else None)
+    E = _jacobian(lambda z: expand(kind, z, nominal), y)
+    params = expand(kind, y, nominal)
+    cov = E @ C @ E.T
+    start = end = None
+    if kind == "line":
+        s = [float((e - params[:3]) @ params[3:6]) for i in kept for e in (measured[i][1].start, measured[i][1].end)
+             if e is not None]
+        if s:
+            start, end = params[:3] + min(s) * params[3:6], params[:3] + max(s) * params[3:6]
+    out_rej = []
+    for r in rejected:
+        v = views[r["index"]]
+        why = (f"disagrees with the other views beyond chance (chi-square {r['chi2']:.1f} > {r['threshold']:.1f}, "
+               f"{r['dof']} degrees of freedom, {100 * significance:g} %)")
+        if r["pair"]:
+            why = why.replace("the other views", "the one other view") + "; of the two, this view ranks lower"
+        out_rej.append({"view": v, "chi2": r["chi2"], "dof": r["dof"], "threshold": r["threshold"], "reason": why})
+    contributions = tuple((views[i], measured[i][1], red[i][1], w) for i, w in zip(kept, W))
+    return FusedFeature(kind, cad_id, params, 0.5 * (cov + cov.T), tuple(views[i] for i in kept), tuple(out_rej),
+                        start, end, contributions, E)
+
+
+def fuse(view_parts, inventory, rank=None, significance=SIGNIFICANCE):
+    """Every CAD feature measured in any view, combined over its consistent views.
+
+    Parameters
+    ----------
+    view_parts : sequence of list of PartFeature
+        Per view, ``registration.features_in_part_frame()``.
+    inventory : Inventory
+    rank, significance
+        See :func:`fuse_feature`.
+
+    Returns
+    -------
+    dict
+        CAD id -> :class:`FusedFeature`, in the inventory's order.
+    """
+    out = {}
+    for f in inventory.features:
+        measured = [(v, p) for v, parts in enumerate(view_parts) if (p := pick_feature(parts, f.id)) is not None]
+        if measured:
+            out[f.id] = fuse_feature(f.id, f, measured, rank, significance)
+    return out
+
+
+def fused_cross_covariance(a, b, registrations):
+    """Covariance between two fused features' parameters, through the views that measured both.
+
+    Parameters
+    ----------
+    a, b : FusedFeature
+    registrations : sequence
+        Per view, its Registration (``cross_covariance(pa, pb)``).
+
+    Returns
+    -------
+    ndarray, shape (len(a.params), len(b.params))
+    """
+    inner = np.zeros((a.expand_jacobian.shape[1], b.expand_jacobian.shape[1]))
+    for va, pa, Ja, Wa in a.contributions:
+        for vb, pb, Jb, Wb in b.contributions:
+            if va == vb:
+                inner += Wa @ Ja @ registrations[va].cross_covariance(pa, pb) @ Jb.T @ Wb.T
+    return a.expand_jacobian @ inner @ b.expand_jacobian.T

@@ -1,0 +1,168 @@
+"""Fusion of several views: the consistency test, the combination, characteristics on combined features."""
+
+import math
+
+import numpy as np
+import pytest
+
+from partinspect.cad.registration import register
+from partinspect.poses import turned_pose
+from partinspect.simulate.measured import measure_features
+from partinspect.tolerances.evaluate_fused import evaluate_fused, pair_value
+from partinspect.tolerances.fusion import combine, consistent_views, expand, fuse, reduce
+from partinspect.tolerances.geometry import feature_distance
+from partinspect.tolerances.resolve import Characteristic
+
+BOUNDS = np.array([[0.0, 0.0, 0.0], [80.0, 60.0, 10.0]])
+
+
+def C(cid, ctype, feats, nominal=0.0, lo=None, up=1.0, unit="mm"):
+    return Characteristic(cid, ctype, tuple(feats), nominal, lo, up, "test", unit=unit)
+
+
+def test_combine_two_equal_views_shrinks_u_by_sqrt_two_and_unequal_ones_by_their_covariances():
+    C1 = np.diag([4.0, 1.0])
+    _, cov, W = combine([np.zeros(2), np.ones(2)], [C1, C1])
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(C1)) / math.sqrt(2))
+    np.testing.assert_allclose(sum(W), np.eye(2))
+    y, cov, _ = combine([np.array([0.0]), np.array([3.0])], [np.array([[1.0]]), np.array([[4.0]])])
+    # inverse-variance weights 4/5 and 1/5; variance 1 / (1 + 1/4)
+    assert y[0] == pytest.approx(0.6) and cov[0, 0] == pytest.approx(0.8)
+
+
+def test_combining_in_blocks_weights_each_block_alone_and_keeps_the_full_covariance():
+    # two views whose radius (index 1) correlates with the centre (index 0) in opposite senses
+    C1 = np.array([[1.0, 0.9], [0.9, 1.0]])
+    C2 = np.array([[1.0, -0.9], [-0.9, 1.0]])
+    ys = [np.array([0.0, 0.0]), np.array([1.0, 1.0])]
+    _, full, _ = combine(ys, [C1, C2])
+    y, cov, W = combine(ys, [C1, C2], blocks=[(0, 1), (1, 2)])
+    # the full GLS lets each view's centre correct the other's radius: 0.095, a fifth of the scalar 0.5
+    assert full[1, 1] == pytest.approx(0.095)
+    # apart, each block is the scalar combination of the marginals; the covariance is the weighted sum's
+    assert cov[1, 1] == pytest.approx(0.5) and y[1] == pytest.approx(0.5)
+    np.testing.assert_allclose(cov, sum(w @ c @ w.T for w, c in zip(W, [C1, C2])))
+
+
+def test_consistency_test_passes_chance_and_names_an_outlier_view():
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((3, 3))
+    cov = A @ A.T + np.eye(3)
+    L = np.linalg.cholesky(cov)
+    kept_all, false = 0, 0
+    for _ in range(2000):
+        ys = [L @ rng.standard_normal(3) for _ in range(3)]
+        kept, rejected = consistent_views(ys, [cov] * 3, significance=0.99)
+        false += len(rejected) > 0
+        kept_all += len(kept) == 3
+    # each of 3 views tested at 99 %: about 3 % of consistent triples lose a view
+    assert 0.01 < false / 2000 < 0.06
+    ys = [L @ rng.standard_normal(3) for _ in range(3)]
+    ys[1] = ys[1] + 8 * L @ np.array([1.0, 0, 0])
+    kept, rejected = consistent_views(ys, [cov] * 3)
+    assert kept == [0, 2] and rejected[0]["index"] == 1 and rejected[0]["chi2"] > rejected[0]["threshold"]
+    assert not rejected[0]["pair"]
+    # two that disagree: the one ranked lower goes
+    kept, rejected = consistent_views(ys[:2], [cov] * 2, rank=[1.0, 0.5])
+    assert kept == [1] and rejected[0]["index"] == 0 and rejected[0]["pair"]
+
+
+def test_reduced_form_ignores_where_along_a_line_and_the_axis_sign(plate):
+    inv = plate[0]
+    line, circle = inv["line-5"], inv["circle-4"]
+    d = (line.end - line.start) / np.linalg.norm(line.end - line.start)
+    x = np.r_[line.start + [0.0, 0.01, 0.02], d]
+    y = reduce("line", x, line)
+    np.testing.assert_allclose(reduce("line", np.r_[x[:3] + 7.0 * d, -d], line), y, atol=1e-12)
+    np.testing.assert_allclose(reduce("line", expand("line", y, line), line), y, atol=1e-12)
+    c = np.r_[circle.center + 0.01, -circle.normal, circle.radius + 0.003]
+    yc = reduce("circle", c, circle)
+    np.testing.assert_allclose(expand("circle", yc, circle), np.r_[c[:3], circle.normal, c[6]], atol=1e-12)
+
+
+def _views(plate, turns, rng, shifts=None):
+    inv, T, ids = plate
+    regs = []
+    for k, turn in enumerate(turns):
+        P = turned_pose(T, turn, BOUNDS)
+        m = measure_features(inv, P, ids, rng, n_points=0, shifts=(shifts or {}).get(k))
+        regs.append(register(m.circles, m.lines, inv, pose_hint=P))
+    return regs
+
+
+def test_two_consistent_views_shrink_u_as_their_covariances_predict(plate):
+    inv = plate[0]
+    regs = _views(plate, [(0, 0, 0), (0, 0, 25)], np.random.default_rng(3))
+    parts = [r.features_in_part_frame() for r in regs]
+    fused = fuse(parts, inv)
+    f = fused["circle-4"]
+    assert f.views == (0, 1) and not f.rejected
+    one = [next(p for p in ps if p.cad_id == "circle-4") for ps in parts]
+    u = [math.sqrt(p.param_cov[0, 0]) for p in one]
+    predicted = 1.0 / math.sqrt(sum(1.0 / p.param_cov[0, 0] for p in one))  # the x coordinate alone
+    assert math.sqrt(f.param_cov[0, 0]) < min(u)
+    assert math.sqrt(f.param_cov[0, 0]) == pytest.approx(predicted, rel=0.25)
+    assert f.radius_std == pytest.approx(1 / math.sqrt(sum(1 / p.radius_std**2 for p in one)), rel=0.05)
+
+
+def test_an_outlier_view_is_left_out_and_named(plate):
+    inv = plate[0]
+    shifts = {2: {"circle-4": np.array([0.2, 0.0, 0.0])}}  # view 3 (a bumped measurement) sees the hole elsewhere
+    regs = _views(plate, [(0, 0, 0), (0, 0, 20), (0, 0, -20)], np.random.default_rng(4), shifts)
+    fused = fuse([r.features_in_part_frame() for r in regs], inv)
+    f = fused["circle-4"]
+    assert f.views == (0, 1)
+    assert [r["view"] for r in f.rejected] == [2] and "beyond chance" in f.rejected[0]["reason"]
+    assert not fused["circle-2"].rejected
+
+
+def test_fused_characteristics_are_honest_over_draws(plate):
+    inv = plate[0]
+    chars = [
+        C("d", "diameter", ["circle-4"], 12.0, 11.9, 12.1),
+        C("p", "position", ["circle-2"], up=0.1),
+        C("cc", "distance", ["circle-2", "circle-4"], feature_distance(inv["circle-2"], inv["circle-4"]), 0, 100),
+        C("ll", "distance", ["line-5", "line-8"], 60.0, 59, 61),
+        C("a", "angle", ["line-5", "line-1"], math.pi / 2, 1.5, 1.6, unit="rad"),
+    ]
+    rng = np.random.default_rng(5)
+    z, both, rejected, tested = [], 0, 0, 0
+    for draw in range(40):
+        regs = _views(plate, [(0, 0, 0), (0, 0, 25)], rng)
+        fused = fuse([r.features_in_part_frame() for r in regs], inv)
+        rejected += sum(len(f.rejected) for f in fused.values())
+        tested += len(fused)
+        ev, used = evaluate_fused(chars, fused, regs, inv, seed=draw, n_mc=1000)
+        both += sum(u == (0, 1) for u in used)
+        z.append([(e.measured - c.nominal) / e.standard_uncertainty for e, c in zip(ev, chars)])
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    assert both > 0.9 * 40 * len(chars)
+    # consistent views: a pair is split by chance in about 1 % of features
+    assert rejected / tested < 0.04, (rejected, tested)
+    # the position at zero offset is Rice-distributed: its u is the RMS of that error (see true_position)
+    assert np.all((rms > 0.6) & (rms < 1.45)), rms
+
+
+def test_a_distance_between_features_of_different_views_carries_both_poses(plate):
+    inv, _, ids = plate
+    regs = _views(plate, [(0, 0, 0), (0, 0, 25)], np.random.default_rng(6))
+    parts = [r.features_in_part_frame() for r in regs]
+    # circle-2 from view 1 only, circle-4 from view 2 only
+    only = [[p for p in parts[0] if p.cad_id != "circle-4"], [p for p in parts[1] if p.cad_id != "circle-2"]]
+    fused = fuse(only, inv)
+    c = C("cc", "distance", ["circle-2", "circle-4"], feature_distance(inv["circle-2"], inv["circle-4"]), 0, 100)
+    (ev,), (used,) = evaluate_fused([c], fused, regs, inv)
+    assert used == (0, 1)
+    a, b = fused["circle-2"], fused["circle-4"]
+    n = (b.center - a.center) / np.linalg.norm(b.center - a.center)
+    # independent views: the variances add, each with its own pose's part (the in-plane distance's gradient)
+    expected = math.sqrt(n @ a.covariance @ n + n @ b.covariance @ n)
+    assert ev.standard_uncertainty == pytest.approx(expected, rel=0.1)
+    # the same two circles in one view: in the part frame with their cross-covariance through the shared pose
+    # (what the combination uses), the distance's u is the rig frame's, where the pose does not enter
+    one = fuse([parts[0]], inv)
+    (ev1,), _ = evaluate_fused([c], one, regs[:1], inv)
+    assert ev1.method == "first order (pose-invariant)"
+    joint = pair_value(c, [one["circle-2"], one["circle-4"]], regs[:1], 2.0)
+    assert joint.standard_uncertainty == pytest.approx(ev1.standard_uncertainty, rel=0.03)
+    assert joint.measured == pytest.approx(ev1.measured, abs=1e-9)
