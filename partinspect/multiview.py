@@ -72,8 +72,10 @@ class _SeenInViews:
 
 
 def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
-              draws=200, pose_hint=None, load_cad=None):
+              draws=200, pose_hint=None, load_cad=None, timings=None):
     """Inspect a part from a views folder; parameters as :func:`partinspect.pipeline.run_inspection`.
+
+    ``timings`` adds up each stage over the views.
 
     Returns
     -------
@@ -92,9 +94,12 @@ def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=qu
     """
     from partinspect import pipeline
     from partinspect.atomic import prepare_output_dir
-    from partinspect.reports.writer import write_reports
+    from partinspect.reports.assemble import with_timings
+    from partinspect.reports.writer import render_reports, report_json, write_texts
     from partinspect.results import figure_data
+    from partinspect.timings import Timings
 
+    timings = Timings() if timings is None else timings
     views_dir = Path(views_dir)
     if pose_hint is not None:
         raise InputError(views_dir, "--pose-hint fits one pair; the views of a views folder are each aligned by search")
@@ -106,22 +111,27 @@ def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=qu
         return cad["model"]
 
     views = measure_views(part, views_dir, out, tolerances=tolerances, progress=progress,
-                          uncertainty=uncertainty, draws=draws, load_cad=cached)
+                          uncertainty=uncertainty, draws=draws, load_cad=cached, timings=timings)
     used = [v for v in views if v.measured is not None]
     if not used:
         raise InputError(views_dir, "no view could be measured: " + "; ".join(f"{v.name}: {v.problem}" for v in views))
-    report, features = evaluate_views(views, progress)
+    with timings.stage("evaluating"):
+        report, features = evaluate_views(views, progress)
     progress("writing reports")
-    out_dir = prepare_output_dir(out)
     first = used[0]
-    write_reports(out_dir, report, figure_data(first.inputs.left, first.inputs.right, first.inputs.calib,
-                                               first.inputs.inv, first.measured.stereo,
-                                               first.measured.registration, features))
+    with timings.stage("report"):
+        out_dir = prepare_output_dir(out)
+        texts = render_reports(report, figure_data(first.inputs.left, first.inputs.right, first.inputs.calib,
+                                                   first.inputs.inv, first.measured.stereo,
+                                                   first.measured.registration, features))
+    report = with_timings(report, timings)
+    texts["report.json"] = report_json(report)
+    write_texts(out_dir, texts)
     return pipeline.InspectionResult(report["verdict"], report, out_dir)
 
 
 def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, uncertainty="first-order", draws=200,
-                  load_cad=None):
+                  load_cad=None, timings=None):
     """Each view of a views folder read and measured with the single-pair stages; a list of :class:`View`.
 
     A view whose chain cannot be made (its calibration does not fit its
@@ -135,7 +145,7 @@ def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, unce
 
     # Every view's inputs read first: a bad one fails before seconds of measuring the others.
     views = [View(folder.name, folder, pipeline.load_inputs(part, folder, out, tolerances, None, teller(folder.name),
-                                                            load_cad, calibration_dir=views_dir))
+                                                            load_cad, calibration_dir=views_dir, timings=timings))
              for folder in view_folders(views_dir)]
     for view in views:
         inputs, say = view.inputs, teller(view.name)

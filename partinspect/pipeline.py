@@ -154,7 +154,7 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
     from partinspect.results import figure_data
 
     timings = Timings() if timings is None else timings
-    inputs = load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad, timings)
+    inputs = load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad, timings=timings)
     check, first = check_calibration(inputs, progress)
     m = measure(inputs, progress, check, first)
     if uncertainty == "montecarlo":
