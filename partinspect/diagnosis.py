@@ -13,14 +13,67 @@ import numpy as np
 
 from partinspect.vision.posed import image_owners
 
-__all__ = ["COVERED_FRACTION", "image_feature_reasons", "edge_points_along", "unmeasured_reason",
-           "unmeasured_reasons", "edges_found", "split_unseen"]
+__all__ = ["COVERED_FRACTION", "SATURATED_FRACTION", "image_feature_reasons", "edge_points_along",
+           "saturation_level", "saturated_along", "unmeasured_reason", "unmeasured_reasons", "edges_found",
+           "split_unseen"]
 
 COVERED_FRACTION = 0.5
 """An image feature that runs along at least this fraction of a CAD edge's
 image (within 2 px) but mostly elsewhere found that edge as part of a
 longer one: collinear edges of the part (a step's two lips, a slot's two
 sides in line) merge into one line in the images."""
+
+
+SATURATED_FRACTION = 0.2
+"""An edge with saturated pixels within ``SATURATION_REACH`` px along at
+least this fraction of its image, and no edge found there, is said to be
+hidden by saturation: a highlight on metal or an over-exposed face clips
+the grey-level step the detector needs."""
+SATURATION_REACH = 3
+"""px: about the edge filter's reach either side of the edge (3 sigma)."""
+
+
+def saturated_along(image, uv, top):
+    """Fraction of an edge's image points with a pixel at ``top`` (saturated) within ``SATURATION_REACH`` px.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+        Grey image as recorded.
+    uv : ndarray, shape (N, 2)
+        The edge's projected points, distorted px; those outside the image
+        do not count.
+    top : float
+        The grey level at which the sensor clips (:func:`saturation_level`).
+    """
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    h, w = img.shape
+    uv = np.asarray(uv, float)
+    ok = np.isfinite(uv).all(axis=1)
+    cols, rows = np.rint(uv[ok, 0]).astype(int), np.rint(uv[ok, 1]).astype(int)
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    if not inside.any():
+        return 0.0
+    k = 2 * SATURATION_REACH + 1
+    near = cv2.dilate((img >= top).astype(np.uint8), np.ones((k, k), np.uint8))
+    return float(np.mean(near[rows[inside], cols[inside]] > 0))
+
+
+def saturation_level(image, bit_depth):
+    """The grey level at which the sensor clips: 255 for 8 bits; for 16, the image's maximum if pixels pile up there.
+
+    A 10-, 12- or 14-bit sensor's images are stored in 16 bits; clipped
+    pixels then all read the sensor's top value, well below 65535.
+    """
+    if bit_depth <= 8:
+        return 255.0
+    img = np.asarray(image)
+    top = img.max()
+    return float(top) if np.count_nonzero(img == top) >= 1e-3 * img.size else 65535.0
 
 
 def image_feature_reasons(stereo):
@@ -51,32 +104,29 @@ def edge_points_along(measured, uv, lo, hi, reach=1.5):
     return bool(np.mean(cKDTree(xy[box]).query(uv)[0] < reach) >= COVERED_FRACTION)
 
 
-def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owners=None):
+def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owners=None, images=None):
     """Why a CAD feature has no measurement: out of view, or what became of its edge in the images.
 
     ``owners``: :func:`partinspect.vision.posed.image_owners`, to name the edge a longer image
-    feature that also covers this one was measured as.
+    feature that also covers this one was measured as. ``images``: (left,
+    right, bit depth), the grey images as recorded, to name saturation
+    where no edge was found (:func:`saturated_along`).
     """
     if not vis.in_view:
         return "not visible: " + vis.reason()
     noise = max(float(stereo.left.noise), float(stereo.right.noise))
     if not vis.shows_edge(noise):
+        clipped = [_saturation(images, side, uv) for side, uv in _projections(feature, calib, pose).items()]
+        why = next((c for c in clipped if c), "its two faces look alike under this lighting")
         return (f"in view, but with too little grey-level step across it to be detected ({vis.contrast[0]:.0f} and "
-                f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): "
-                "its two faces look alike under this lighting")
+                f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): {why}")
     withdrawn = dict(getattr(stereo, "withdrawn", ())).get(feature.id)
     if withdrawn:
         return f"measured, then taken out: {withdrawn}"
     from scipy.spatial import cKDTree
 
-    from partinspect.cad.edge_sampling import feature_geometry, sample_edge
-    from partinspect.vision.calibration import project_points
-
-    pts, _ = sample_edge(feature.kind, feature_geometry(feature))
-    R, t = pose[:3, :3], pose[:3, 3]
     found, longer_sides = [], 0
-    for side, K, D, Rc, tc in (("left", calib.K1, calib.D1, np.eye(3), np.zeros(3)), ("right", calib.K2, calib.D2, calib.R, calib.T)):
-        uv = project_points(pts @ R.T + t, K, D, Rc, tc)
+    for side, uv in _projections(feature, calib, pose).items():
         tree = cKDTree(uv[np.isfinite(uv).all(axis=1)])
         feats = (stereo.left if side == "left" else stereo.right).features
         near = [i for i, f in enumerate(feats) if len(f.uv) and np.median(tree.query(f.uv)[0]) < 2.0]
@@ -104,7 +154,8 @@ def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owne
                        if feature.kind == "line" else "the segmentation kept no arc of them")
                 found.append(f"{side} image: edge points found along it, but {why} (its image is {length:.0f} px long)")
             else:
-                found.append(f"no edge found along it in the {side} image")
+                clipped = _saturation(images, side, uv)
+                found.append(f"no edge found along it in the {side} image" + (f": {clipped}" if clipped else ""))
         elif reasons:
             found.append(f"{side} image: {reasons[0]}")
     # Its own stretch of a longer image line found but not measured says more
@@ -116,7 +167,32 @@ def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owne
     return "; ".join(found) if found else "seen in both images but not matched to the CAD model"
 
 
-def unmeasured_reasons(inv, stereo, registration, seen, calib):
+def _projections(feature, calib, pose):
+    """{"left": uv, "right": uv}: the feature's sampled points in each image, distorted px."""
+    from partinspect.cad.edge_sampling import feature_geometry, sample_edge
+    from partinspect.vision.calibration import project_points
+
+    pts, _ = sample_edge(feature.kind, feature_geometry(feature))
+    X = pts @ pose[:3, :3].T + pose[:3, 3]
+    return {"left": project_points(X, calib.K1, calib.D1, np.eye(3), np.zeros(3)),
+            "right": project_points(X, calib.K2, calib.D2, calib.R, calib.T)}
+
+
+def _saturation(images, side, uv):
+    """The words to add where clipped pixels explain a missing edge; empty otherwise."""
+    if images is None:
+        return ""
+    left, right, bit_depth = images
+    image = left if side == "left" else right
+    top = saturation_level(image, bit_depth)
+    frac = saturated_along(image, uv, top)
+    if frac < SATURATED_FRACTION:
+        return ""
+    return (f"the {side} image is saturated (grey level {top:g}) along {100 * frac:.0f} % of it: a highlight "
+            "or an over-exposed face clips the step; lower the exposure or move the light")
+
+
+def unmeasured_reasons(inv, stereo, registration, seen, calib, images=None):
     """CAD id -> why it has no measurement, for every feature registration did not assign.
 
     Parameters
@@ -126,6 +202,9 @@ def unmeasured_reasons(inv, stereo, registration, seen, calib):
     registration : Registration
     seen : dict of str to FeatureVisibility
     calib : StereoCalibration
+    images : (ndarray, ndarray, int), optional
+        The left and right images as recorded and their bit depth, to name
+        saturation (:func:`unmeasured_reason`).
 
     Returns
     -------
@@ -135,7 +214,8 @@ def unmeasured_reasons(inv, stereo, registration, seen, calib):
     done = {p.cad_id for p in registration.features_in_part_frame() if p.cad_id is not None}
     reasons = image_feature_reasons(stereo)
     owners = image_owners(stereo, registration)
-    return {f.id: unmeasured_reason(f, seen[f.id], calib, registration.part_to_camera, stereo, reasons, owners)
+    return {f.id: unmeasured_reason(f, seen[f.id], calib, registration.part_to_camera, stereo, reasons, owners,
+                                    images)
             for f in inv.features if f.id not in done}
 
 

@@ -197,7 +197,8 @@ def evaluate_views(views, progress):
     why = {}
     for v in used:
         m = v.measured
-        for fid, reason in unmeasured_reasons(inv, m.stereo, m.registration, m.seen, v.inputs.calib).items():
+        images = (v.inputs.left, v.inputs.right, v.inputs.bit_depth)
+        for fid, reason in unmeasured_reasons(inv, m.stereo, m.registration, m.seen, v.inputs.calib, images).items():
             why.setdefault(fid, []).append(f"{v.name}: {reason}")
     why = {fid: "; ".join(r) for fid, r in why.items() if fid not in fused}
     features = fused_feature_entries(inv, fused, [v.measured for v in used], names, seen, decisions, why)

@@ -375,7 +375,8 @@ def evaluate(inputs, m, progress):
     judged, not_inspected = split_unseen(inputs.characteristics, m.seen, m.registration)
     decisions = decide_all(_evaluate_on_two_cores(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
     characteristics = [characteristic_entry(d) for d in decisions]
-    why = unmeasured_reasons(inputs.inv, m.stereo, m.registration, m.seen, inputs.calib)
+    why = unmeasured_reasons(inputs.inv, m.stereo, m.registration, m.seen, inputs.calib,
+                             (inputs.left, inputs.right, inputs.bit_depth))
     features = feature_entries(inputs.inv, m.stereo, m.registration, m.seen, decisions, why)
     for c in characteristics:
         if c["measured"] is None:
