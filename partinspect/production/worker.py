@@ -18,6 +18,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from partinspect import __version__
+from partinspect.atomic import remove_stale_temporaries
 from partinspect.digest import sha256_file
 from partinspect.errors import InputError
 
@@ -74,6 +75,8 @@ def inspect_part(job, out):
     t0 = time.perf_counter()
     report_dir = Path(out) / job.serial
     error, report = None, None
+    # An earlier try of this part, killed while writing, may have left temporaries.
+    remove_stale_temporaries(report_dir)
     try:
         result = run_inspection(job.step, job.images, report_dir, tolerances=job.spec, load_cad=cached_model)
         report = result.report
