@@ -278,7 +278,7 @@ def _batch_parser():
         description=(
             "Inspect many parts: one report folder OUT/SERIAL/ each, every characteristic recorded in a results "
             "database (OUT/results.sqlite unless --db), and OUT/spc.html over the batch. MANIFEST is a CSV file "
-            "with columns serial,step,images[,spec][,time], a YAML file with the same keys in a list under "
+            "with columns serial,step,images[,spec][,time][,subgroup], a YAML file with the same keys in a list under "
             "'parts:', or a folder of SERIAL/images/ with --step; paths are relative to the manifest. A bad line "
             "is reported (file:line: problem) and the rest run. Exit code: 2 if any part could not be run, else "
             "1 if any fails, else 3 if any is inconclusive, else 0."
@@ -294,6 +294,9 @@ def _batch_parser():
     p.add_argument("--workers", metavar="N", type=int, help="local worker processes (default: one per core)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run the parts on this Dask distributed "
                    "cluster (its workers must see the same paths)")
+    p.add_argument("--subgroup-size", metavar="N", type=int, help="SPC page: X-bar/R charts of consecutive parts "
+                   "in subgroups of N (2 to 10); 1: individuals charts (default: the manifest's subgroup column "
+                   "where it has one)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no summary")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -304,14 +307,17 @@ def _spc_parser():
         prog="inspect spc",
         description=(
             "Statistical process control of a results database: per characteristic the run chart with limits and "
-            "each part's +-U, Cp, Cpk, Pp, Ppk with confidence intervals (ISO 22514-2), an individuals control "
-            "chart with rule violations (ISO 7870-2) and the measuring system's U against the tolerance. Writes "
+            "each part's +-U, Cp, Cpk, Pp, Ppk with confidence intervals (ISO 22514-2), an individuals or X-bar/R "
+            "control chart with rule violations (ISO 7870-2) and the measuring system's U against the tolerance. Writes "
             "OUT/spc.html, OUT/spc.csv (one row per characteristic) and OUT/measurements.csv (one row per part "
             "and characteristic)."
         ),
     )
     p.add_argument("db", metavar="DB", help="the results database: a SQLite file or a database URL")
     p.add_argument("-o", "--output", metavar="OUT", default="spc", help="output folder (default: ./spc)")
+    p.add_argument("--subgroup-size", metavar="N", type=int, help="X-bar/R charts of consecutive parts in "
+                   "subgroups of N (2 to 10); 1: individuals charts (default: the subgroups the manifest gave, "
+                   "else individuals)")
     p.add_argument("-q", "--quiet", action="store_true", help="no summary")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -325,6 +331,7 @@ def _run_batch(args):
     progress = _progress(args.quiet)
     result = run_batch(args.manifest, args.output, db=args.db, step=args.step, resume=args.resume,
                        workers=args.workers, scheduler=args.scheduler, progress=progress,
+                       subgroup_size=args.subgroup_size,
                        on_problem=lambda line: print(f"inspect batch: {line}", file=sys.stderr, flush=True))
     if not args.quiet:
         try:
@@ -339,7 +346,7 @@ def _run_spc(args):
         raise InputError(None, "-o: the output folder name is empty")
     from partinspect.production.spc_report import run_spc
 
-    page = run_spc(args.db, args.output)
+    page = run_spc(args.db, args.output, subgroup_size=args.subgroup_size)
     if not args.quiet:
         print(f"wrote {page}", flush=True)
     return EXIT_PASS

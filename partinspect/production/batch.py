@@ -81,7 +81,7 @@ def batch_exit_code(codes, problems=0):
 
 
 def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, scheduler=None, progress=quiet,
-              on_problem=None, spc=True):
+              on_problem=None, spc=True, subgroup_size=None):
     """Inspect every part of ``manifest`` into ``out/SERIAL/`` and record them in the results database.
 
     Parameters
@@ -109,6 +109,8 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
         read, and each part that could not be run, as soon as it is back.
     spc : bool
         Write ``out/spc.html`` over the batch's parts when done.
+    subgroup_size : int, optional
+        The SPC page's subgroups (:func:`partinspect.production.spc_report.with_subgroups`).
 
     Returns
     -------
@@ -117,6 +119,9 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     from partinspect.production.database import database_url, open_database, record_part, shown_url, start_batch
     from partinspect.production.manifest import read_manifest
 
+    from partinspect.production.spc_report import check_subgroup_size
+
+    check_subgroup_size(subgroup_size)
     jobs, problems = read_manifest(manifest, step)
     for line in problems:
         (on_problem or progress)(line)
@@ -146,7 +151,8 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     if spc:
         from partinspect.production.spc_report import write_spc_page
 
-        result.spc_page = write_spc_page(engine, out, batch_id=batch_id, title=f"SPC of batch {out.name}")
+        result.spc_page = write_spc_page(engine, out, batch_id=batch_id, title=f"SPC of batch {out.name}",
+                                         subgroup_size=subgroup_size)
     engine.dispose()
     return result
 
@@ -218,6 +224,6 @@ def _lost(job, exc):
                      "measured_at": job.time or datetime.now(timezone.utc).replace(tzinfo=None, microsecond=0),
                      "software_version": __version__, "status": "failed", "exit_code": EXIT_ERROR, "verdict": None,
                      "error": f"its worker was lost: {type(exc).__name__}: {' '.join(str(exc).split())}",
-                     "seconds": 0.0},
+                     "seconds": 0.0, "subgroup": job.subgroup},
             "characteristics": []}
 

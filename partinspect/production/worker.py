@@ -98,6 +98,7 @@ def inspect_part(job, out):
         "software_version": __version__, "status": status, "exit_code": code, "verdict": verdict, "error": error,
         "report_dir": str(report_dir) if report is not None else None,
         "seconds": round(time.perf_counter() - t0, 3), "worker": f"{socket.gethostname()}:{os.getpid()}",
+        "subgroup": job.subgroup,
     }
     chars = [] if report is None else [{k: c.get(k) for k in CHARACTERISTIC_KEYS} for c in report["characteristics"]]
     return {"part": part, "characteristics": chars}
