@@ -49,7 +49,9 @@ other commands:
   inspect batch MANIFEST -o OUT [--db URL] [--resume] [--workers N] [--scheduler tcp://HOST:PORT]
                                           inspect many parts (CSV/YAML manifest or SERIAL/images/
                                           folders), record them in a results database, write an SPC page
-  inspect spc DB [-o OUT]                 statistical process control page of a results database
+  inspect spc DB [-o OUT] [--export FILE.csv|FILE.parquet]
+                                          statistical process control page of a results database,
+                                          or its table of every part and characteristic
   (inspect COMMAND --help for each)
 
 exit codes: 0 pass, 1 fail, 3 inconclusive, 2 the run could not be made."""
@@ -310,11 +312,13 @@ def _spc_parser():
             "each part's +-U, Cp, Cpk, Pp, Ppk with confidence intervals (ISO 22514-2), an individuals or X-bar/R "
             "control chart with rule violations (ISO 7870-2) and the measuring system's U against the tolerance. Writes "
             "OUT/spc.html, OUT/spc.csv (one row per characteristic) and OUT/measurements.csv (one row per part "
-            "and characteristic)."
+            "and characteristic); --export writes that table alone as CSV or Parquet."
         ),
     )
     p.add_argument("db", metavar="DB", help="the results database: a SQLite file or a database URL")
-    p.add_argument("-o", "--output", metavar="OUT", default="spc", help="output folder (default: ./spc)")
+    p.add_argument("-o", "--output", metavar="OUT", help="output folder (default: ./spc, none with --export alone)")
+    p.add_argument("--export", metavar="FILE", help="one row per characteristic per part (serial, time stamp, "
+                   "subgroup, value, u, U, limits, decision) as FILE.csv or FILE.parquet")
     p.add_argument("--subgroup-size", metavar="N", type=int, help="X-bar/R charts of consecutive parts in "
                    "subgroups of N (2 to 10); 1: individuals charts (default: the subgroups the manifest gave, "
                    "else individuals)")
@@ -342,13 +346,15 @@ def _run_batch(args):
 
 
 def _run_spc(args):
-    if not args.output:
+    if args.output == "":
         raise InputError(None, "-o: the output folder name is empty")
     from partinspect.production.spc_report import run_spc
 
-    page = run_spc(args.db, args.output, subgroup_size=args.subgroup_size)
+    # The page goes to -o, or ./spc when no --export asks for the table alone.
+    out = args.output if args.output is not None or args.export is not None else "spc"
+    written = run_spc(args.db, out, subgroup_size=args.subgroup_size, export_to=args.export)
     if not args.quiet:
-        print(f"wrote {page}", flush=True)
+        print(f"wrote {' and '.join(str(p) for p in written)}", flush=True)
     return EXIT_PASS
 
 

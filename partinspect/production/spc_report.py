@@ -4,7 +4,8 @@ Reads every inspected part's characteristics (:func:`.database.measurements`),
 computes each characteristic's figures (:mod:`.spc`) and writes, together
 and atomically, ``spc.html`` (:mod:`partinspect.reports.spc_page`),
 ``spc.csv`` (one row per characteristic) and ``measurements.csv`` (one row
-per part and characteristic, for users' own tools).
+per part and characteristic, for users' own tools: :mod:`.export`, which
+``inspect spc DB --export FILE.csv|FILE.parquet`` writes alone).
 """
 
 from __future__ import annotations
@@ -19,13 +20,9 @@ import numpy as np
 
 from partinspect import __version__
 from partinspect.atomic import prepare_output_dir, write_files_atomic
-from partinspect.production import spc
+from partinspect.production import export, spc
 
 CONFIDENCE = 0.95
-MEASUREMENT_COLUMNS = ("serial", "measured_at", "batch_id", "subgroup", "verdict", "step_file", "step_sha256",
-                       "characteristic", "type", "feature", "unit", "nominal", "measured", "deviation",
-                       "standard_uncertainty", "expanded_uncertainty", "coverage_factor", "lower_limit",
-                       "upper_limit", "decision", "limit_source", "rule")
 SUMMARY_COLUMNS = ("characteristic", "type", "unit", "n", "chart", "subgroup_size", "subgroups", "lower", "upper",
                    "mean", "s", "sigma_within", "cp", "cpk", "pp", "ppk", "U", "q_mp", "capable_measurement", "tests",
                    "range_out", "fails", "inconclusive")
@@ -155,11 +152,6 @@ def _cell(v):
     return "" if v is None else v
 
 
-def _stored(v):
-    """A value as the database holds it (Python's shortest exact repr for floats)."""
-    return "" if v is None else v
-
-
 def summary_rows(data):
     """spc.csv's rows: the table of the page, one per characteristic."""
     out = []
@@ -180,7 +172,7 @@ def write_spc_files(out, rows, *, title, source, subgroup_size=None):
     write_files_atomic({
         page: render_spc_html(data).encode("utf-8"),
         out / "spc.csv": _csv(SUMMARY_COLUMNS, summary_rows(data)),
-        out / "measurements.csv": _csv(MEASUREMENT_COLUMNS, with_subgroups(rows, subgroup_size), _stored),
+        out / "measurements.csv": export.csv_bytes(with_subgroups(rows, subgroup_size)),
     })
     return page
 
@@ -203,15 +195,34 @@ def check_subgroup_size(size):
     return size
 
 
-def run_spc(db, out, *, subgroup_size=None):
-    """``inspect spc DB -o OUT``: the SPC files over every part of an existing results database."""
+def run_spc(db, out, *, subgroup_size=None, export_to=None):
+    """``inspect spc DB [-o OUT] [--export FILE]``: the SPC files and/or the export of an existing results database.
+
+    Returns
+    -------
+    list of Path
+        What was written: spc.html (when ``out``), the export file (when ``export_to``).
+    """
     from partinspect.atomic import check_output_dir
-    from partinspect.production.database import database_url, open_database
+    from partinspect.production.database import database_url, measurements, open_database, shown_url
 
     check_subgroup_size(subgroup_size)
-    check_output_dir(out)
-    engine = open_database(database_url(db, Path(out)), create=False)
+    if export_to is not None:
+        if Path(export_to).suffix.lower() not in export.FORMATS:
+            export.export_bytes(export_to, [])  # the one-line error naming the file
+        check_output_dir(Path(export_to).parent)
+    if out is not None:
+        check_output_dir(out)
+    engine = open_database(database_url(db, Path(out or ".")), create=False)
+    written = []
     try:
-        return write_spc_page(engine, out, title=f"SPC of {Path(str(db)).name}", subgroup_size=subgroup_size)
+        if out is not None:
+            written.append(write_spc_page(engine, out, title=f"SPC of {Path(str(db)).name}",
+                                          subgroup_size=subgroup_size))
+        if export_to is not None:
+            rows = with_subgroups(measurements(engine), subgroup_size)
+            written.append(export.write_export(export_to, rows, source=shown_url(
+                engine.url.render_as_string(hide_password=True))))
     finally:
         engine.dispose()
+    return written
