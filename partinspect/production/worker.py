@@ -54,6 +54,22 @@ def cached_model(path):
     return model
 
 
+def share_cpus(threads):
+    """Make this worker process compute on ``threads`` CPUs (a local pool's initializer).
+
+    OpenCV's thread pool gets ``threads`` threads; with fewer than two, the
+    pipeline forks no second process (:mod:`partinspect.vision.forked`):
+    the batch's other workers have the other CPUs.
+    """
+    import cv2
+
+    from partinspect.vision import forked
+
+    cv2.setNumThreads(threads)
+    if threads < 2:
+        forked.ENABLED = False
+
+
 def inspect_part(job, out):
     """Inspect one part of a batch into ``out/SERIAL``; never raises for the part's own failure.
 
