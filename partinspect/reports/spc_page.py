@@ -120,11 +120,13 @@ def xbar_r_chart(c):
                     (c["r_ucl"], "R UCL", "#9a6700", "dash")], k, yaxis="y2")
     layout = {"height": 380, "margin": {"l": 70, "r": 20, "t": 10, "b": 40}, "showlegend": True,
               "legend": {"orientation": "h", "y": -0.18, "font": {"size": 10}},
+              # The subgroups' axis under the R chart; the X-bar chart above shares it.
               "xaxis": {"title": {"text": f"subgroup of {c['subgroup_size']} (production order)"}, "zeroline": False,
+                        "anchor": "y2",
                         **({"tickvals": x, "ticktext": c["subgroup_labels"], "tickangle": -45} if k <= 30 else {})},
-              "yaxis": {"title": {"text": f"mean [{u}]"}, "domain": [0.42, 1.0], "zeroline": False,
+              "yaxis": {"title": {"text": f"mean [{u}]"}, "domain": [0.40, 1.0], "zeroline": False,
                         "exponentformat": "none"},
-              "yaxis2": {"title": {"text": f"range [{u}]"}, "domain": [0.0, 0.32], "zeroline": False,
+              "yaxis2": {"title": {"text": f"range [{u}]"}, "domain": [0.0, 0.30], "zeroline": False,
                          "exponentformat": "none", "anchor": "x"},
               "plot_bgcolor": "#fff", "paper_bgcolor": "#fff"}
     return {"data": data, "layout": layout}

@@ -161,3 +161,25 @@ def test_a_subgroup_size_without_chart_constants_is_refused(line_db, tmp_path, c
     err = capsys.readouterr().err
     assert err == ("inspect: error: --subgroup-size 12: X-bar/R charts take subgroups of 2 to 10 parts "
                    "(ISO 7870-2's constants); 1 charts parts one by one\n")
+
+
+def test_the_xbar_r_chart_draws_in_a_real_browser(lots_db, tmp_path):
+    """Headless Chromium (tests/reports/cdp.py): no error or CSP violation, nothing fetched, both panels drawn."""
+    from tests.reports.cdp import Browser, find_chromium
+
+    chromium = find_chromium()
+    if chromium is None:
+        pytest.skip("Chromium is not installed (scripts/install.sh installs it)")
+    assert main(["spc", str(lots_db[0]), "-o", str(tmp_path / "out"), "-q"]) == 0
+    (tmp_path / "profile").mkdir()
+    with Browser(chromium, tmp_path / "profile", width=1300, height=900) as browser:
+        browser.open((tmp_path / "out" / "spc.html").resolve().as_uri())
+        assert browser.errors() == []
+        assert [u for u in browser.requests() if not u.startswith(("file:", "data:"))] == []
+        traces, panels, points = browser.evaluate(
+            "[document.getElementById('xbar-0').data.length, "
+            "[...document.querySelectorAll('#xbar-0 g.subplot')].map(g => g.getAttribute('class')).sort(), "
+            "document.querySelectorAll('#xbar-0 g.trace.scatter path.point').length]")
+    assert traces >= 6                              # means, ranges, their centre lines and limits
+    assert panels == ["subplot xy", "subplot xy2"]  # the X-bar panel above the R panel
+    assert points >= 8                              # 4 subgroup means and 4 ranges drawn
