@@ -119,7 +119,6 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     """
     from partinspect.production.database import database_url, open_database, record_part, shown_url, start_batch
     from partinspect.production.manifest import read_manifest
-
     from partinspect.production.spc_report import check_subgroup_size
 
     check_subgroup_size(subgroup_size)
@@ -180,9 +179,9 @@ def _run_locally(jobs, out, workers):
     workers' threads the same way.
     """
     from partinspect.production.worker import inspect_part, share_cpus
-    from partinspect.vision.forked import available_cpus
 
-    workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
+    cpus = os.cpu_count() or 1
+    workers = min(workers or cpus, max(len(jobs), 1))
     if workers == 1:
         # One worker: this process is it (warm across parts all the same), with every CPU.
         for job in jobs:
@@ -191,7 +190,7 @@ def _run_locally(jobs, out, workers):
     import concurrent.futures as cf
     import multiprocessing
 
-    threads = max(1, available_cpus() // workers)
+    threads = max(1, cpus // workers)
     # forkserver: a clean worker, not a copy of this process's database
     # connection; the package is imported once in the server, then forked.
     # The server, started by a process's first batch, keeps the thread

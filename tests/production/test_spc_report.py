@@ -183,3 +183,21 @@ def test_the_xbar_r_chart_draws_in_a_real_browser(lots_db, tmp_path):
     assert traces >= 6                              # means, ranges, their centre lines and limits
     assert panels == ["subplot xy", "subplot xy2"]  # the X-bar panel above the R panel
     assert points >= 8                              # 4 subgroup means and 4 ranges drawn
+
+
+def test_a_subgroup_s_wide_range_is_named_on_the_page():
+    from partinspect.production.spc_report import spc_data
+    from partinspect.reports.spc_page import render_spc_html
+
+    x = 12.0 + 0.001 * np.random.default_rng(1).standard_normal(40)
+    x[17] += 0.02                                            # one part far off: its subgroup's range is wide
+    rows = [{"serial": f"S{i:02d}", "measured_at": datetime(2026, 1, 1, 0, i), "subgroup": str(i // 4),
+             "characteristic": "circle-1.diameter", "type": "diameter", "unit": "mm", "measured": v,
+             "standard_uncertainty": 0.001, "expanded_uncertainty": 0.002, "lower_limit": 11.9, "upper_limit": 12.1,
+             "decision": "pass", "step_sha256": "a", "step_file": "p.step"} for i, v in enumerate(x)]
+    data = spc_data(rows, title="t", source="s")
+    c = data["characteristics"][0]
+    assert c["chart"] == "xbar-r" and c["range_violations"] == [4] and c["range_out"] == 1
+    html = render_spc_html(data)
+    notice = html[html.index('id="special-causes"'):]
+    assert "1 subgroup range(s) beyond the R chart's limits" in notice[:notice.index("</p>")]
