@@ -10,8 +10,10 @@ run, times
 - `inspect batch MANIFEST -o OUT` with the default workers (one per core),
   sampling the resident memory of its worker processes.
 
-Prints parts per minute of each and their ratio, the peak RSS per worker,
-and the batch's own check: the parts that fail, the tests the SPC page
+Prints parts per minute of each and their ratio, the CPU seconds each
+spent per part (all their processes: on a machine shared with other jobs
+the wall-clock ratio moves with the load, the CPU time much less), the
+peak RSS per worker, and the batch's own check: the parts that fail, the tests the SPC page
 fired on circle-4.diameter and its Cpk beside one computed here from the
 database with numpy.
 """
@@ -19,6 +21,7 @@ database with numpy.
 import argparse
 import csv
 import os
+import resource
 import sqlite3
 import subprocess
 import sys
@@ -49,12 +52,18 @@ def render_parts(n, folder, drift):
     return parts
 
 
+def _children_cpu():
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def shell_loop(parts, out):
-    t0 = time.perf_counter()
+    """Wall seconds and CPU seconds (the processes and the children they waited for) of the loop."""
+    t0, c0 = time.perf_counter(), _children_cpu()
     for serial, images, _ in parts:
         subprocess.run([sys.executable, "-m", "partinspect", str(PART), str(images), "-o", str(out / serial), "-q"],
                        env=_env(), capture_output=True)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, _children_cpu() - c0
 
 
 def _env():
@@ -73,8 +82,8 @@ def batch(parts, out, workers):
     cmd = [sys.executable, "-m", "partinspect", "batch", str(manifest), "-o", str(out), "-q"]
     if workers:
         cmd += ["--workers", str(workers)]
-    peak = {}
-    t0 = time.perf_counter()
+    peak, cpu = {}, {}
+    t0, c0 = time.perf_counter(), _children_cpu()
     proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     done = threading.Event()
 
@@ -84,6 +93,8 @@ def batch(parts, out, workers):
             try:
                 for c in me.children(recursive=True):
                     peak[c.pid] = max(peak.get(c.pid, 0), c.memory_info().rss)
+                    t = c.cpu_times()
+                    cpu[c.pid] = t.user + t.system  # the workers' own; their children are sampled too
             except psutil.Error:
                 pass
             time.sleep(0.5)
@@ -93,9 +104,12 @@ def batch(parts, out, workers):
     _, err = proc.communicate()
     done.set()
     elapsed = time.perf_counter() - t0
+    # The batch process itself (waited for here), and its workers and forkserver
+    # as last sampled (they are not its waited children: up to 0.5 s each unseen).
+    cpu_total = _children_cpu() - c0 + sum(cpu.values())
     # The forkserver holds only the package; the workers are the big ones.
     workers_rss = sorted(peak.values())[-(workers or os.cpu_count()):]
-    return elapsed, proc.returncode, err.decode(), workers_rss
+    return elapsed, proc.returncode, err.decode(), workers_rss, cpu_total
 
 
 def check(out):
@@ -122,17 +136,20 @@ def main():
     parts = render_parts(args.n, root / "parts", args.drift)
     print(f"{args.n} plates, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}", flush=True)
     if not args.no_baseline:
-        loop = shell_loop(parts, root / "loop")
-        print(f"shell loop of `inspect`: {loop:7.1f} s  {60 * args.n / loop:5.2f} parts/min", flush=True)
+        loop, loop_cpu = shell_loop(parts, root / "loop")
+        print(f"shell loop of `inspect`: {loop:7.1f} s  {60 * args.n / loop:5.2f} parts/min  "
+              f"{loop_cpu / args.n:5.2f} CPU s/part", flush=True)
     out = root / "batch"
     if out.exists():
         import shutil
 
         shutil.rmtree(out)
-    elapsed, code, err, rss = batch(parts, out, args.workers)
-    print(f"inspect batch:           {elapsed:7.1f} s  {60 * args.n / elapsed:5.2f} parts/min  (exit code {code})")
+    elapsed, code, err, rss, cpu = batch(parts, out, args.workers)
+    print(f"inspect batch:           {elapsed:7.1f} s  {60 * args.n / elapsed:5.2f} parts/min  "
+          f"{cpu / args.n:5.2f} CPU s/part  (exit code {code})")
     if not args.no_baseline:
-        print(f"speed-up: {loop / elapsed:.2f}x")
+        print(f"speed-up: {loop / elapsed:.2f}x (CPU per part {loop_cpu / cpu:.2f}x less); "
+              f"load average {os.getloadavg()[0]:.1f} at the end")
     print("peak RSS per worker: " + ", ".join(f"{r / 2**20:.0f} MB" for r in rss))
     if err.strip():
         print("stderr: " + err.strip())

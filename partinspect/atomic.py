@@ -120,6 +120,22 @@ def check_output_dir(path):
     return path
 
 
+def remove_stale_temporaries(folder):
+    """Remove the temporary files and write probes a killed writer left in ``folder`` (SIGKILL skips cleanups).
+
+    Only for a folder no other process writes into at the time: a batch
+    calls it before it redoes a part whose earlier try was killed.
+    Returns the number of files removed.
+    """
+    removed = 0
+    folder = Path(folder)
+    for tmp in [*folder.glob(".*.tmp"), *folder.glob(".write-test-*")]:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+            removed += 1
+    return removed
+
+
 def prepare_output_dir(path):
     """Create the output folder if needed and check it is writable.
 

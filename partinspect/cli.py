@@ -51,7 +51,9 @@ other commands:
   inspect batch MANIFEST -o OUT [--db URL] [--resume] [--workers N] [--scheduler tcp://HOST:PORT]
                                           inspect many parts (CSV/YAML manifest or SERIAL/images/
                                           folders), record them in a results database, write an SPC page
-  inspect spc DB [-o OUT]                 statistical process control page of a results database
+  inspect spc DB [-o OUT] [--export FILE.csv|FILE.parquet]
+                                          statistical process control page of a results database,
+                                          or its table of every part and characteristic
   (inspect COMMAND --help for each)
 
 exit codes: 0 pass, 1 fail, 3 inconclusive, 2 the run could not be made."""
@@ -284,7 +286,7 @@ def _batch_parser():
         description=(
             "Inspect many parts: one report folder OUT/SERIAL/ each, every characteristic recorded in a results "
             "database (OUT/results.sqlite unless --db), and OUT/spc.html over the batch. MANIFEST is a CSV file "
-            "with columns serial,step,images[,spec][,time], a YAML file with the same keys in a list under "
+            "with columns serial,step,images[,spec][,time][,subgroup], a YAML file with the same keys in a list under "
             "'parts:', or a folder of SERIAL/images/ with --step; paths are relative to the manifest. A bad line "
             "is reported (file:line: problem) and the rest run. Exit code: 2 if any part could not be run, else "
             "1 if any fails, else 3 if any is inconclusive, else 0."
@@ -300,6 +302,9 @@ def _batch_parser():
     p.add_argument("--workers", metavar="N", type=int, help="local worker processes (default: one per core)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run the parts on this Dask distributed "
                    "cluster (its workers must see the same paths)")
+    p.add_argument("--subgroup-size", metavar="N", type=int, help="SPC page: X-bar/R charts of consecutive parts "
+                   "in subgroups of N (2 to 10); 1: individuals charts (default: the manifest's subgroup column "
+                   "where it has one)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no summary")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -310,14 +315,19 @@ def _spc_parser():
         prog="inspect spc",
         description=(
             "Statistical process control of a results database: per characteristic the run chart with limits and "
-            "each part's +-U, Cp, Cpk, Pp, Ppk with confidence intervals (ISO 22514-2), an individuals control "
-            "chart with rule violations (ISO 7870-2) and the measuring system's U against the tolerance. Writes "
+            "each part's +-U, Cp, Cpk, Pp, Ppk with confidence intervals (ISO 22514-2), an individuals or X-bar/R "
+            "control chart with rule violations (ISO 7870-2) and the measuring system's U against the tolerance. Writes "
             "OUT/spc.html, OUT/spc.csv (one row per characteristic) and OUT/measurements.csv (one row per part "
-            "and characteristic)."
+            "and characteristic); --export writes that table alone as CSV or Parquet."
         ),
     )
     p.add_argument("db", metavar="DB", help="the results database: a SQLite file or a database URL")
-    p.add_argument("-o", "--output", metavar="OUT", default="spc", help="output folder (default: ./spc)")
+    p.add_argument("-o", "--output", metavar="OUT", help="output folder (default: ./spc, none with --export alone)")
+    p.add_argument("--export", metavar="FILE", help="one row per characteristic per part (serial, time stamp, "
+                   "subgroup, value, u, U, limits, decision) as FILE.csv or FILE.parquet")
+    p.add_argument("--subgroup-size", metavar="N", type=int, help="X-bar/R charts of consecutive parts in "
+                   "subgroups of N (2 to 10); 1: individuals charts (default: the subgroups the manifest gave, "
+                   "else individuals)")
     p.add_argument("-q", "--quiet", action="store_true", help="no summary")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -331,6 +341,7 @@ def _run_batch(args):
     progress = _progress(args.quiet)
     result = run_batch(args.manifest, args.output, db=args.db, step=args.step, resume=args.resume,
                        workers=args.workers, scheduler=args.scheduler, progress=progress,
+                       subgroup_size=args.subgroup_size,
                        on_problem=lambda line: print(f"inspect batch: {line}", file=sys.stderr, flush=True))
     if not args.quiet:
         try:
@@ -341,13 +352,15 @@ def _run_batch(args):
 
 
 def _run_spc(args):
-    if not args.output:
+    if args.output == "":
         raise InputError(None, "-o: the output folder name is empty")
     from partinspect.production.spc_report import run_spc
 
-    page = run_spc(args.db, args.output)
+    # The page goes to -o, or ./spc when no --export asks for the table alone.
+    out = args.output if args.output is not None or args.export is not None else "spc"
+    written = run_spc(args.db, out, subgroup_size=args.subgroup_size, export_to=args.export)
     if not args.quiet:
-        print(f"wrote {page}", flush=True)
+        print(f"wrote {' and '.join(str(p) for p in written)}", flush=True)
     return EXIT_PASS
 
 

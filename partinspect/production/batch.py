@@ -14,6 +14,7 @@ run is the most urgent: its result is unknown, and it may hide a fail.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,7 +82,7 @@ def batch_exit_code(codes, problems=0):
 
 
 def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, scheduler=None, progress=quiet,
-              on_problem=None, spc=True):
+              on_problem=None, spc=True, subgroup_size=None):
     """Inspect every part of ``manifest`` into ``out/SERIAL/`` and record them in the results database.
 
     Parameters
@@ -109,6 +110,8 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
         read, and each part that could not be run, as soon as it is back.
     spc : bool
         Write ``out/spc.html`` over the batch's parts when done.
+    subgroup_size : int, optional
+        The SPC page's subgroups (:func:`partinspect.production.spc_report.with_subgroups`).
 
     Returns
     -------
@@ -116,7 +119,9 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     """
     from partinspect.production.database import database_url, open_database, record_part, shown_url, start_batch
     from partinspect.production.manifest import read_manifest
+    from partinspect.production.spc_report import check_subgroup_size
 
+    check_subgroup_size(subgroup_size)
     jobs, problems = read_manifest(manifest, step)
     for line in problems:
         (on_problem or progress)(line)
@@ -146,29 +151,55 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     if spc:
         from partinspect.production.spc_report import write_spc_page
 
-        result.spc_page = write_spc_page(engine, out, batch_id=batch_id, title=f"SPC of batch {out.name}")
+        result.spc_page = write_spc_page(engine, out, batch_id=batch_id, title=f"SPC of batch {out.name}",
+                                         subgroup_size=subgroup_size)
     engine.dispose()
     return result
 
 
-def _run_locally(jobs, out, workers):
-    """Each finished part's record, from a pool of worker processes that live through the batch."""
-    from partinspect.production.worker import inspect_part
+#: Modules the forkserver imports once, so that every worker forked from it
+#: starts with them: the pipeline's stages import theirs on first use.
+PRELOAD = ("partinspect.pipeline", "partinspect.production.worker", "partinspect.adaptive",
+           "partinspect.vision.stereo", "partinspect.vision.epipolar_drift", "partinspect.cad.model",
+           "partinspect.cad.registration", "partinspect.cad.visibility", "partinspect.tolerances.evaluate",
+           "partinspect.tolerances.loading", "partinspect.reports.writer")
+#: Thread pools sized by the environment when a library loads (OpenBLAS, OpenMP, MKL).
+THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
-    workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
+
+def _run_locally(jobs, out, workers):
+    """Each finished part's record, from a pool of worker processes that live through the batch.
+
+    The workers share the CPUs: each computes on ``CPUs // workers`` of
+    them (at least one), its libraries' thread pools sized to that and, with
+    fewer than two, no forked child of its own (:mod:`partinspect.vision.forked`).
+    Two workers on two CPUs each running two BLAS and OpenCV threads, or
+    forking a second process whenever the load average lags behind, would
+    compute four-to-a-pair and take turns; Dask's nanny limits its
+    workers' threads the same way.
+    """
+    from partinspect.production.worker import inspect_part, share_cpus
+
+    cpus = os.cpu_count() or 1
+    workers = min(workers or cpus, max(len(jobs), 1))
     if workers == 1:
-        # One worker: this process is it (warm across parts all the same).
+        # One worker: this process is it (warm across parts all the same), with every CPU.
         for job in jobs:
             yield inspect_part(job, out)
         return
     import concurrent.futures as cf
     import multiprocessing
 
+    threads = max(1, cpus // workers)
     # forkserver: a clean worker, not a copy of this process's database
     # connection; the package is imported once in the server, then forked.
+    # The server, started by a process's first batch, keeps the thread
+    # variables it started with.
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["partinspect.pipeline", "partinspect.production.worker"])
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    ctx.set_forkserver_preload(list(PRELOAD))
+    with _environment({v: str(threads) for v in THREAD_VARIABLES}), \
+            cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=share_cpus,
+                                   initargs=(threads,)) as pool:
         futures = {pool.submit(inspect_part, job, out): job for job in jobs}
         try:
             for f in cf.as_completed(futures):
@@ -182,6 +213,19 @@ def _run_locally(jobs, out, workers):
             for f in futures:
                 f.cancel()
             raise
+
+
+@contextlib.contextmanager
+def _environment(values):
+    """``os.environ`` with ``values`` set (those the user set are kept), restored on exit."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update({k: v for k, v in values.items() if old[k] is None})
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
 
 
 def _run_on_dask(jobs, out, scheduler):
@@ -218,6 +262,6 @@ def _lost(job, exc):
                      "measured_at": job.time or datetime.now(timezone.utc).replace(tzinfo=None, microsecond=0),
                      "software_version": __version__, "status": "failed", "exit_code": EXIT_ERROR, "verdict": None,
                      "error": f"its worker was lost: {type(exc).__name__}: {' '.join(str(exc).split())}",
-                     "seconds": 0.0},
+                     "seconds": 0.0, "subgroup": job.subgroup},
             "characteristics": []}
 

@@ -61,6 +61,8 @@ def _tables(version):
     ]
     if version >= 2:
         parts.append(sa.Column("worker", sa.String(200)))
+    if version >= 3:
+        parts.append(sa.Column("subgroup", sa.String(200)))
     sa.Table("parts", md, *parts)
     sa.Table(
         "characteristics", md,
@@ -100,8 +102,13 @@ def _add_worker_and_index(conn):
     conn.execute(sa.text("CREATE INDEX ix_characteristics_name ON characteristics (characteristic)"))
 
 
+def _add_subgroup(conn):
+    # The rational subgroup (lot, sample) a part was taken in: X-bar/R charts.
+    conn.execute(sa.text("ALTER TABLE parts ADD COLUMN subgroup VARCHAR(200)"))
+
+
 #: Ordered steps; step i (1-based) takes the schema from version i - 1 to i.
-MIGRATIONS = (_create_v1, _add_worker_and_index)
+MIGRATIONS = (_create_v1, _add_worker_and_index, _add_subgroup)
 SCHEMA_VERSION = len(MIGRATIONS)
 TABLES = _tables(SCHEMA_VERSION).tables
 
@@ -250,20 +257,24 @@ def measurements(engine, batch_id=None):
     """Every characteristic of every part inspected (status done), one row each, in time order.
 
     A serial inspected in several batches counts once, with its latest
-    inspection. ``batch_id`` limits the rows to one batch.
+    inspection. ``batch_id`` limits the rows to one batch. A database of
+    an older schema (read, not upgraded) gives None where it has no column.
 
     Returns
     -------
     list of dict
-        Keys: serial, measured_at, batch_id, verdict, step_file,
+        Keys: serial, measured_at, batch_id, subgroup, verdict, step_file,
         step_sha256, and the columns of ``characteristics`` but its ids.
     """
     p, c = TABLES["parts"], TABLES["characteristics"]
+    with engine.connect() as conn:
+        have = {col["name"] for col in sa.inspect(conn).get_columns("parts")}
     where = [p.c.status == DONE]
     if batch_id is not None:
         where.append(p.c.batch_id == batch_id)
     latest = sa.select(sa.func.max(p.c.id)).where(*where).group_by(p.c.serial).scalar_subquery()
-    cols = [p.c.serial, p.c.measured_at, p.c.batch_id, p.c.verdict, p.c.step_file, p.c.step_sha256,
+    subgroup = p.c.subgroup if "subgroup" in have else sa.null().label("subgroup")
+    cols = [p.c.serial, p.c.measured_at, p.c.batch_id, subgroup, p.c.verdict, p.c.step_file, p.c.step_sha256,
             *[col for col in c.c if col.name not in ("id", "part_id")]]
     query = (sa.select(*cols).join(p, c.c.part_id == p.c.id).where(p.c.id.in_(latest))
              .order_by(p.c.measured_at, p.c.serial, c.c.characteristic))

@@ -1,8 +1,10 @@
 """A batch's manifest: which parts to inspect, read from CSV, YAML or a folder layout.
 
 CSV: a header row naming the columns ``serial, step, images`` and
-optionally ``spec`` (the tolerance file) and ``time`` (ISO 8601 time stamp
-of the measurement), one part per row. YAML: a list of mappings with the
+optionally ``spec`` (the tolerance file), ``time`` (ISO 8601 time stamp
+of the measurement) and ``subgroup`` (the rational subgroup the part was
+taken in: a lot, an hourly sample; the SPC page then draws X-bar/R
+charts), one part per row. YAML: a list of mappings with the
 same keys under ``parts:``; ``step:`` and ``spec:`` at the top are every
 part's default. A folder: one sub-folder per serial number holding
 ``images/``, with the STEP file given on the command line. Paths are
@@ -23,7 +25,7 @@ from pathlib import Path
 
 from partinspect.errors import InputError
 
-COLUMNS = ("serial", "step", "images", "spec", "time")
+COLUMNS = ("serial", "step", "images", "spec", "time", "subgroup")
 REQUIRED = ("serial", "step", "images")
 # A serial names its report folder: no separators, no leading dot.
 SERIAL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,199}")
@@ -39,6 +41,7 @@ class Job:
     spec: Path | None = None
     time: datetime | None = None
     line: int | None = None
+    subgroup: str | None = None
 
 
 def read_manifest(path, step=None):
@@ -109,7 +112,10 @@ def _job(base, line, row):
     step = _existing(base, row["step"], "STEP file", Path.is_file)
     images = _existing(base, row["images"], "images folder", Path.is_dir)
     spec = _existing(base, row["spec"], "tolerance spec", Path.is_file) if row.get("spec") else None
-    return Job(serial, step, images, spec, _time(row.get("time")), line)
+    subgroup = str(row.get("subgroup") or "").strip() or None
+    if subgroup is not None and len(subgroup) > 200:
+        raise ValueError("subgroup longer than 200 characters")
+    return Job(serial, step, images, spec, _time(row.get("time")), line, subgroup)
 
 
 def _existing(base, value, what, check):
@@ -140,12 +146,12 @@ def _csv_rows(path):
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
             if reader.fieldnames is None:
-                raise InputError(path, "the manifest is empty (expected a header row: serial,step,images[,spec][,time])")
+                raise InputError(path, "the manifest is empty (expected a header row: serial,step,images[,spec][,time][,subgroup])")
             header = [(h or "").strip().lower() for h in reader.fieldnames]
             missing = [c for c in REQUIRED if c not in header]
             if missing:
                 raise InputError(path, f"line 1: the header lacks column(s) {', '.join(missing)} "
-                                 "(expected serial,step,images[,spec][,time])")
+                                 "(expected serial,step,images[,spec][,time][,subgroup])")
             rows = []
             for raw in reader:
                 row = {h: (v or "").strip() for h, v in zip(header, raw.values()) if h}

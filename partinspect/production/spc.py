@@ -5,10 +5,14 @@ measured values in production order (mm or whatever the characteristic's
 unit is). No I/O.
 
 Two standard deviations, as ISO 22514-2 distinguishes them: the *within*
-one, sigma_w = mean moving range / d2 (short-term, from consecutive
-parts), gives Cp and Cpk; the *overall* one, the sample standard deviation
-s, gives Pp and Ppk. A drifting process has sigma_w < s, so Cpk > Ppk
-flags the drift as much as the control chart does.
+one (short-term) gives Cp and Cpk; the *overall* one, the sample standard
+deviation s, gives Pp and Ppk. A drifting process has sigma_w < s, so
+Cpk > Ppk flags the drift as much as the control chart does. Parts taken
+one at a time give sigma_w = mean moving range / d2 and an individuals
+chart; parts taken in rational subgroups of n = 2 to 10 (a lot, an hour's
+sample) give sigma_w = mean subgroup range / d2(n) and an X-bar/R chart,
+whose means show a shift of the process sooner and whose ranges show its
+spread [2].
 
 References
 ----------
@@ -25,10 +29,18 @@ References
        special causes. Journal of Quality Technology 16(4), 237-239.
 .. [6] VDA Volume 5 (2021), Measurement and inspection processes;
        ISO 22514-7:2021, Capability of measurement processes.
+.. [7] Montgomery, D. C. (2009). Introduction to Statistical Quality
+       Control, 6th ed. Wiley: Appendix VI (the chart constants), the
+       piston-ring inside diameters (25 subgroups of 5).
+.. [8] Duncan, A. J. (1986). Quality Control and Industrial Statistics,
+       5th ed. Irwin: the mean range's degrees of freedom, about
+       0.9 k (n - 1) for k subgroups of n.
 """
 
+from collections import Counter
+
 import numpy as np
-from scipy import stats
+from scipy import special
 
 #: E[|X1 - X2|] / sigma for two independent normal values: 2 / sqrt(pi).
 D2 = 2.0 / np.sqrt(np.pi)
@@ -39,6 +51,23 @@ D4 = 3.267
 MR_DOF_RATIO = 0.62
 #: VDA 5's usual limit of the measurement process capability ratio Q_MP.
 Q_LIMIT = 0.30
+
+#: Chart constants of subgroups of n values (ISO 7870-2 [2], the tables of
+#: [7]): n -> (A2, D3, D4, d2). X-bar limits x_bar_bar -+ A2 R_bar, range limits
+#: D3 R_bar and D4 R_bar, sigma_w = R_bar / d2.
+XBAR_R_CONSTANTS = {
+    2: (1.880, 0.000, 3.267, 1.128),
+    3: (1.023, 0.000, 2.574, 1.693),
+    4: (0.729, 0.000, 2.282, 2.059),
+    5: (0.577, 0.000, 2.114, 2.326),
+    6: (0.483, 0.000, 2.004, 2.534),
+    7: (0.419, 0.076, 1.924, 2.704),
+    8: (0.373, 0.136, 1.864, 2.847),
+    9: (0.337, 0.184, 1.816, 2.970),
+    10: (0.308, 0.223, 1.777, 3.078),
+}
+#: Degrees of freedom of R_bar / d2 per degree of freedom of the pooled s ([8]).
+RANGE_DOF_RATIO = 0.9
 
 RULES = {
     1: "a point beyond the 3-sigma control limits",
@@ -76,6 +105,54 @@ def individuals_limits(x):
             "mr_mean": sigma * D2, "mr_ucl": D4 * sigma * D2}
 
 
+def subgroups_of(labels):
+    """The subgroups of values labelled ``labels`` (n,), in order of their first value.
+
+    Returns
+    -------
+    list of ndarray of int
+        Each subgroup's indices into the values, in production order.
+    """
+    order, members = [], {}
+    for i, key in enumerate(labels):
+        if key not in members:
+            order.append(key)
+            members[key] = []
+        members[key].append(i)
+    return [np.array(members[k], int) for k in order]
+
+
+def subgroup_size(groups):
+    """The subgroup size n a chart takes: the most common one (the larger on a tie)."""
+    counts = Counter(len(g) for g in groups)
+    return max(counts, key=lambda n: (counts[n], n)) if counts else 0
+
+
+def xbar_r_limits(means, ranges, n):
+    """Control limits of the X-bar and R charts of subgroups of ``n`` values, ISO 7870-2.
+
+    Parameters
+    ----------
+    means, ranges : ndarray (k,)
+        Each subgroup's mean and range (largest minus smallest value).
+    n : int
+        The subgroups' size, 2 to 10 (:data:`XBAR_R_CONSTANTS`).
+
+    Returns
+    -------
+    dict
+        ``center`` (grand mean), ``lcl``/``ucl`` = center -+ A2 R_bar,
+        ``sigma`` = R_bar / d2 (the within standard deviation of one
+        value), ``sigma_mean`` = A2 R_bar / 3 (one sigma of a subgroup
+        mean, so that the run rules' zones are thirds of the drawn limits),
+        ``r_mean`` = R_bar, ``r_lcl`` = D3 R_bar, ``r_ucl`` = D4 R_bar, ``n``.
+    """
+    a2, d3, d4, d2 = XBAR_R_CONSTANTS[n]
+    center, r_mean = float(np.mean(means)), float(np.mean(ranges))
+    return {"center": center, "lcl": center - a2 * r_mean, "ucl": center + a2 * r_mean, "sigma": r_mean / d2,
+            "sigma_mean": a2 * r_mean / 3, "r_mean": r_mean, "r_lcl": d3 * r_mean, "r_ucl": d4 * r_mean, "n": n}
+
+
 def capability_indices(mean, sigma, lower, upper):
     """Potential (Cp) and actual (Cpk) capability for a mean and a standard deviation.
 
@@ -108,7 +185,8 @@ def cp_interval(cp, dof, confidence=0.95):
     if cp is None or not dof > 0:
         return None
     a = 1 - confidence
-    return (cp * np.sqrt(stats.chi2.ppf(a / 2, dof) / dof), cp * np.sqrt(stats.chi2.ppf(1 - a / 2, dof) / dof))
+    # chdtri(nu, q): the chi-square quantile with upper tail q (scipy.special, no scipy.stats import).
+    return (cp * np.sqrt(special.chdtri(dof, 1 - a / 2) / dof), cp * np.sqrt(special.chdtri(dof, a / 2) / dof))
 
 
 def cpk_interval(cpk, n, dof, confidence=0.95):
@@ -118,7 +196,7 @@ def cpk_interval(cpk, n, dof, confidence=0.95):
     """
     if cpk is None or not dof > 0:
         return None
-    half = stats.norm.ppf(1 - (1 - confidence) / 2) * np.sqrt(1 / (9 * n) + cpk ** 2 / (2 * dof))
+    half = special.ndtri(1 - (1 - confidence) / 2) * np.sqrt(1 / (9 * n) + cpk ** 2 / (2 * dof))
     return (cpk - half, cpk + half)
 
 
@@ -184,7 +262,7 @@ def _window_ends(flags, length, need):
     return np.flatnonzero(counts >= need) + length - 1
 
 
-def characteristic_summary(x, lower, upper, u=None, confidence=0.95):
+def characteristic_summary(x, lower, upper, u=None, confidence=0.95, subgroups=None):
     """Every SPC figure of one characteristic.
 
     Parameters
@@ -198,30 +276,58 @@ def characteristic_summary(x, lower, upper, u=None, confidence=0.95):
         measurement process's U for Q_MP.
     confidence : float
         Level of the capability indices' intervals.
+    subgroups : sequence (n,), optional
+        Each value's subgroup label (a lot, a sample taken together). With
+        subgroups of a common size of 2 to 10, at least two of them, the
+        chart is X-bar/R and sigma_w = R_bar / d2 (ISO 22514-2); subgroups of
+        another size are left out of the chart and of sigma_w, not of the
+        mean and s. Otherwise, and without labels, the individuals chart.
 
     Returns
     -------
     dict
         n, mean, s (overall), sigma_within, cp, cpk, pp, ppk, each index's
-        interval (``*_ci``, a pair or None), control ``limits``
-        (:func:`individuals_limits`), ``violations`` (rule -> indices),
-        ``u_rms``, ``U`` (2 u_rms), ``q_mp`` (2 U / T) and ``capable_measurement``
-        (q_mp <= 30 %; None when it cannot be judged).
+        interval (``*_ci``, a pair or None), ``chart`` ("individuals" or
+        "xbar-r"), control ``limits`` (:func:`individuals_limits` or
+        :func:`xbar_r_limits`), ``violations`` (rule -> indices of values,
+        or of subgroups on an X-bar chart), ``u_rms``, ``U`` (2 u_rms),
+        ``q_mp`` (2 U / T) and ``capable_measurement`` (q_mp <= 30 %; None
+        when it cannot be judged). On an X-bar/R chart also
+        ``subgroup_size``, ``subgroup_index`` (the indices of each subgroup
+        charted), ``subgroup_means``, ``subgroup_ranges``,
+        ``range_violations`` (subgroups whose range is outside the R
+        chart's limits) and ``subgroups_left_out``.
     """
     x = np.asarray(x, float)
     n = x.size
-    out = {"n": n, "mean": float(np.mean(x)) if n else None, "s": float(np.std(x, ddof=1)) if n > 1 else None}
-    limits = individuals_limits(x) if n > 1 else None
+    out = {"n": n, "mean": float(np.mean(x)) if n else None, "s": float(np.std(x, ddof=1)) if n > 1 else None,
+           "chart": "individuals"}
+    groups = subgroups_of(subgroups) if subgroups is not None and n else []
+    size = subgroup_size(groups)
+    charted = [g for g in groups if len(g) == size]
+    if 2 <= size <= max(XBAR_R_CONSTANTS) and len(charted) >= 2:
+        means = np.array([x[g].mean() for g in charted])
+        ranges = np.array([np.ptp(x[g]) for g in charted])
+        limits = xbar_r_limits(means, ranges, size)
+        out.update(chart="xbar-r", subgroup_size=size, subgroup_index=charted, subgroup_means=means,
+                   subgroup_ranges=ranges, subgroups_left_out=len(groups) - len(charted),
+                   range_violations=np.flatnonzero((ranges > limits["r_ucl"]) | (ranges < limits["r_lcl"])))
+        dof_w = RANGE_DOF_RATIO * len(charted) * (size - 1)
+        violations = run_rule_violations(means, limits["center"], limits["sigma_mean"])
+    else:
+        limits = individuals_limits(x) if n > 1 else None
+        dof_w = MR_DOF_RATIO * (n - 1)
+        violations = run_rule_violations(x, limits["center"], limits["sigma"]) if limits else {}
     sw = None if limits is None else limits["sigma"]
     out["sigma_within"] = sw
-    dof_s, dof_w = n - 1, MR_DOF_RATIO * (n - 1)
+    dof_s = n - 1
     out["cp"], out["cpk"] = capability_indices(out["mean"], sw, lower, upper) if n > 1 else (None, None)
     out["pp"], out["ppk"] = capability_indices(out["mean"], out["s"], lower, upper) if n > 1 else (None, None)
     out["cp_ci"], out["pp_ci"] = cp_interval(out["cp"], dof_w, confidence), cp_interval(out["pp"], dof_s, confidence)
     out["cpk_ci"] = cpk_interval(out["cpk"], n, dof_w, confidence)
     out["ppk_ci"] = cpk_interval(out["ppk"], n, dof_s, confidence)
     out["limits"] = limits
-    out["violations"] = run_rule_violations(x, limits["center"], limits["sigma"]) if limits else {}
+    out["violations"] = violations
     u_rms = None if u is None or len(u) == 0 else float(np.sqrt(np.mean(np.square(u))))
     out["u_rms"], out["U"] = u_rms, None if u_rms is None else 2 * u_rms
     out["q_mp"] = measurement_capability_ratio(out["U"], lower, upper)

@@ -18,6 +18,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from partinspect import __version__
+from partinspect.atomic import remove_stale_temporaries
 from partinspect.digest import sha256_file
 from partinspect.errors import InputError
 
@@ -53,6 +54,22 @@ def cached_model(path):
     return model
 
 
+def share_cpus(threads):
+    """Make this worker process compute on ``threads`` CPUs (a local pool's initializer).
+
+    OpenCV's thread pool gets ``threads`` threads; with fewer than two, the
+    pipeline forks no second process (:mod:`partinspect.vision.forked`):
+    the batch's other workers have the other CPUs.
+    """
+    import cv2
+
+    from partinspect.vision import forked
+
+    cv2.setNumThreads(threads)
+    if threads < 2:
+        forked.ENABLED = False
+
+
 def inspect_part(job, out):
     """Inspect one part of a batch into ``out/SERIAL``; never raises for the part's own failure.
 
@@ -74,6 +91,8 @@ def inspect_part(job, out):
     t0 = time.perf_counter()
     report_dir = Path(out) / job.serial
     error, report = None, None
+    # An earlier try of this part, killed while writing, may have left temporaries.
+    remove_stale_temporaries(report_dir)
     try:
         result = run_inspection(job.step, job.images, report_dir, tolerances=job.spec, load_cad=cached_model)
         report = result.report
@@ -95,6 +114,7 @@ def inspect_part(job, out):
         "software_version": __version__, "status": status, "exit_code": code, "verdict": verdict, "error": error,
         "report_dir": str(report_dir) if report is not None else None,
         "seconds": round(time.perf_counter() - t0, 3), "worker": f"{socket.gethostname()}:{os.getpid()}",
+        "subgroup": job.subgroup,
     }
     chars = [] if report is None else [{k: c.get(k) for k in CHARACTERISTIC_KEYS} for c in report["characteristics"]]
     return {"part": part, "characteristics": chars}

@@ -116,3 +116,22 @@ def test_the_batch_exit_code_rule_and_resumed_parts():
     # A resumed batch's code covers the parts done before the interruption.
     assert BatchResult(records=[{"exit_code": 0}], skipped={"S1": 1}).exit_code == 1
     assert BatchResult(records=[], skipped={"S1": 3, "S2": 0}).exit_code == 3
+
+
+def test_a_worker_computes_on_its_share_of_the_cpus(monkeypatch):
+    """Two workers on two CPUs: one OpenCV thread each, no forked second process, BLAS pools of one thread."""
+    import os
+    import subprocess
+    import sys
+
+    from partinspect.production.batch import THREAD_VARIABLES, _environment
+
+    code = ("from partinspect.production.worker import share_cpus; share_cpus(1); import cv2; "
+            "from partinspect.vision import forked; print(cv2.getNumThreads(), forked.ENABLED, forked.can_fork())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["1", "False", "False"]
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")  # the user's own setting stays
+    with _environment({v: "1" for v in THREAD_VARIABLES}):
+        assert os.environ["OPENBLAS_NUM_THREADS"] == "1" and os.environ["OMP_NUM_THREADS"] == "3"
+    assert "OPENBLAS_NUM_THREADS" not in os.environ and os.environ["OMP_NUM_THREADS"] == "3"

@@ -25,8 +25,8 @@ def _char(cid, measured, decision="pass"):
 def test_a_new_database_has_the_current_schema(tmp_path):
     engine = db.open_database(f"sqlite:///{tmp_path / 'r.sqlite'}")
     with engine.connect() as conn:
-        assert db.schema_version(conn) == db.SCHEMA_VERSION == 2
-        assert "worker" in {c["name"] for c in sa.inspect(conn).get_columns("parts")}
+        assert db.schema_version(conn) == db.SCHEMA_VERSION == 3
+        assert {"worker", "subgroup"} <= {c["name"] for c in sa.inspect(conn).get_columns("parts")}
 
 
 def test_an_older_database_is_upgraded_and_keeps_its_rows(tmp_path):
@@ -38,14 +38,16 @@ def test_an_older_database_is_upgraded_and_keeps_its_rows(tmp_path):
     with engine.connect() as conn:
         assert "worker" not in {c["name"] for c in sa.inspect(conn).get_columns("parts")}
     engine.dispose()
-    with db.open_database(url, create=False).connect() as conn:  # read only: not upgraded
+    old = db.open_database(url, create=False)
+    with old.connect() as conn:  # read only: not upgraded
         assert db.schema_version(conn) == 1
+    assert db.measurements(old) == []  # the SPC query answers on the old schema (no subgroup column)
     engine = db.open_database(url)
     with engine.connect() as conn:
-        assert db.schema_version(conn) == 2
-        assert "worker" in {c["name"] for c in sa.inspect(conn).get_columns("parts")}
+        assert db.schema_version(conn) == 3
+        assert {"worker", "subgroup"} <= {c["name"] for c in sa.inspect(conn).get_columns("parts")}
         assert conn.execute(sa.text("SELECT software_version FROM batches")).scalar_one() == "0.0.9"
-    assert db.upgrade(engine) == (2, 2)  # nothing left to do
+    assert db.upgrade(engine) == (3, 3)  # nothing left to do
 
 
 def test_a_newer_database_is_refused(tmp_path):

@@ -57,8 +57,8 @@ def test_yaml_manifest_with_defaults_and_line_numbers(line):
     jobs, problems = read_manifest(m)
     assert [(j.serial, j.step.name) for j in jobs] == [("S1", "plate.step"), ("S2", "bracket.step")]
     assert jobs[0].time == datetime(2026, 3, 1, 6, 0) and jobs[1].time is None  # YAML's own time stamp, in UTC
-    assert problems == [f"{m}:7: unknown column(s) colour (expected serial, step, images, spec, time)",
-                        f"{m}:8: unknown column(s) (not a mapping) (expected serial, step, images, spec, time)"]
+    assert problems == [f"{m}:7: unknown column(s) colour (expected serial, step, images, spec, time, subgroup)",
+                        f"{m}:8: unknown column(s) (not a mapping) (expected serial, step, images, spec, time, subgroup)"]
 
 
 def test_folder_layout_needs_the_step_file(line):
@@ -119,3 +119,12 @@ def test_batch_and_spc_help_import_no_heavy_library():
     assert out.returncode == 0, out.stderr
     assert "HEAVY []" in out.stderr
     assert "--scheduler tcp://HOST:PORT" in out.stdout and "inspect spc" in out.stdout
+
+
+def test_a_subgroup_column_names_each_part_s_rational_subgroup(line):
+    m = line / "m.csv"
+    m.write_text("serial,step,images,subgroup\nS1,plate.step,S1/images,lot-7\nS2,plate.step,S2/images, \n"
+                 f"S3,plate.step,S3/images,{'x' * 201}\n")
+    jobs, problems = read_manifest(m)
+    assert [(j.serial, j.subgroup) for j in jobs] == [("S1", "lot-7"), ("S2", None)]
+    assert problems == [f"{m}:4: subgroup longer than 200 characters"]

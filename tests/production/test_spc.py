@@ -1,6 +1,7 @@
 """SPC maths against numbers computed by hand (and printed tables), not by the code under test."""
 
 import numpy as np
+from scipy import stats
 import pytest
 
 from partinspect.production import spc
@@ -92,3 +93,95 @@ def test_measuring_system_capability_from_the_uncertainties():
     assert r["U"] == pytest.approx(0.0068702, abs=1e-7)
     assert r["q_mp"] == pytest.approx(0.68702, abs=1e-5)
     assert r["capable_measurement"] is False
+
+
+# Montgomery's piston-ring inside diameters (mm), samples 1-25 of 5 rings each, as R's qcc
+# package ships them (data(pistonrings), the trial samples) [spc.py reference 7].
+PISTON_RINGS = np.array([
+    74.030, 74.002, 74.019, 73.992, 74.008, 73.995, 73.992, 74.001, 74.011, 74.004,
+    73.988, 74.024, 74.021, 74.005, 74.002, 74.002, 73.996, 73.993, 74.015, 74.009,
+    73.992, 74.007, 74.015, 73.989, 74.014, 74.009, 73.994, 73.997, 73.985, 73.993,
+    73.995, 74.006, 73.994, 74.000, 74.005, 73.985, 74.003, 73.993, 74.015, 73.988,
+    74.008, 73.995, 74.009, 74.005, 74.004, 73.998, 74.000, 73.990, 74.007, 73.995,
+    73.994, 73.998, 73.994, 73.995, 73.990, 74.004, 74.000, 74.007, 74.000, 73.996,
+    73.983, 74.002, 73.998, 73.997, 74.012, 74.006, 73.967, 73.994, 74.000, 73.984,
+    74.012, 74.014, 73.998, 73.999, 74.007, 74.000, 73.984, 74.005, 73.998, 73.996,
+    73.994, 74.012, 73.986, 74.005, 74.007, 74.006, 74.010, 74.018, 74.003, 74.000,
+    73.984, 74.002, 74.003, 74.005, 73.997, 74.000, 74.010, 74.013, 74.020, 74.003,
+    73.988, 74.001, 74.009, 74.005, 73.996, 74.004, 73.999, 73.990, 74.006, 74.009,
+    74.010, 73.989, 73.990, 74.009, 74.014, 74.015, 74.008, 73.993, 74.000, 74.010,
+    73.982, 73.984, 73.995, 74.017, 74.013])
+
+
+def test_xbar_r_chart_of_the_piston_rings_matches_the_textbook_figures():
+    """qcc(diameter[1:25,], type="xbar") prints centre 74.00118, std.dev 0.009785039, limits 73.98805
+    and 74.01431; type="R" centre 0.02276, limits 0 and 0.04812533 (Montgomery: x_bar_bar 74.001,
+    R_bar 0.023, limits 73.988 and 74.014). qcc takes d2 and D4 unrounded, the tables to 3 decimals:
+    the figures agree to the tables' rounding."""
+    r = spc.characteristic_summary(PISTON_RINGS, 73.95, 74.05, subgroups=np.arange(125) // 5)
+    lim = r["limits"]
+    assert r["chart"] == "xbar-r" and r["subgroup_size"] == 5 and len(r["subgroup_means"]) == 25
+    assert lim["center"] == pytest.approx(74.00118, abs=5e-6)
+    assert lim["r_mean"] == pytest.approx(0.02276, abs=5e-7)
+    assert r["sigma_within"] == pytest.approx(0.009785039, rel=1e-4)       # R_bar / 2.326
+    assert (lim["lcl"], lim["ucl"]) == pytest.approx((73.98805, 74.01431), abs=2e-5)
+    assert (lim["r_lcl"], lim["r_ucl"]) == pytest.approx((0.0, 0.04812533), abs=2e-5)
+    # In control (as the textbook finds): no mean beyond its limits, no range beyond the R chart's.
+    assert len(r["violations"][1]) == 0 and len(r["range_violations"]) == 0
+    assert r["subgroups_left_out"] == 0
+
+
+def test_xbar_r_against_an_independent_numpy_computation():
+    rng = np.random.default_rng(11)
+    n, k = 4, 20
+    x = 8.0 + 0.003 * rng.standard_normal(n * k) + np.repeat(0.002 * rng.standard_normal(k), n)
+    table = x.reshape(k, n)
+    xbar, rng_ = table.mean(axis=1), table.max(axis=1) - table.min(axis=1)
+    sigma_w = rng_.mean() / 2.059                                  # d2(4)
+    r = spc.characteristic_summary(x, 7.98, 8.03, subgroups=np.repeat(np.arange(k), n))
+    assert r["subgroup_means"] == pytest.approx(xbar) and r["subgroup_ranges"] == pytest.approx(rng_)
+    assert r["limits"]["ucl"] == pytest.approx(xbar.mean() + 0.729 * rng_.mean())
+    assert r["limits"]["r_ucl"] == pytest.approx(2.282 * rng_.mean())
+    assert r["sigma_within"] == pytest.approx(sigma_w)
+    assert r["cp"] == pytest.approx(0.05 / (6 * sigma_w))
+    assert r["cpk"] == pytest.approx(min(8.03 - x.mean(), x.mean() - 7.98) / (3 * sigma_w))
+    assert r["ppk"] == pytest.approx(min(8.03 - x.mean(), x.mean() - 7.98) / (3 * x.std(ddof=1)))
+    # Degrees of freedom 0.9 k (n - 1) = 54 for the within interval of Cp.
+    lo, hi = r["cp_ci"]
+    assert lo == pytest.approx(r["cp"] * np.sqrt(stats.chi2.ppf(0.025, 54) / 54))
+
+
+def test_chart_constants_follow_from_the_range_distribution():
+    """d2(n) = E[range of n standard normal values] = integral of 1 - Phi^n - (1 - Phi)^n; A2 = 3 / (d2 sqrt n);
+    D3 + D4 = 2 where D3 > 0 (both are 1 -+ 3 d3 / d2)."""
+    from scipy import integrate
+
+    for n, (a2, d3, d4, d2) in spc.XBAR_R_CONSTANTS.items():
+        exact = integrate.quad(lambda t: 1 - stats.norm.cdf(t) ** n - stats.norm.sf(t) ** n, -10, 10)[0]
+        assert d2 == pytest.approx(exact, abs=5e-4), n
+        assert a2 == pytest.approx(3 / (d2 * np.sqrt(n)), abs=1.5e-3), n
+        if d3 > 0:
+            assert d3 + d4 == pytest.approx(2.0, abs=1.5e-3), n
+
+
+def test_subgroups_of_another_size_are_left_out_and_single_parts_chart_as_individuals():
+    x = np.array([1.0, 1.2, 0.9, 1.1, 1.0, 1.3, 0.8, 1.0, 1.1])
+    r = spc.characteristic_summary(x, 0.0, 2.0, subgroups=["a", "a", "a", "b", "b", "b", "c", "c", "d"])
+    assert r["chart"] == "xbar-r" and r["subgroup_size"] == 3 and r["subgroups_left_out"] == 2
+    assert [list(g) for g in r["subgroup_index"]] == [[0, 1, 2], [3, 4, 5]]
+    assert r["mean"] == pytest.approx(x.mean()) and r["s"] == pytest.approx(x.std(ddof=1))
+    assert spc.characteristic_summary(x, 0.0, 2.0, subgroups=range(9))["chart"] == "individuals"
+    assert spc.characteristic_summary(x, 0.0, 2.0, subgroups=[0] * 9)["chart"] == "individuals"  # one subgroup of 9
+    assert spc.characteristic_summary(np.r_[x, x], 0.0, 2.0, subgroups=[0] * 11 + [1] * 7)["chart"] == "individuals"
+
+
+def test_a_shift_of_the_mean_fires_on_the_xbar_chart():
+    rng = np.random.default_rng(5)
+    x = 12.0 + 0.002 * rng.standard_normal(5 * 24)
+    x[5 * 16:] += 0.010                                      # the last 8 subgroups shifted by 5 sigma of a value
+    r = spc.characteristic_summary(x, 11.95, 12.05, subgroups=np.arange(x.size) // 5)
+    assert set(range(16, 24)) <= set(r["violations"][1])     # every shifted mean beyond the limits
+    assert len(r["range_violations"]) == 0                   # the spread did not change
+    x[5 * 16:] -= 0.010
+    r = spc.characteristic_summary(x, 11.95, 12.05, subgroups=np.arange(x.size) // 5)
+    assert len(r["violations"][1]) == 0

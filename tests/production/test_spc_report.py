@@ -101,3 +101,103 @@ def test_spc_of_a_missing_or_foreign_database(tmp_path, capsys):
     assert main(["spc", str(tmp_path / "x.sqlite"), "-o", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot open the results database" in err
+
+
+@pytest.fixture(scope="module")
+def lots_db(tmp_path_factory):
+    """20 parts in 4 lots of 5 (the manifest's subgroup column), the lots' means apart; then no lot for 3 parts."""
+    path = tmp_path_factory.mktemp("lots") / "lots.sqlite"
+    engine = db.open_database(f"sqlite:///{path}")
+    batch, _ = db.start_batch(engine, "lots", None, "0.1.0")
+    rng = np.random.default_rng(3)
+    x = 12.0 + 0.002 * rng.standard_normal(20) + np.repeat([0.0, 0.004, -0.002, 0.001], 5)
+    for i, value in enumerate(x):
+        part = {"serial": f"L{i:02d}", "step_file": "/line/plate.step", "step_sha256": "c" * 64, "images": "x",
+                "measured_at": datetime(2026, 3, 2, 6) + timedelta(minutes=i), "software_version": "0.1.0",
+                "status": db.DONE, "exit_code": 0, "verdict": "pass", "subgroup": f"lot-{i // 5 + 1}"}
+        db.record_part(engine, batch, part, [
+            {"id": "circle-4.diameter", "type": "diameter", "unit": "mm", "nominal": 12.0, "measured": value,
+             "standard_uncertainty": 0.001, "expanded_uncertainty": 0.002, "lower_limit": 11.95,
+             "upper_limit": 12.05, "decision": "pass"}])
+    engine.dispose()
+    return path, x
+
+
+def _spc_table(out):
+    with open(out / "spc.csv", newline="") as f:
+        return {r["characteristic"]: r for r in csv.DictReader(f)}
+
+
+def test_stored_subgroups_give_xbar_r_charts_and_the_within_sigma_from_ranges(lots_db, tmp_path):
+    path, x = lots_db
+    assert main(["spc", str(path), "-o", str(tmp_path), "-q"]) == 0
+    row = _spc_table(tmp_path)["circle-4.diameter"]
+    table = x.reshape(4, 5)
+    sigma_w = np.mean(table.max(axis=1) - table.min(axis=1)) / 2.326      # R_bar / d2(5)
+    assert (row["chart"], row["subgroup_size"], row["subgroups"]) == ("xbar-r", "5", "4")
+    assert float(row["sigma_within"]) == pytest.approx(sigma_w, rel=1e-9)
+    assert float(row["cpk"]) == pytest.approx(min(12.05 - x.mean(), x.mean() - 11.95) / (3 * sigma_w), rel=1e-9)
+    html = (tmp_path / "spc.html").read_text()
+    assert 'id="xbar-0"' in html and "X̄/R, 4 × 5" in html and "subgroup lot-2 (5 parts: L05, L06, L07, ...)" in html
+    with open(tmp_path / "measurements.csv", newline="") as f:
+        assert [r["subgroup"] for r in csv.DictReader(f)][:6] == ["lot-1"] * 5 + ["lot-2"]
+
+
+def test_subgroup_size_groups_consecutive_parts_or_charts_them_one_by_one(line_db, lots_db, tmp_path):
+    path, drift = line_db
+    assert main(["spc", str(path), "-o", str(tmp_path / "g"), "--subgroup-size", "4", "-q"]) == 0
+    row = _spc_table(tmp_path / "g")["circle-4.diameter"]
+    # 30 parts: 7 subgroups of 4 charted, the last 2 parts a subgroup left out of the chart.
+    assert (row["chart"], row["subgroup_size"], row["subgroups"]) == ("xbar-r", "4", "7")
+    r = drift[:28].reshape(7, 4)
+    assert float(row["sigma_within"]) == pytest.approx(np.mean(r.max(axis=1) - r.min(axis=1)) / 2.059, rel=1e-9)
+    assert "(1 left out)" in (tmp_path / "g" / "spc.html").read_text()
+    assert main(["spc", str(lots_db[0]), "-o", str(tmp_path / "i"), "--subgroup-size", "1", "-q"]) == 0
+    assert _spc_table(tmp_path / "i")["circle-4.diameter"]["chart"] == "individuals"
+
+
+def test_a_subgroup_size_without_chart_constants_is_refused(line_db, tmp_path, capsys):
+    assert main(["spc", str(line_db[0]), "-o", str(tmp_path), "--subgroup-size", "12"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("inspect: error: --subgroup-size 12: X-bar/R charts take subgroups of 2 to 10 parts "
+                   "(ISO 7870-2's constants); 1 charts parts one by one\n")
+
+
+def test_the_xbar_r_chart_draws_in_a_real_browser(lots_db, tmp_path):
+    """Headless Chromium (tests/reports/cdp.py): no error or CSP violation, nothing fetched, both panels drawn."""
+    from tests.reports.cdp import Browser, find_chromium
+
+    chromium = find_chromium()
+    if chromium is None:
+        pytest.skip("Chromium is not installed (scripts/install.sh installs it)")
+    assert main(["spc", str(lots_db[0]), "-o", str(tmp_path / "out"), "-q"]) == 0
+    (tmp_path / "profile").mkdir()
+    with Browser(chromium, tmp_path / "profile", width=1300, height=900) as browser:
+        browser.open((tmp_path / "out" / "spc.html").resolve().as_uri())
+        assert browser.errors() == []
+        assert [u for u in browser.requests() if not u.startswith(("file:", "data:"))] == []
+        traces, panels, points = browser.evaluate(
+            "[document.getElementById('xbar-0').data.length, "
+            "[...document.querySelectorAll('#xbar-0 g.subplot')].map(g => g.getAttribute('class')).sort(), "
+            "document.querySelectorAll('#xbar-0 g.trace.scatter path.point').length]")
+    assert traces >= 6                              # means, ranges, their centre lines and limits
+    assert panels == ["subplot xy", "subplot xy2"]  # the X-bar panel above the R panel
+    assert points >= 8                              # 4 subgroup means and 4 ranges drawn
+
+
+def test_a_subgroup_s_wide_range_is_named_on_the_page():
+    from partinspect.production.spc_report import spc_data
+    from partinspect.reports.spc_page import render_spc_html
+
+    x = 12.0 + 0.001 * np.random.default_rng(1).standard_normal(40)
+    x[17] += 0.02                                            # one part far off: its subgroup's range is wide
+    rows = [{"serial": f"S{i:02d}", "measured_at": datetime(2026, 1, 1, 0, i), "subgroup": str(i // 4),
+             "characteristic": "circle-1.diameter", "type": "diameter", "unit": "mm", "measured": v,
+             "standard_uncertainty": 0.001, "expanded_uncertainty": 0.002, "lower_limit": 11.9, "upper_limit": 12.1,
+             "decision": "pass", "step_sha256": "a", "step_file": "p.step"} for i, v in enumerate(x)]
+    data = spc_data(rows, title="t", source="s")
+    c = data["characteristics"][0]
+    assert c["chart"] == "xbar-r" and c["range_violations"] == [4] and c["range_out"] == 1
+    html = render_spc_html(data)
+    notice = html[html.index('id="special-causes"'):]
+    assert "1 subgroup range(s) beyond the R chart's limits" in notice[:notice.index("</p>")]
