@@ -21,10 +21,12 @@ Printed, per part:
   and single view) over the draws: circle radii and centres;
 - the views left out of a feature by the consistency test (at 99 %, about 1
   % per view and feature when every view is right);
-- time per draw against the number of views.
+- time per draw; with ``--timing N``, the time of 1, 2, ... views of the
+  same draw against one view's, measured in the same run.
 
 Run: ``python benchmarks/bench_views.py [--parts plate,bracket] [--draws 8]
-[--size 816x683] [--noise 2] [--single 1] [--views "RX,RY,RZ;..."] [--work DIR]``
+[--size 816x683] [--noise 2] [--single 1] [--timing N] [--views "RX,RY,RZ;..."]
+[--work DIR]``
 (``--views`` as ``inspect render --views``; default the turntable above).
 """
 
@@ -145,6 +147,28 @@ def single_not_inspected(step, folder, work):
     return out
 
 
+def timing(step, folder, work, cad, repeats):
+    """Time of the first k views (k = 1 .. all) measured and fused, interleaved, ``repeats`` times each."""
+    import shutil
+
+    subsets = {}
+    for k in range(1, len(TURNS) + 1):
+        sub = work / f"timing-{k}"
+        shutil.rmtree(sub, ignore_errors=True)
+        sub.mkdir()
+        for j in range(1, k + 1):
+            shutil.copytree(folder / f"view-{j}", sub / f"view-{j}")
+        shutil.copy(folder / "calibration.yaml", sub / "calibration.yaml")
+        subsets[k] = sub
+    times = {k: [] for k in subsets}
+    for _ in range(repeats):
+        for k, sub in subsets.items():
+            times[k].append(inspect_views(step, sub, work / "out-timing", cad)[2])
+    one = np.median(times[1])
+    print("time against the number of views (median of " + str(repeats) + ", CAD model loaded before): "
+          + ", ".join(f"{k}: {np.median(t):.1f} s ({np.median(t) / one:.2f} x one view)" for k, t in times.items()))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--parts", default="plate,bracket")
@@ -153,6 +177,8 @@ def main():
     ap.add_argument("--noise", type=float, default=2.0)
     ap.add_argument("--single", type=int, default=1, help="draws whose views are also inspected alone")
     ap.add_argument("--work", default="/tmp/bench_views")
+    ap.add_argument("--timing", type=int, default=0, metavar="N",
+                    help="also time 1, 2, ... views of draw 0, N times each (interleaved)")
     ap.add_argument("--views", default=None, help="RX,RY,RZ;... (default turntable 0,0,0;0,0,120;0,0,240)")
     args = ap.parse_args()
     if args.views:
@@ -233,10 +259,19 @@ def main():
                 ["RMS stated u fused / best view, um",
                  f"{1000 * rms([f['u_r'] for f in feats]):.2f} / {1000 * rms(u_r_best):.2f}",
                  f"{1000 * rms([f['u_c'] for f in feats]):.2f} / {1000 * rms(u_c_best):.2f}"],
+                ["RMS of error / u, fused (per feature and draw)", f"{rms([f['e_r'] / f['u_r'] for f in feats]):.2f}",
+                 f"{rms([f['e_c'] / f['u_c'] for f in feats]):.2f}"],
+                ["RMS of error / u, best view alone",
+                 f"{rms([f['e_r_views'][i] / f['u_r_views'][i] for f in feats for i in [int(np.argmin(f['u_r_views']))]]):.2f}",
+                 f"{rms([f['e_c_views'][i] / f['u_c_views'][i] for f in feats for i in [int(np.argmin(f['u_c_views']))]]):.2f}"],
             ])
         print(f"views left out by the consistency test: {left_out} of {tested} view-features tested "
               f"({100 * left_out / max(tested, 1):.1f} %)")
-        print(f"time per draw ({len(TURNS)} views, measured and fused): median {np.median(times):.1f} s\n", flush=True)
+        print(f"time per draw ({len(TURNS)} views, measured and fused): median {np.median(times):.1f} s", flush=True)
+        if args.timing:
+            timing(step, work / f"{part}-{'_'.join(','.join(f'{a:g}' for a in t) for t in TURNS)}-draw0", work, cad,
+                   args.timing)
+        print()
 
 
 if __name__ == "__main__":
