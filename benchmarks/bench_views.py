@@ -21,8 +21,8 @@ Printed, per part:
   and single view) over the draws: circle radii and centres;
 - the views left out of a feature by the consistency test (at 99 %, about 1
   % per view and feature when every view is right);
-- time per draw; with ``--timing N``, the time of 1, 2, ... views of the
-  same draw against one view's, measured in the same run.
+- time per draw; with ``--timing N``, the time of all views of draw 0
+  measured and fused against the sum of each view's alone, same run.
 
 Run: ``python benchmarks/bench_views.py [--parts plate,bracket] [--draws 8]
 [--size 816x683] [--noise 2] [--single 1] [--timing N] [--views "RX,RY,RZ;..."]
@@ -148,25 +148,28 @@ def single_not_inspected(step, folder, work):
 
 
 def timing(step, folder, work, cad, repeats):
-    """Time of the first k views (k = 1 .. all) measured and fused, interleaved, ``repeats`` times each."""
+    """Time of all views measured and fused against the sum of each view's alone, interleaved, ``repeats`` times."""
     import shutil
 
+    n = len(TURNS)
     subsets = {}
-    for k in range(1, len(TURNS) + 1):
-        sub = work / f"timing-{k}"
+    for name, ks in [*[(f"view-{j}", [j]) for j in range(1, n + 1)], ("all", list(range(1, n + 1)))]:
+        sub = work / f"timing-{name}"
         shutil.rmtree(sub, ignore_errors=True)
         sub.mkdir()
-        for j in range(1, k + 1):
+        for j in ks:
             shutil.copytree(folder / f"view-{j}", sub / f"view-{j}")
         shutil.copy(folder / "calibration.yaml", sub / "calibration.yaml")
-        subsets[k] = sub
+        subsets[name] = sub
     times = {k: [] for k in subsets}
     for _ in range(repeats):
         for k, sub in subsets.items():
             times[k].append(inspect_views(step, sub, work / "out-timing", cad)[2])
-    one = np.median(times[1])
-    print("time against the number of views (median of " + str(repeats) + ", CAD model loaded before): "
-          + ", ".join(f"{k}: {np.median(t):.1f} s ({np.median(t) / one:.2f} x one view)" for k, t in times.items()))
+    med = {k: float(np.median(t)) for k, t in times.items()}
+    alone = sum(med[f"view-{j}"] for j in range(1, n + 1))
+    print(f"time (median of {repeats}, interleaved, CAD model loaded before): "
+          + ", ".join(f"{k} alone {med[k]:.1f} s" for k in med if k != "all")
+          + f"; all {n} fused {med['all']:.1f} s = {med['all'] / alone:.2f} x the sum alone ({alone:.1f} s)")
 
 
 def main():
@@ -178,7 +181,7 @@ def main():
     ap.add_argument("--single", type=int, default=1, help="draws whose views are also inspected alone")
     ap.add_argument("--work", default="/tmp/bench_views")
     ap.add_argument("--timing", type=int, default=0, metavar="N",
-                    help="also time 1, 2, ... views of draw 0, N times each (interleaved)")
+                    help="also time all views of draw 0 against each alone, N times each (interleaved)")
     ap.add_argument("--views", default=None, help="RX,RY,RZ;... (default turntable 0,0,0;0,0,120;0,0,240)")
     args = ap.parse_args()
     if args.views:
