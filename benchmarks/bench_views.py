@@ -21,10 +21,12 @@ Printed, per part:
   and single view) over the draws: circle radii and centres;
 - the views left out of a feature by the consistency test (at 99 %, about 1
   % per view and feature when every view is right);
-- time per draw against the number of views.
+- time per draw; with ``--timing N``, the time of all views of draw 0
+  measured and fused against the sum of each view's alone, same run.
 
 Run: ``python benchmarks/bench_views.py [--parts plate,bracket] [--draws 8]
-[--size 816x683] [--noise 2] [--single 1] [--views "RX,RY,RZ;..."] [--work DIR]``
+[--size 816x683] [--noise 2] [--single 1] [--timing N] [--views "RX,RY,RZ;..."]
+[--work DIR]``
 (``--views`` as ``inspect render --views``; default the turntable above).
 """
 
@@ -145,6 +147,31 @@ def single_not_inspected(step, folder, work):
     return out
 
 
+def timing(step, folder, work, cad, repeats):
+    """Time of all views measured and fused against the sum of each view's alone, interleaved, ``repeats`` times."""
+    import shutil
+
+    n = len(TURNS)
+    subsets = {}
+    for name, ks in [*[(f"view-{j}", [j]) for j in range(1, n + 1)], ("all", list(range(1, n + 1)))]:
+        sub = work / f"timing-{name}"
+        shutil.rmtree(sub, ignore_errors=True)
+        sub.mkdir()
+        for j in ks:
+            shutil.copytree(folder / f"view-{j}", sub / f"view-{j}")
+        shutil.copy(folder / "calibration.yaml", sub / "calibration.yaml")
+        subsets[name] = sub
+    times = {k: [] for k in subsets}
+    for _ in range(repeats):
+        for k, sub in subsets.items():
+            times[k].append(inspect_views(step, sub, work / "out-timing", cad)[2])
+    med = {k: float(np.median(t)) for k, t in times.items()}
+    alone = sum(med[f"view-{j}"] for j in range(1, n + 1))
+    print(f"time (median of {repeats}, interleaved, CAD model loaded before): "
+          + ", ".join(f"{k} alone {med[k]:.1f} s" for k in med if k != "all")
+          + f"; all {n} fused {med['all']:.1f} s = {med['all'] / alone:.2f} x the sum alone ({alone:.1f} s)")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--parts", default="plate,bracket")
@@ -153,6 +180,8 @@ def main():
     ap.add_argument("--noise", type=float, default=2.0)
     ap.add_argument("--single", type=int, default=1, help="draws whose views are also inspected alone")
     ap.add_argument("--work", default="/tmp/bench_views")
+    ap.add_argument("--timing", type=int, default=0, metavar="N",
+                    help="also time all views of draw 0 against each alone, N times each (interleaved)")
     ap.add_argument("--views", default=None, help="RX,RY,RZ;... (default turntable 0,0,0;0,0,120;0,0,240)")
     args = ap.parse_args()
     if args.views:
@@ -233,10 +262,19 @@ def main():
                 ["RMS stated u fused / best view, um",
                  f"{1000 * rms([f['u_r'] for f in feats]):.2f} / {1000 * rms(u_r_best):.2f}",
                  f"{1000 * rms([f['u_c'] for f in feats]):.2f} / {1000 * rms(u_c_best):.2f}"],
+                ["RMS of error / u, fused (per feature and draw)", f"{rms([f['e_r'] / f['u_r'] for f in feats]):.2f}",
+                 f"{rms([f['e_c'] / f['u_c'] for f in feats]):.2f}"],
+                ["RMS of error / u, best view alone",
+                 f"{rms([f['e_r_views'][i] / f['u_r_views'][i] for f in feats for i in [int(np.argmin(f['u_r_views']))]]):.2f}",
+                 f"{rms([f['e_c_views'][i] / f['u_c_views'][i] for f in feats for i in [int(np.argmin(f['u_c_views']))]]):.2f}"],
             ])
         print(f"views left out by the consistency test: {left_out} of {tested} view-features tested "
               f"({100 * left_out / max(tested, 1):.1f} %)")
-        print(f"time per draw ({len(TURNS)} views, measured and fused): median {np.median(times):.1f} s\n", flush=True)
+        print(f"time per draw ({len(TURNS)} views, measured and fused): median {np.median(times):.1f} s", flush=True)
+        if args.timing:
+            timing(step, work / f"{part}-{'_'.join(','.join(f'{a:g}' for a in t) for t in TURNS)}-draw0", work, cad,
+                   args.timing)
+        print()
 
 
 if __name__ == "__main__":

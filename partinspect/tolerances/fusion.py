@@ -26,6 +26,7 @@ The consistent estimates are combined by generalised least squares,
 a circle's radius is weighted apart from its centre and axis
 (``SIZE_APART``), the combination's covariance still the full one of the
 weighted sum.
+
 Two combined features are correlated where the same view measured both,
 through its pose: ``Cov(y_a, y_b) = sum_v W_av K_v W_bv^T`` with ``W`` the
 weights and ``K_v`` the view's cross-covariance of the two
