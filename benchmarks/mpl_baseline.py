@@ -1,58 +1,20 @@
 """Baseline for bench_report.py: the report's two plots as matplotlib drew them.
 
 A verbatim copy of ``residual_figure`` and ``sigma_figure`` (with their
-helpers ``_esc``, ``_img_tag``, ``_point_sigmas``, ``_svg_uri``,
-``_mpl_figure``, ``_RC``) from
+matplotlib helpers ``_svg_uri``, ``_mpl_figure``, ``_RC``; the others are
+still the figures module's own) from
 ``partinspect/reports/figures.py`` at commit 634b1d5, before they were
 written directly as SVG (``partinspect/reports/svgplot.py``). Kept only to
 measure against; production code does not import it. Needs matplotlib.
 """
 
 import base64
-import html as _html
 import io
 import math
 
 import numpy as np
 
-from partinspect.reports.figures import MAX_RESIDUAL_PANELS, Figure
-
-
-def _esc(s):
-    return _html.escape(str(s), quote=True)
-
-
-def _img_tag(uri, alt, cls="plot"):
-    return f'<img class="{cls}" src="{uri}" alt="{_esc(alt)}">'
-
-
-def _point_sigmas(points3d, rotation=None):
-    """Per point sigma along 3 axes (rows), and the feature boundaries.
-
-    With ``rotation`` (3x3, part -> camera) the axes are the camera's X, Y, Z;
-    without, the part frame's.
-    """
-    sig, principal, bounds, labels = [], [], [0], []
-    for p in points3d:
-        covs = np.asarray(p.get("covs", ()), dtype=float)
-        if covs.size == 0:
-            continue
-        covs = covs.reshape(-1, 3, 3)
-        ok = np.all(np.isfinite(covs), axis=(1, 2))
-        covs = covs[ok]
-        if len(covs) == 0:
-            continue
-        if rotation is not None:
-            covs = np.einsum("ij,njk,lk->nil", rotation, covs, rotation)
-        d = np.sqrt(np.clip(np.einsum("nii->ni", covs), 0, None))
-        ev = np.sqrt(np.clip(np.linalg.eigvalsh(0.5 * (covs + covs.transpose(0, 2, 1))), 0, None))[:, ::-1]
-        sig.append(d)
-        principal.append(ev)
-        bounds.append(bounds[-1] + len(d))
-        labels.append(str(p.get("label") or ""))
-    if not sig:
-        return None
-    return np.concatenate(sig), np.concatenate(principal), bounds, labels
+from partinspect.reports.figures import MAX_RESIDUAL_PANELS, Figure, _img_tag, _point_sigmas
 
 
 def _svg_uri(fig):

@@ -67,27 +67,16 @@ def feature_entries(inv, stereo, registration, seen, decisions, reasons):
     """
     parts = {p.cad_id: p for p in registration.features_in_part_frame() if p.cad_id is not None}
     index = {"circle": [f for f in stereo.features if f.kind != "line"], "line": [f for f in stereo.features if f.kind == "line"]}
-    worst = {}
-    rank = {"pass": 0, "inconclusive": 1, "fail": 2}
-    for d in decisions:
-        for fid in d.evaluation.characteristic.features:
-            if rank[d.decision] >= rank.get(worst.get(fid), -1):
-                worst[fid] = d.decision
+    worst = _worst_decisions(decisions)
     out = []
     for f in inv.features:
-        entry = {"id": f.id, "kind": f.kind, "nominal": nominal_geometry(f), "visibility": {
-            "left": round(seen[f.id].seen[0], 3), "right": round(seen[f.id].seen[1], 3)}}
+        entry = _entry_of(f, seen)
         p = parts.get(f.id)
         if p is None:
             entry.update(measured=None, status="not measured", reason=reasons[f.id])
         else:
             f3 = index[p.kind][p.index]
-            if p.kind == "circle":
-                m = {"center": vec(p.center), "normal": vec(p.normal), "radius": round(p.radius, 9),
-                     "covariance": mat(p.covariance), "radius_std": float(f"{p.radius_std:.6g}")}
-            else:
-                m = {"point": vec(p.point), "direction": vec(p.direction), "start": vec(p.start), "end": vec(p.end),
-                     "covariance": mat(p.covariance)}
+            m = _measured_geometry(p)
             m.update(n_points=int(len(f3.correspondences)), datum=bool(p.datum), measured_as=f3.kind)
             entry.update(measured=m, status=worst.get(f.id, "measured"))
             if f3.guided is not None:
@@ -95,6 +84,22 @@ def feature_entries(inv, stereo, registration, seen, decisions, reasons):
                                    "line with it merge into one there), the stretch its CAD edge's image covers")
         out.append(entry)
     return out
+
+
+def _entry_of(f, seen):
+    """A feature's report entry before its measurement: id, kind, nominal geometry, visibility."""
+    return {"id": f.id, "kind": f.kind, "nominal": nominal_geometry(f), "visibility": {
+        "left": round(seen[f.id].seen[0], 3), "right": round(seen[f.id].seen[1], 3)}}
+
+
+def _measured_geometry(p):
+    """A part-frame feature's measured geometry and covariance (a line's extent where it has one)."""
+    if p.kind == "circle":
+        return {"center": vec(p.center), "normal": vec(p.normal), "radius": round(p.radius, 9),
+                "covariance": mat(p.covariance), "radius_std": float(f"{p.radius_std:.6g}")}
+    return {"point": vec(p.point), "direction": vec(p.direction),
+            **({"start": vec(p.start), "end": vec(p.end)} if p.start is not None else {}),
+            "covariance": mat(p.covariance)}
 
 
 def _worst_decisions(decisions):
@@ -129,20 +134,13 @@ def fused_feature_entries(inv, fused, measured, names, seen, decisions, reasons)
     worst = _worst_decisions(decisions)
     out = []
     for f in inv.features:
-        entry = {"id": f.id, "kind": f.kind, "nominal": nominal_geometry(f), "visibility": {
-            "left": round(seen[f.id].seen[0], 3), "right": round(seen[f.id].seen[1], 3)}}
+        entry = _entry_of(f, seen)
         p = fused.get(f.id)
         if p is None:
             entry.update(measured=None, status="not measured", reason=reasons[f.id])
             out.append(entry)
             continue
-        if p.kind == "circle":
-            m = {"center": vec(p.center), "normal": vec(p.normal), "radius": round(p.radius, 9),
-                 "covariance": mat(p.covariance), "radius_std": float(f"{p.radius_std:.6g}")}
-        else:
-            m = {"point": vec(p.point), "direction": vec(p.direction),
-                 **({"start": vec(p.start), "end": vec(p.end)} if p.start is not None else {}),
-                 "covariance": mat(p.covariance)}
+        m = _measured_geometry(p)
         n_points, datum, kinds = 0, False, set()
         for v, part, _, _ in p.contributions:
             stereo = measured[v].stereo

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from partinspect.cad.feature_params import FeatureParams
 from partinspect.cad.pose_refine import calibration_response, pose_error, pose_matrix, solve_pose
 from partinspect.cad.pose_search import (
     MATCH_GATE,
@@ -59,7 +60,7 @@ units) explain the data equally well."""
 
 
 @dataclass(frozen=True, eq=False)
-class PartFeature:
+class PartFeature(FeatureParams):
     """A measured feature in the part frame, its covariance including the pose's.
 
     Attributes
@@ -101,43 +102,6 @@ class PartFeature:
     end: np.ndarray | None = None
     points: np.ndarray | None = None
     point_covs: np.ndarray | None = None
-
-    @property
-    def center(self):
-        return self.params[:3] if self.kind == "circle" else None
-
-    @property
-    def normal(self):
-        return self.params[3:6] if self.kind == "circle" else None
-
-    @property
-    def radius(self):
-        return float(self.params[6]) if self.kind == "circle" else None
-
-    @property
-    def point(self):
-        return self.params[:3] if self.kind == "line" else None
-
-    @property
-    def direction(self):
-        return self.params[3:6] if self.kind == "line" else None
-
-    @property
-    def covariance(self):
-        """3x3 covariance of the centre (circles) or point (lines), mm^2."""
-        return self.param_cov[:3, :3]
-
-    @property
-    def normal_cov(self):
-        return self.param_cov[3:6, 3:6] if self.kind == "circle" else None
-
-    @property
-    def direction_cov(self):
-        return self.param_cov[3:6, 3:6] if self.kind == "line" else None
-
-    @property
-    def radius_std(self):
-        return float(np.sqrt(self.param_cov[6, 6])) if self.kind == "circle" else None
 
 
 @dataclass(frozen=True, eq=False)

@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from partinspect.cad.feature_params import FeatureParams
 from partinspect.frames import orthonormal_frame
 from partinspect.tolerances.evaluate import pick_feature
 
@@ -217,7 +218,7 @@ def consistent_views(ys, covs, rank=None, significance=SIGNIFICANCE):
 
 
 @dataclass(frozen=True, eq=False)
-class FusedFeature:
+class FusedFeature(FeatureParams):
     """A CAD feature's measurement combined over the views that agree (part frame).
 
     Has the attributes of a
@@ -259,34 +260,6 @@ class FusedFeature:
     datum: bool = False
     points = None
     point_covs = None
-
-    @property
-    def center(self):
-        return self.params[:3] if self.kind == "circle" else None
-
-    @property
-    def normal(self):
-        return self.params[3:6] if self.kind == "circle" else None
-
-    @property
-    def radius(self):
-        return float(self.params[6]) if self.kind == "circle" else None
-
-    @property
-    def point(self):
-        return self.params[:3] if self.kind == "line" else None
-
-    @property
-    def direction(self):
-        return self.params[3:6] if self.kind == "line" else None
-
-    @property
-    def covariance(self):
-        return self.param_cov[:3, :3]
-
-    @property
-    def radius_std(self):
-        return float(np.sqrt(self.param_cov[6, 6])) if self.kind == "circle" else None
 
 
 def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE):
