@@ -74,6 +74,23 @@ def correlation_matrix(xy, length, scale=4.0):
     return sparse.csr_matrix((np.r_[w, w, np.ones(n)], (rows, cols)), shape=(n, n))
 
 
+_BLAS = []
+
+
+def _one_blas_thread():
+    """A context in which BLAS runs on one thread.
+
+    A dense product's last bits depend on how many threads OpenBLAS splits
+    it over; on one, the k^2 of a rim is the same on every machine and in a
+    forked child as in its parent.
+    """
+    if not _BLAS:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0].limit(limits=1, user_api="blas")
+
+
 DENSE_MAX = 3000
 """Views of at most this many points are handled as dense matrices: a
 rim's smoothing over its Type B correlation length couples a good part of
@@ -160,6 +177,11 @@ def bias_evidence(views, residuals, jacobian):
     (``<X, Y>`` the elementwise product's sum), which needs no product of
     two wide matrices across views.
     """
+    with _one_blas_thread():
+        return _evidence(views, residuals, jacobian)
+
+
+def _evidence(views, residuals, jacobian):
     if all(v.bias is None for v in views):
         return None
     Q, _ = np.linalg.qr(np.asarray(jacobian, float))
@@ -190,3 +212,4 @@ def bias_evidence(views, residuals, jacobian):
     if not Eb > 0:
         return None
     return (observed - En) / Eb, float(np.sqrt(se2)) / Eb
+

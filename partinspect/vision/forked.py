@@ -22,9 +22,9 @@ OpenBLAS shuts its workers down around a fork itself; OpenCV's pthreads
 pool does not, and a child can block on it forever, so the parent stops
 OpenCV's workers before forking (``cv2.setNumThreads(1)`` joins them) and
 restores the count when the block is left. While parent and child compute
-side by side each runs OpenCV on one thread, all the CPUs two processes
-have on a two-CPU machine; OpenCV's results do not depend on its thread
-count. The child ignores SIGINT (a Ctrl-C reaches the whole process
+side by side each runs OpenCV and BLAS on one thread (threadpoolctl), all
+the CPUs two processes have on a two-CPU machine; neither library's results
+depend on its thread count. The child ignores SIGINT (a Ctrl-C reaches the whole process
 group); the parent kills it when it leaves the block early, and on Linux
 it is killed if the parent dies (``PR_SET_PDEATHSIG``).
 """
@@ -111,7 +111,7 @@ def forked(func, *args, **kwargs):
     >>> here, there
     (9, 6)
     """
-    child, threads, outcome = None, None, []
+    child, threads, blas, outcome = None, None, None, []
 
     def result():
         if not outcome:
@@ -129,6 +129,7 @@ def forked(func, *args, **kwargs):
         if can_fork():
             threads = cv2.getNumThreads()
             cv2.setNumThreads(1)  # stops OpenCV's workers (module notes)
+            blas = _one_blas_thread()
             # A Ctrl-C between the fork and the assignment would lose track
             # of the child: SIGINT is held back until ``child`` is set.
             held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
@@ -139,12 +140,28 @@ def forked(func, *args, **kwargs):
             if child is None:
                 cv2.setNumThreads(threads)
                 threads = None
+                blas.restore_original_limits()
+                blas = None
         yield result
     finally:
         if child is not None:
             _stop(child)
         if threads is not None:
             cv2.setNumThreads(threads)
+        if blas is not None:
+            blas.restore_original_limits()
+
+
+def _one_blas_thread():
+    """Limit BLAS (OpenBLAS, MKL) to one thread until ``restore_original_limits()``.
+
+    Two processes each running a multithreaded BLAS on two CPUs make four
+    threads that spin-wait for each other: a 500 x 500 product in one
+    process ran four times slower while the other computed.
+    """
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 def _start(func, args, kwargs):

@@ -964,10 +964,12 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     matches = list(matching.matches)
     args = (L, R, calib, geo, edge_break)
     if parallel and len(matches) > 1:
-        # Independent fits: half of them in a second process.
-        half = (len(matches) + 1) // 2
-        with forked(_measure_pairs, matches[half:], *args) as second:
-            fitted = _measure_pairs(matches[:half], *args) + second()
+        # Independent fits: every other one in a second process (alternate
+        # ones, so that the costlier rims are shared out too).
+        fitted = list(matches)
+        with forked(_measure_pairs, matches[1::2], *args) as second:
+            fitted[0::2] = _measure_pairs(matches[0::2], *args)
+            fitted[1::2] = second()
     else:
         fitted = _measure_pairs(matches, *args)
     feats = [f3 for f3, _ in fitted if f3 is not None]
