@@ -205,6 +205,7 @@ def main():
             return model["m"]
 
         chars, feats, per_view, fused_n, not_insp, left_out, tested, times, singles = [], [], [], [], [], 0, 0, [], []
+        whole = []
         for draw in range(args.draws):
             folder, truths = write_views(part, size, args.noise, draw, work)
             views, report, dt = inspect_views(step, folder, work / f"out-{part}-{draw}", cad)
@@ -213,6 +214,7 @@ def main():
             fused_n.append(report["summary"]["features_measured"])
             not_insp.append(report["summary"].get("not_inspected", 0))
             left_out += len(report["fusion"]["left_out"])
+            whole += [(draw, v["name"], v["reason"]) for v in report["views"] if not v["used"]]
             tested += sum(len(f["measured"]["views"]) + len(f["measured"].get("left_out", []))
                           for f in report["features"] if f["measured"] is not None and
                           len(f["measured"]["views"]) + len(f["measured"].get("left_out", [])) > 1)
@@ -270,6 +272,8 @@ def main():
             ])
         print(f"views left out by the consistency test: {left_out} of {tested} view-features tested "
               f"({100 * left_out / max(tested, 1):.1f} %)")
+        print(f"whole views left out: {len(whole)} of {len(TURNS) * args.draws}"
+              + "".join(f"\n  draw {d} {n}: {why}" for d, n, why in whole))
         print(f"time per draw ({len(TURNS)} views, measured and fused): median {np.median(times):.1f} s", flush=True)
         if args.timing:
             timing(step, work / f"{part}-{'_'.join(','.join(f'{a:g}' for a in t) for t in TURNS)}-draw0", work, cad,

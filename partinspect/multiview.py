@@ -174,9 +174,17 @@ def evaluate_views(views, progress):
     from partinspect.results import characteristic_entry, fused_feature_entries, registration_entry, view_entry
     from partinspect.tolerances.decision import decide_all, verdict
     from partinspect.tolerances.evaluate_fused import evaluate_fused
-    from partinspect.tolerances.fusion import SIGNIFICANCE, fuse
+    from partinspect.tolerances.fusion import SIGNIFICANCE, consistent_view_set, fuse
     from partinspect.vision.images import IMAGE_NAMES
 
+    used = [v for v in views if v.measured is not None]
+    regs = [v.measured.registration for v in used]
+    _, dropped = consistent_view_set([r.features_in_part_frame() for r in regs], regs, used[0].inputs.inv,
+                                     rank={i: r.weighted_rms for i, r in enumerate(regs)})
+    for d in dropped:
+        view = used[d["view"]]
+        view.measured, view.problem = None, d["reason"]
+        progress(f"{view.name} left out: {d['reason']}")
     used = [v for v in views if v.measured is not None]
     names = [v.name for v in used]
     inputs = used[0].inputs

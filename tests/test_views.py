@@ -169,3 +169,47 @@ def test_a_view_missing_an_image_or_a_pose_hint_is_refused_by_name(plate_views, 
         run_views(repo / "examples/plate/part.step", views, tmp_path / "o")
     assert "view-2" in str(e.value) and "right.png" in str(e.value)
     assert not (tmp_path / "o" / "report.json").exists()
+
+
+@pytest.fixture(scope="session")
+def plate_three_views(tmp_path_factory, repo):
+    """The plate in three turntable views; a copy whose view-3 camera was turned 0.05 deg after calibrating."""
+    import shutil
+
+    import cv2
+
+    from partinspect.simulate.folder import render_views_to_folder
+
+    out = tmp_path_factory.mktemp("three-views")
+    render_views_to_folder(repo / "examples/plate/part.step", out, parse_views("0,0,0;0,0,120;0,0,240"),
+                           image_size=SIZE, noise=1.0)
+    bumped = tmp_path_factory.mktemp("bumped") / "views"
+    shutil.copytree(out, bumped)
+    path = str(bumped / "view-3" / "calibration.yaml")
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    values = {n: fs.getNode(n).mat() for n in ("K1", "D1", "K2", "D2", "R", "T")}
+    size = [int(fs.getNode(n).real()) for n in ("image_width", "image_height")]
+    fs.release()
+    a = np.radians(0.05)  # about the vertical axis: every disparity off by ~1.6 px, the epipolar lines kept
+    values["R"] = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ values["R"]
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", size[0])
+    fs.write("image_height", size[1])
+    for name, value in values.items():
+        fs.write(name, value)
+    fs.release()
+    return out, bumped
+
+
+def test_a_bumped_view_is_left_out_whole_and_good_views_are_kept(plate_three_views, repo, tmp_path):
+    from partinspect.multiview import run_views
+
+    good, bumped = plate_three_views
+    report = run_views(repo / "examples/plate/part.step", good, tmp_path / "good").report
+    assert all(v["used"] for v in report["views"])
+    report = run_views(repo / "examples/plate/part.step", bumped, tmp_path / "bumped").report
+    entries = {v["name"]: v for v in report["views"]}
+    assert entries["view-1"]["used"] and entries["view-2"]["used"] and not entries["view-3"]["used"]
+    assert "a camera moved since calibrating" in entries["view-3"]["reason"]
+    # nothing the bumped view measured is passed on
+    assert all("view-3" not in c["views"] for c in report["characteristics"])

@@ -55,8 +55,8 @@ from partinspect.cad.feature_params import FeatureParams
 from partinspect.frames import orthonormal_frame
 from partinspect.tolerances.evaluate import pick_feature
 
-__all__ = ["SIGNIFICANCE", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine", "consistent_views",
-           "fuse_feature", "fuse", "fused_cross_covariance"]
+__all__ = ["SIGNIFICANCE", "VIEW_P", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine",
+           "consistent_views", "view_motion", "consistent_view_set", "fuse_feature", "fuse", "fused_cross_covariance"]
 
 SIGNIFICANCE = 0.99
 """Probability that a consistent view passes the test (per view and feature)."""
@@ -310,6 +310,129 @@ def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE
     contributions = tuple((views[i], measured[i][1], red[i][1], w) for i, w in zip(kept, W))
     return FusedFeature(kind, cad_id, params, 0.5 * (cov + cov.T), tuple(views[i] for i in kept), tuple(out_rej),
                         start, end, contributions, E)
+
+
+VIEW_P = 1e-3
+"""A whole view is left out when the rigid motion between it and the other
+views, or its features' disagreement with theirs, is less likely than this
+by chance; a feature within a view is an outlier of that motion below it."""
+
+
+def _without_pose(C, B, S):
+    """A feature's covariance less its view's pose part ``B S B^T``, floored positive.
+
+    The pose's cross terms with the feature can leave the difference
+    slightly indefinite: its eigenvalues are floored at 1e-3 of the largest.
+    """
+    w, V = np.linalg.eigh(0.5 * (C - B @ S @ B.T + (C - B @ S @ B.T).T))
+    return (V * np.maximum(w, 1e-3 * w.max())) @ V.T
+
+
+def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_P):
+    """The rigid motion between one view and the others, from the features they share, and its test.
+
+    Each shared feature's difference ``d_f`` (view ``v``'s minimal
+    parameters less the other views' combination) is modelled as
+    ``B_f delta + e_f``: ``delta`` a small motion of view v's part frame
+    (its pose error, 6 parameters as in :mod:`partinspect.cad.pose_refine`),
+    ``B_f`` the feature's response to it, ``e_f`` its own and the others'
+    errors. ``delta`` is the weighted least-squares fit; features whose
+    residual is less likely than ``p_outlier`` are left out one by one (a
+    rim the model misjudges must not pass for a moved view). A view that is
+    right has ``delta`` within its pose covariance ``S`` plus the fit's:
+    ``chi2 = delta^T (S + (B^T E^-1 B)^-1)^-1 delta`` on 6 degrees of freedom.
+
+    Returns
+    -------
+    dict or None
+        ``chi2``, ``p``, ``shared`` (features), ``outliers`` (their ids);
+        None with fewer than 3 shared features.
+    """
+    from scipy.special import chdtrc
+
+    rows = []
+    for f in inventory.features:
+        mine = pick_feature(view_parts[v], f.id)
+        theirs = [p for u in others if (p := pick_feature(view_parts[u], f.id)) is not None]
+        if mine is None or not theirs or any(p.kind != mine.kind for p in theirs):
+            continue
+        red = [(reduce(p.kind, p.params, f), _jacobian(lambda x, k=p.kind: reduce(k, x, f), p.params))
+               for p in (mine, *theirs)]
+        y_o, C_o, _ = combine([y for y, _ in red[1:]], [J @ p.param_cov @ J.T for (_, J), p in zip(red[1:], theirs)])
+        J = red[0][1]
+        B = J @ mine.pose_jacobian
+        rows.append((f.id, red[0][0] - y_o, B, _without_pose(J @ mine.param_cov @ J.T + C_o, B,
+                                                             registrations[v].pose_cov)))
+    if len(rows) < 3:
+        return None
+    S = registrations[v].pose_cov
+    keep = list(range(len(rows)))
+    while True:
+        A = sum(rows[i][2].T @ np.linalg.solve(rows[i][3], rows[i][2]) for i in keep)
+        delta = np.linalg.solve(A, sum(rows[i][2].T @ np.linalg.solve(rows[i][3], rows[i][1]) for i in keep))
+        tests = []
+        for i in keep:
+            r = rows[i][1] - rows[i][2] @ delta
+            tests.append((float(chdtrc(len(r), r @ np.linalg.solve(rows[i][3], r))), i))
+        p, worst = min(tests)
+        if p >= p_outlier or len(keep) <= 3:
+            break
+        keep.remove(worst)
+    chi2 = float(delta @ np.linalg.solve(S + np.linalg.inv(A), delta))
+    return {"chi2": chi2, "p": float(chdtrc(6, chi2)), "shared": len(rows),
+            "outliers": [rows[i][0] for i in range(len(rows)) if i not in keep]}
+
+
+def consistent_view_set(view_parts, registrations, inventory, rank=None, p_min=VIEW_P):
+    """The views that agree with the others as rigid bodies; the others left out, worst first, with the reason.
+
+    A view is left out when :func:`view_motion` finds it moved beyond chance
+    (``p < p_min``) or more than half of the features it shares with the
+    others disagree with theirs even after that motion (a bumped camera
+    deforms what it measures, not only moves it). The worst view goes first
+    (largest chi-square, then most outliers) and the rest are tested again
+    without it: one bad view makes the others look bad against it. Of two
+    views that disagree, the one ranked lower goes.
+
+    Parameters
+    ----------
+    view_parts : sequence of list of PartFeature
+    registrations : sequence of Registration
+    inventory : Inventory
+    rank : mapping int -> float, optional
+        Lower trusted more (the registrations' weighted RMS).
+
+    Returns
+    -------
+    kept : list of int
+    rejected : list of dict
+        ``{"view", "chi2", "p", "reason"}``.
+    """
+    kept = list(range(len(view_parts)))
+    rank = {v: v for v in kept} if rank is None else rank
+    rejected = []
+    while len(kept) >= 2:
+        tests = []
+        for v in kept:
+            t = view_motion(v, [u for u in kept if u != v], view_parts, registrations, inventory)
+            if t is not None and (t["p"] < p_min or 2 * len(t["outliers"]) > t["shared"]):
+                tests.append((t["chi2"], len(t["outliers"]), v, t))
+        if not tests:
+            break
+        _, _, v, t = max(tests)
+        if len(kept) == 2:
+            v = max(kept, key=lambda j: (rank[j], j))
+            t = next((x for *_, u, x in tests if u == v), t)
+        p_text = f"p = {t['p']:.1e}" if t["p"] >= 1e-12 else "p < 1e-12"
+        moved = f"moved against {'the one other view' if len(kept) == 2 else 'the others'} beyond chance " \
+                f"(chi-square {t['chi2']:.1f} on 6 degrees of freedom, {p_text})"
+        split = f"{len(t['outliers'])} of the {t['shared']} features it shares with them disagree"
+        why = (f"{moved}; {split}" if t["p"] < p_min else split) + ": a camera moved since calibrating, or a wrong pose"
+        if len(kept) == 2:
+            why += "; of the two, this view ranks lower"
+        rejected.append({"view": v, "chi2": t["chi2"], "p": t["p"], "reason": why})
+        kept.remove(v)
+    return kept, rejected
 
 
 def fuse(view_parts, inventory, rank=None, significance=SIGNIFICANCE):
