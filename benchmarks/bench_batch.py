@@ -27,6 +27,7 @@ import subprocess
 import sys
 import threading
 import time
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 PART = REPO / "examples" / "plate" / "part.step"
 CHAR = "circle-4.diameter"
+SHIFT_START = datetime(2000, 1, 1, 6, 0)  # the parts' synthetic time stamps, one a minute
 
 
 def render_parts(n, folder, drift):
@@ -78,7 +80,7 @@ def batch(parts, out, workers):
         w = csv.writer(f)
         w.writerow(["serial", "step", "images", "time"])
         for i, (serial, images, _) in enumerate(parts):
-            w.writerow([serial, PART, images, f"2026-03-01T{6 + i // 60:02d}:{i % 60:02d}:00"])
+            w.writerow([serial, PART, images, (SHIFT_START + timedelta(minutes=i)).isoformat()])
     cmd = [sys.executable, "-m", "partinspect", "batch", str(manifest), "-o", str(out), "-q"]
     if workers:
         cmd += ["--workers", str(workers)]

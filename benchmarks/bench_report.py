@@ -2,8 +2,8 @@
 
 The bundled part is inspected once (``--part plate`` by default) and the
 data handed to the report are kept. Then, beside the baseline measured in
-the same run (the matplotlib versions of the two plots, a verbatim copy in
-``benchmarks/mpl_baseline.py``), it times:
+the same run (the matplotlib versions of the two plots, read from git
+history by ``benchmarks/mpl_baseline.py``), it times:
 
 - ``residual_figure`` and ``sigma_figure`` alone, warm (median of runs);
 - ``build_figures`` and ``render_html`` whole, warm;

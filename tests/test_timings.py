@@ -15,7 +15,8 @@ def test_stages_add_up_in_run_order():
     d = t.to_dict()
     assert [s["stage"] for s in d["stages"]] == ["a", "b"]
     a, b = (s["seconds"] for s in d["stages"])
-    assert 0.035 <= a < 1.0 and 0.015 <= b < a
+    # Lower bounds only: a sleep never ends early, but a loaded machine may wake it late.
+    assert a >= 0.04 - 1e-3 and b >= 0.02 - 1e-3
     assert d["total_seconds"] >= a + b - 0.002
     assert t.table().splitlines()[-1].startswith("total")
 

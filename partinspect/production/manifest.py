@@ -135,7 +135,7 @@ def _time(value):
         try:
             t = datetime.fromisoformat(str(value).strip())
         except ValueError:
-            raise ValueError(f"time {value!r} is not an ISO 8601 time stamp (e.g. 2026-03-01T08:15:00)") from None
+            raise ValueError(f"time {value!r} is not an ISO 8601 time stamp (YYYY-MM-DDThh:mm:ss)") from None
     if t.tzinfo is not None:
         t = t.astimezone(timezone.utc).replace(tzinfo=None)
     return t

@@ -134,6 +134,12 @@ def _jacobian(f, x):
     return np.stack(cols, axis=1)
 
 
+def _reduced(part, nominal):
+    """A measured feature's minimal parameters about its nominal, their Jacobian and covariance."""
+    J = _jacobian(lambda x: reduce(part.kind, x, nominal), part.params)
+    return reduce(part.kind, part.params, nominal), J, J @ part.param_cov @ J.T
+
+
 def combine(ys, covs, blocks=None):
     """Generalised least-squares combination of independent estimates of one quantity.
 
@@ -283,10 +289,9 @@ def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE
     FusedFeature
     """
     kind = measured[0][1].kind
-    red = [(reduce(kind, p.params, nominal), _jacobian(lambda x, k=p.kind: reduce(k, x, nominal), p.params))
-           for _, p in measured]
-    ys = [y for y, _ in red]
-    covs = [J @ p.param_cov @ J.T for (_, J), (_, p) in zip(red, measured)]
+    red = [_reduced(p, nominal) for _, p in measured]
+    ys = [y for y, _, _ in red]
+    covs = [C for _, _, C in red]
     views = [v for v, _ in measured]
     kept, rejected = consistent_views(ys, covs, None if rank is None else [rank[v] for v in views], significance)
     y, C, W = combine([ys[i] for i in kept], [covs[i] for i in kept], SIZE_APART if kind == "circle" else None)
@@ -356,13 +361,11 @@ def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_
         theirs = [p for u in others if (p := pick_feature(view_parts[u], f.id)) is not None]
         if mine is None or not theirs or any(p.kind != mine.kind for p in theirs):
             continue
-        red = [(reduce(p.kind, p.params, f), _jacobian(lambda x, k=p.kind: reduce(k, x, f), p.params))
-               for p in (mine, *theirs)]
-        y_o, C_o, _ = combine([y for y, _ in red[1:]], [J @ p.param_cov @ J.T for (_, J), p in zip(red[1:], theirs)])
-        J = red[0][1]
+        y, J, C = _reduced(mine, f)
+        reds = [_reduced(p, f) for p in theirs]
+        y_o, C_o, _ = combine([r[0] for r in reds], [r[2] for r in reds])
         B = J @ mine.pose_jacobian
-        rows.append((f.id, red[0][0] - y_o, B, _without_pose(J @ mine.param_cov @ J.T + C_o, B,
-                                                             registrations[v].pose_cov)))
+        rows.append((f.id, y - y_o, B, _without_pose(C + C_o, B, registrations[v].pose_cov)))
     if len(rows) < 3:
         return None
     S = registrations[v].pose_cov

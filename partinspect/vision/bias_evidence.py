@@ -38,6 +38,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import sparse
 
+from partinspect.vision.blas import one_blas_thread
+
 __all__ = ["correlation_matrix", "bias_evidence"]
 
 CUTOFF = 6.0
@@ -72,23 +74,6 @@ def correlation_matrix(xy, length, scale=4.0):
     rows = np.r_[i, j, np.arange(n)]
     cols = np.r_[j, i, np.arange(n)]
     return sparse.csr_matrix((np.r_[w, w, np.ones(n)], (rows, cols)), shape=(n, n))
-
-
-_BLAS = []
-
-
-def _one_blas_thread():
-    """A context in which BLAS runs on one thread.
-
-    A dense product's last bits depend on how many threads OpenBLAS splits
-    it over; on one, the k^2 of a rim is the same on every machine and in a
-    forked child as in its parent.
-    """
-    if not _BLAS:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS.append(ThreadpoolController())
-    return _BLAS[0].limit(limits=1, user_api="blas")
 
 
 DENSE_MAX = 3000
@@ -177,7 +162,8 @@ def bias_evidence(views, residuals, jacobian):
     (``<X, Y>`` the elementwise product's sum), which needs no product of
     two wide matrices across views.
     """
-    with _one_blas_thread():
+    # One BLAS thread: the dense products' last bits then do not depend on the machine (vision.blas).
+    with one_blas_thread():
         return _evidence(views, residuals, jacobian)
 
 

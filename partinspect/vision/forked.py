@@ -39,6 +39,8 @@ import warnings
 
 import cv2
 
+from partinspect.vision.blas import one_blas_thread
+
 __all__ = ["available_cpus", "idle_cpus", "can_fork", "forked"]
 
 ENABLED = True
@@ -129,7 +131,7 @@ def forked(func, *args, **kwargs):
         if can_fork():
             threads = cv2.getNumThreads()
             cv2.setNumThreads(1)  # stops OpenCV's workers (module notes)
-            blas = _one_blas_thread()
+            blas = one_blas_thread()
             # A Ctrl-C between the fork and the assignment would lose track
             # of the child: SIGINT is held back until ``child`` is set.
             held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
@@ -150,18 +152,6 @@ def forked(func, *args, **kwargs):
             cv2.setNumThreads(threads)
         if blas is not None:
             blas.restore_original_limits()
-
-
-def _one_blas_thread():
-    """Limit BLAS (OpenBLAS, MKL) to one thread until ``restore_original_limits()``.
-
-    Two processes each running a multithreaded BLAS on two CPUs make four
-    threads that spin-wait for each other: a 500 x 500 product in one
-    process ran four times slower while the other computed.
-    """
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=1, user_api="blas")
 
 
 def _start(func, args, kwargs):

@@ -42,7 +42,7 @@ def test_csv_manifest_reads_good_lines_and_names_each_bad_one(line):
     assert jobs[1].time == datetime(2026, 3, 1, 9, 0) and jobs[1].spec is None
     assert problems == [
         f"{m}:3: STEP file missing.step not found",
-        f"{m}:5: time 'yesterday' is not an ISO 8601 time stamp (e.g. 2026-03-01T08:15:00)",
+        f"{m}:5: time 'yesterday' is not an ISO 8601 time stamp (YYYY-MM-DDThh:mm:ss)",
         f"{m}:6: serial S1 again (first on line 2)",
         f"{m}:7: serial '../x' is not a folder name (letters, digits, '.', '_', '-')",
         f"{m}:8: images folder S4/images not found",

@@ -1,0 +1,22 @@
+"""BLAS (OpenBLAS, MKL) held to one thread for a block of work."""
+
+__all__ = ["one_blas_thread"]
+
+_CONTROLLER = []
+
+
+def one_blas_thread():
+    """A limiter that holds BLAS to one thread until ``restore_original_limits()`` (or the ``with`` block's end).
+
+    Two reasons to: a dense product's last bits depend on how many threads
+    OpenBLAS splits it over, so on one thread a result is the same on every
+    machine and in a forked child as in its parent; and two processes each
+    running a multithreaded BLAS on two CPUs spin-wait for each other (a
+    500 x 500 product ran four times slower while the other process
+    computed). The libraries are looked up once per process (threadpoolctl).
+    """
+    if not _CONTROLLER:
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER.append(ThreadpoolController())
+    return _CONTROLLER[0].limit(limits=1, user_api="blas")
