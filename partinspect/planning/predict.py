@@ -639,7 +639,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     from partinspect.vision.calibration_uncertainty import calibration_responses
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
-    from partinspect.vision.stereo import corrected_correspondences, feature_views, fit_feature, make_feature3d, views_of
+    from partinspect.vision.stereo import corrected_correspondences, fit_feature, make_feature3d, views_of
 
     geo = geo if geo is not None else epipolar_geometry(calib)
     fid, kind = feature.id, feature.kind
@@ -677,12 +677,13 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         return FeaturePrediction(status="failed", reason=(
             f"{fid}: only {len(corr)} corresponding points (epipolar lines cross it too obliquely)"), **base)
     try:
-        fviews = feature_views(fl, fr, model.sigma, calib)
+        views_under = views_of(fl, fr, model.sigma)
+        fviews = views_under(calib)
         fit = fit_feature(fl, fr, fviews, corr.points, geo)
         corr = corrected_correspondences(fl, fr, fviews, corr, geo, model.sigma)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return FeaturePrediction(status="failed", reason=f"{fid}: 3D fit failed ({exc})", **base)
-    cal = calibration_responses(fit, kind2, views_of(fl, fr, model.sigma), calib)
+    cal = calibration_responses(fit, kind2, views_under, calib)
     if not model.systematic and fit.param_cov_systematic is not None:
         # The chain weights a rim's points by their Type B part too (the
         # points beside a steep shading count less), which widens its

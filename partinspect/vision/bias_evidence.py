@@ -192,8 +192,9 @@ def _evidence(views, residuals, jacobian):
             direct[key] += _hadamard_sum(B, S)
             cross[key] += float(np.sum(SQ * BQ))
             small[key] += Qv.T @ SQ
-        C = A @ Sn @ A.T
-        se2 += 2.0 * _hadamard_sum(C, C)
+        # |A S_n A^T|_F^2 = tr(S_n B S_n B): one product of two wide matrices, not two.
+        SnB = Sn @ B
+        se2 += 2.0 * _hadamard_sum(SnB, SnB.T)
     En, Eb = (direct[k] - 2.0 * cross[k] + float(np.sum(small[k] * QBQ)) for k in ("n", "b"))
     if not Eb > 0:
         return None

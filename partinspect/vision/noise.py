@@ -122,21 +122,33 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
     return _estimate_noise(img, _filtered(img), clip, edge_k, iterations)
 
 
-def _estimate_noise(img, filtered, clip=3.0, edge_k=4.0, iterations=3):
+def _noise_step(img):
+    """The subsample's grid step: a regular subsample of the interior is
+    plenty (the relative precision of the estimate from n samples is about
+    1 / sqrt(2 n)) and keeps the robust iterations cheap on large images."""
+    return max(1, int(np.sqrt(img.size / 4e5)))
+
+
+def _grid(img, filtered, step):
+    """On the grid ``[1:-1:step, 1:-1:step]``: the Immerkaer responses, the
+    largest gradient of each 3x3 neighbourhood, and which neighbourhoods
+    hold no saturated (or zero) pixel.
+
+    A pixel is next to an edge when the largest gradient in its 3x3
+    neighbourhood exceeds a threshold: that maximum is taken once, at the
+    grid's pixels only, and thresholded at each iteration.
+    """
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
-    # A regular subsample of the interior is plenty (the relative precision
-    # of the estimate from n samples is about 1 / sqrt(2 n)) and keeps the
-    # robust iterations cheap on large images.
-    step = max(1, int(np.sqrt(img.size / 4e5)))
-    sub = (slice(1, -1, step), slice(1, -1, step))
-    resp = filtered[1][sub]
-    # A pixel is next to an edge when the largest gradient in its 3x3
-    # neighbourhood exceeds the threshold: that maximum is taken once here,
-    # at the subsample's pixels only, and thresholded at each iteration.
-    grad_max = _max3x3_at(filtered[2], step)
+    resp = filtered[1][1:-1:step, 1:-1:step]
     valid = np.ones(resp.shape, bool)
     if top is not None:
         valid &= ~_max3x3_at((img == 0) | (img == top), step)
+    return resp, _max3x3_at(filtered[2], step), valid
+
+
+def _estimate_noise(img, filtered, clip=3.0, edge_k=4.0, iterations=3, grid=None):
+    top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
+    resp, grad_max, valid = _grid(img, filtered, _noise_step(img)) if grid is None else grid
     r = resp[valid]
     if r.size == 0:
         raise ValueError("no unsaturated pixels to estimate the noise from")
@@ -239,7 +251,8 @@ def _bin_variances(resp, grey, n_bins):
     edges = np.unique(np.quantile(grey, np.linspace(0.0, 1.0, n_bins + 1)))
     idx = np.clip(np.searchsorted(edges, grey, side="right") - 1, 0, max(len(edges) - 2, 0))
     # Each bin's pixels as one contiguous run of the bin-sorted order.
-    order = np.argsort(idx, kind="stable")
+    # Bin numbers as bytes: numpy's stable sort of them is a radix sort.
+    order = np.argsort(idx.astype(np.uint8) if len(edges) <= 256 else idx, kind="stable")
     bounds = np.searchsorted(idx[order], np.arange(max(len(edges) - 1, 1) + 1))
     out = []
     for k in range(max(len(edges) - 1, 1)):
@@ -298,17 +311,13 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
     """
     img = _grey(image)
     filtered = _filtered(img)
-    noise = float(_estimate_noise(img, filtered)) if noise is None else float(noise)
+    resp, grad_max, valid = grid = _grid(img, filtered, 3)
+    if noise is None:
+        noise = _estimate_noise(img, filtered, grid=grid if _noise_step(img) == 3 else None)
+    noise = float(noise)
     constant = NoiseLevel(noise * noise, 0.0, 0.0, noise, False)
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
-    f, resp_full, magnitude = filtered
-    sub = (slice(1, -1, 3), slice(1, -1, 3))
-    resp = resp_full[sub]
-    grey = cv2.blur(f, (3, 3), borderType=cv2.BORDER_REFLECT)[sub]
-    grad_max = _max3x3_at(magnitude, 3)
-    valid = np.ones(resp.shape, bool)
-    if top is not None:
-        valid &= ~_max3x3_at((img == 0) | (img == top), 3)
+    grey = cv2.blur(filtered[0], (3, 3), borderType=cv2.BORDER_REFLECT)[1:-1:3, 1:-1:3]
     level = constant
     for _ in range(2):
         # The edge mask's threshold follows the noise at each pixel's grey:

@@ -1013,13 +1013,16 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
         return None, f"only {len(corr)} corresponding points"
     band = None if edge_break is None else edge_band(corr.points, geo, edge_break)
     try:
-        views = feature_views(fl, fr, corr_length, calib, band=band)
+        # The pair's views as a function of the calibration: the
+        # correction's noise, which depends on neither, is computed once.
+        views_under = views_of(fl, fr, corr_length, band)
+        views = views_under(calib)
         fit = fit_feature(fl, fr, views, corr.points, geo)
         if fl.kind == "arc":
             delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
             if p < MISMATCH_P and uncertainty_directions(calib):
                 # One circle seen through a calibration its stated uncertainty allows?
-                r0, J, D, _ = residual_changes(fit, "arc", views_of(fl, fr, corr_length, band), calib)
+                r0, J, D, _ = residual_changes(fit, "arc", views_under, calib)
                 delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params), (r0, J, D))
             if p < MISMATCH_P:
                 hint = ("" if band is not None else "; a rounded or chamfered rim shows each camera its step at "
@@ -1032,7 +1035,7 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
-    G = calibration_responses(fit, fl.kind, views_of(fl, fr, corr_length, band), calib)
+    G = calibration_responses(fit, fl.kind, views_under, calib)
     return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band), scale), None
 
 
