@@ -195,3 +195,17 @@ def test_noise_from_the_kept_pixels_only_is_the_same(shape, dtype):
         ref = cv2.dilate(a, np.ones((3, 3), np.uint8))[1:-1:step, 1:-1:step]
         assert np.array_equal(noise._max3x3_at(a, step), ref)
     assert noise.estimate_noise(img) == _noise_whole_image(img)
+
+
+def test_pair_fits_shared_by_cost_not_by_turn():
+    from partinspect.vision.stereo import _halves
+
+    # The plate's pairs' fit times, ms (rims first, then lines), as a profile gave them.
+    costs = [65.2, 44.5, 34.7, 21.8, 14.6, 13.1, 11.7, 7.1, 7.0, 5.8, 4.7, 4.4, 3.6, 3.5, 3.4, 2.9, 2.8]
+    here, there = _halves(costs)
+    assert sorted(here + there) == list(range(len(costs)))
+    assert here == sorted(here) and there == sorted(there)
+    split = sorted(sum(costs[i] for i in share) for share in (here, there))
+    alternate = sorted((sum(costs[0::2]), sum(costs[1::2])))
+    assert split[1] - split[0] <= max(costs[len(costs) // 2:])  # within one small job of even
+    assert split[1] < alternate[1] - 10.0
