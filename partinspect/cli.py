@@ -275,6 +275,10 @@ def _plan_parser():
                    help="render the proposed pose and measure it on N noise draws (at least 3; some seconds each): "
                    "the predicted u set beside the measured spread, a spread beyond chance added to U (default 0: no check)")
     p.add_argument("--seed", metavar="S", type=int, default=0, help="noise seed of the check's draws (default 0)")
+    p.add_argument("--views", metavar="N", type=int, default=0,
+                   help="instead of one pose, the fewest views (up to N, at most 8) that together decide every "
+                   "characteristic: the part turned at --step degrees, upright and upside down; prints the "
+                   "inspect render --views text of them")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no table")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -385,7 +389,7 @@ def _run_plan(args):
         renderer = Renderer(render_radiance_pair, sensor)
     result = run_plan(args.part, args.rig, tolerances=args.tolerances, pose=args.pose, max_ratio=args.ratio,
                       model=model, search=not args.no_search, rotation=args.rotation, max_tilt=args.max_tilt,
-                      step=args.step, check=args.check, seed=args.seed, renderer=renderer,
+                      step=args.step, check=args.check, seed=args.seed, renderer=renderer, views=args.views,
                       progress=_progress(args.quiet))
     out = write_plan(args.output, result)
     if not args.quiet:

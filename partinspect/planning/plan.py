@@ -50,6 +50,10 @@ class PlanResult:
         The proposed pose's prediction checked on rendered noise draws
         (:func:`partinspect.planning.check.check_pose`); None when not asked
         for. With it, the check's decisions are the plan's.
+    views : ViewPlan or None
+        The fewest views that decide the characteristics
+        (:func:`partinspect.planning.views.plan_views`); None when not
+        asked for. With it, its decisions are the plan's.
     """
 
     part: Path
@@ -65,6 +69,7 @@ class PlanResult:
     start: object
     search: object = None
     check: object = None
+    views: object = None
 
     @property
     def best(self):
@@ -72,7 +77,9 @@ class PlanResult:
 
     @property
     def all_decidable(self):
-        """Every inspected characteristic decidable in the proposed pose (after the check, if one was run)."""
+        """Every inspected characteristic decidable in the proposed pose or views (after the check, if one was run)."""
+        if self.views is not None:
+            return not self.views.undecided
         return self.check.all_decidable if self.check is not None else self.best.all_decidable
 
     @property
@@ -87,6 +94,9 @@ class PlanResult:
                   f"; {len(self.search.never)} undecidable in every pose")
         else:
             s += f"; {len(self.start.undecidable())} undecidable"
+        if self.views is not None:
+            s += (f"; {len(self.views.views)} view(s) of {len(self.views.candidates)} candidates decide "
+                  f"{len(self.views.decided_by)} of {n}; {len(self.views.undecided)} undecided")
         if self.check is not None:
             s += (f"; after the check on {self.check.draws} rendered draws: "
                   f"{sum(c.decidable for c in self.check.characteristics)} of {n} decidable")
@@ -118,7 +128,7 @@ def _check_inputs(part, rig, tolerances, max_ratio, model, check=0):
 
 
 def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, model=None, search=True,
-             rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, renderer=None, progress=None):
+             rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, renderer=None, views=0, progress=None):
     """Predict the uncertainty of every characteristic and search the fixture poses.
 
     Parameters
@@ -149,6 +159,10 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         Seed of the check's noise draws.
     renderer : partinspect.planning.check.Renderer, optional
         Makes the check's images; needed when ``check`` is not 0.
+    views : int
+        Choose up to this many views (turns of the part at ``step``
+        degrees, upright and upside down) instead of one pose
+        (:mod:`.views`); 0: one pose.
     progress : callable, optional
 
     Returns
@@ -170,6 +184,10 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
             raise InputError(None, f"{name} must be between 0 and 180 degrees, got {v!r}")
     if not (0 < step <= 180):
         raise InputError(None, f"--step must be between 0 and 180 degrees, got {step!r}")
+    if not (isinstance(views, int) and 0 <= views <= 8):
+        raise InputError(None, f"--views must be a number of views from 1 to 8, got {views!r}")
+    if views and check:
+        raise InputError(None, "--check renders one pose; it cannot be combined with --views")
 
     from partinspect.vision.calibration import read_calibration
 
@@ -217,7 +235,13 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         return predict_pose(inv, scene, calib, P, chars, model=model, datums=datums, max_ratio=max_ratio,
                             label=fp.label, angles=(fp.rotation, fp.tilt_x, fp.tilt_y))
 
-    if search:
+    view_plan = None
+    if views:
+        from partinspect.planning.views import plan_views
+
+        view_plan = plan_views(predict, start, center, views, step=step, progress=say)
+        start_pred, result = view_plan.candidates[0], None
+    elif search:
         result = search_poses(predict, start, center, rotation=rotation, max_tilt=max_tilt, step=step, progress=say)
         start_pred = result.start
     else:
@@ -231,4 +255,4 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         checked = check_pose(inv, scene, calib, best, chars, model, renderer, datums=datums, draws=check, seed=seed,
                              progress=say)
     return PlanResult(part, rig, tol_path, calib, inv, chars, datums, model, max_ratio, center, start_pred, result,
-                      checked)
+                      checked, view_plan)

@@ -89,7 +89,54 @@ def plan_to_dict(result):
         d["out_of_view"] = list(result.search.out_of_view)
         d["never_decidable"] = [{"id": c.id, "reason": c.reason, "causes": summary,
                                  "best_ratio": _finite(c.ratio)} for c, summary in result.search.never]
+    if result.views is not None:
+        d["views"] = _views_dict(result)
     return d
+
+
+def _views_dict(result):
+    """plan.json's ``views``: the chosen views, what each decides, what none decides, and every candidate."""
+    from partinspect.planning.search import pose_text
+    from partinspect.planning.views import view_turns
+
+    vp = result.views
+    turns = view_turns(vp.views).split(";") if vp.views else []
+    return {
+        "complete": vp.complete,
+        "pose": pose_text(result.start.part_to_camera, result.center),
+        "render_views": ";".join(turns),
+        "chosen": [{"label": v.label, "fixture": list(v.angles), "turn_deg": [float(a) for a in t.split(",")],
+                    "decides": [cid for cid, by in vp.decided_by.items() if k in by]}
+                   for k, (v, t) in enumerate(zip(vp.views, turns))],
+        "undecided": [{"id": c.id, "reason": c.reason, "causes": why, "best_ratio": _finite(c.ratio)}
+                      for c, why in vp.undecided],
+        "out_of_view": list(vp.out_of_view),
+        "candidates": [{"label": p.label, "fixture": list(p.angles), "decidable": p.n_decidable,
+                        "registration_error": p.registration_error} for p in vp.candidates],
+    }
+
+
+def _views_lines(result):
+    """The terminal lines of a views plan."""
+    from partinspect.planning.search import pose_text
+    from partinspect.planning.views import view_turns
+
+    vp, n = result.views, len(result.characteristics)
+    lines = ["", f"views: {len(vp.views)} of {len(vp.candidates)} candidates decide {len(vp.decided_by)} of {n}"
+             + ("" if vp.complete else " (more views would decide more)")]
+    for k, v in enumerate(vp.views):
+        own = [cid for cid, by in vp.decided_by.items() if by == [k]]
+        lines.append(f"  view-{k + 1}: {v.label}: decides {v.n_decidable}"
+                     + (f", alone: {', '.join(own)}" if own else ""))
+    if vp.views:
+        lines.append(f"  render them: inspect render PART OUT --pose {pose_text(result.start.part_to_camera, result.center)} "
+                     f"--views \"{view_turns(vp.views)}\"")
+    if vp.out_of_view:
+        lines.append(f"  out of view in every candidate (general tolerances, not inspected): {', '.join(vp.out_of_view)}")
+    if vp.undecided:
+        lines += ["", f"undecided by any set of up to {len(vp.views) or 'the'} views:"]
+        lines += [f"  {c.id}: {why}; closest: {c.reason}" for c, why in vp.undecided]
+    return lines
 
 
 def _finite(x):
@@ -151,6 +198,8 @@ def plan_table(result):
     for c in start.characteristics:
         if c.warning and c.decidable:
             lines.append(f"  {c.id} (decidable, but): {c.warning}")
+    if result.views is not None:
+        lines += _views_lines(result)
     if result.search is not None:
         lines.append("")
         lines.append(f"best of {len(result.search.poses)} poses tried: {best.label}: {best.n_decidable} of {n} decidable")

@@ -1,0 +1,242 @@
+"""The fewest views of the part that together make its characteristics decidable.
+
+One stereo pair sees a part from one side: edges on its far side, under
+it or edge-on are not measured. Inspection cells turn the part on a
+turntable or re-place it and take several pairs (``inspect PART VIEWS/``
+fuses them). This module chooses those views from the planner's own
+prediction (:func:`partinspect.planning.predict.predict_pose`):
+
+1. candidate views: the part turned about the fixture axis at ``step``
+   degrees over a full turn, and the same turns with the part re-placed
+   upside down (turned 180 degrees about the fixture's X axis), each
+   predicted as ``inspect plan`` predicts a single pose;
+2. each candidate decides a set of characteristics (U <= ratio x
+   tolerance, and the part registers in that view);
+3. the smallest set of candidates whose union decides every
+   characteristic any candidate decides, found exactly (every set of
+   1, 2, ... views in turn, on bit masks), up to ``max_views``; where no
+   set that small covers them all, the set of ``max_views`` that decides
+   the most, ties broken by the summed ranking of its views.
+
+A characteristic counts as decided by a set of views only where one view
+decides it alone. Fusing the views (:mod:`partinspect.tolerances.fusion`)
+can only lower a characteristic's U, so the plan's count is a lower bound;
+a characteristic whose features no single view sees together (a distance
+from a top rim to a bottom edge) is not predicted, and is named with that
+reason.
+
+References
+----------
+.. [1] Scott, W. R., Roth, G., & Rivest, J.-F. (2003). View planning for
+       automated three-dimensional object reconstruction and inspection.
+       ACM Computing Surveys 35(1), 64-96 (view planning as set covering).
+.. [2] Karp, R. M. (1972). Reducibility among combinatorial problems. In
+       Complexity of Computer Computations, 85-103 (set cover is NP-hard:
+       the exact search is kept to a few views of a few dozen candidates).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+
+from partinspect.planning.search import FixturePose, cause_of, fixture_pose, rank_key
+
+__all__ = ["FLIP_TILT", "view_candidates", "ViewPlan", "fewest_views", "plan_views", "view_turns"]
+
+FLIP_TILT = 180.0
+"""Degrees about the fixture's X axis: the part re-placed upside down."""
+
+
+def view_candidates(step=30.0, flip=True):
+    """Fixture poses to choose views from: a full turn at ``step`` degrees, upright and (``flip``) upside down.
+
+    Returns
+    -------
+    list of FixturePose
+    """
+    n = max(1, int(round(360.0 / step))) if step > 0 else 1
+    turns = [k * 360.0 / n for k in range(n)]
+    turns = [t - 360.0 if t > 180.0 + 1e-9 else t for t in turns]
+    tilts = (0.0, FLIP_TILT) if flip else (0.0,)
+    return [FixturePose(t, tx, 0.0) for tx in tilts for t in turns]
+
+
+@dataclass(frozen=True, eq=False)
+class ViewPlan:
+    """The views chosen, and what they leave undecided.
+
+    Attributes
+    ----------
+    views : list of PosePrediction
+        The chosen views, in the order of the candidates.
+    decided_by : dict
+        Characteristic id -> indices into ``views`` of the views that
+        decide it alone.
+    undecided : list of (CharacteristicPrediction, str)
+        Characteristics no chosen view decides, each as predicted in the
+        candidate where its ratio U / tolerance was lowest, with why.
+    candidates : list of PosePrediction
+        Every candidate predicted.
+    complete : bool
+        Whether the views decide everything any candidate decides.
+    out_of_view : list of str
+        General-tolerance characteristics of edges no candidate sees
+        (``inspect`` does not judge those either).
+    """
+
+    views: list
+    decided_by: dict
+    undecided: list
+    candidates: list
+    complete: bool
+    out_of_view: list
+
+
+def _masks(candidates, ids):
+    """Per candidate, a bit mask of the characteristics it decides (bit k: ``ids[k]``)."""
+    out = []
+    for p in candidates:
+        mask = 0
+        for k, c in enumerate(p.characteristics):
+            if c.decidable and p.registration_error is None:
+                mask |= 1 << k
+        out.append(mask)
+    return out
+
+
+def fewest_views(candidates, max_views):
+    """Indices of the smallest set of candidates deciding the most characteristics.
+
+    Parameters
+    ----------
+    candidates : list of PosePrediction
+        All predicted for the same characteristics, in the same order.
+    max_views : int
+        The most views allowed.
+
+    Returns
+    -------
+    chosen : tuple of int
+        Increasing indices into ``candidates``.
+    complete : bool
+        Whether ``chosen`` decides everything the union of all candidates
+        decides.
+    """
+    ids = [c.id for c in candidates[0].characteristics]
+    masks = _masks(candidates, ids)
+    target = 0
+    for m in masks:
+        target |= m
+    # A candidate deciding a subset of another's is never needed.
+    keep = [i for i, m in enumerate(masks) if m and not any(
+        (m | n) == n and (m != n or j < i) for j, n in enumerate(masks) if j != i)]
+    if not keep:
+        return (), target == 0
+    ranks = {i: rank_key(candidates[i]) for i in keep}
+    best = None
+    for k in range(1, max(1, max_views) + 1):
+        for combo in itertools.combinations(keep, k):
+            covered = 0
+            for i in combo:
+                covered |= masks[i]
+            # Most decided, then fewest views, then the best-ranked views.
+            score = (bin(covered).count("1"), -k, tuple(sum(x) for x in zip(*(ranks[i] for i in combo))))
+            if best is None or score > best[0]:
+                best = (score, combo, covered)
+        if best[2] == target:
+            break
+    return tuple(sorted(best[1])), best[2] == target
+
+
+def _why_undecided(cps, cid, covering):
+    """Why no chosen view decides a characteristic: its causes over the candidates."""
+    if covering:
+        return (f"decidable in {covering} candidate view(s), none of them among the fewest views that "
+                "decide the rest: allow more views")
+    counts = Counter(cause_of(c) for c in cps)
+    summary = ", ".join(f"{name} in {n} of {len(cps)} views" for name, n in counts.most_common())
+    if all(not c.inspected for c in cps):
+        summary += ("; its features are not seen together in any one view (the plan does not predict a "
+                    "characteristic between views)")
+    return summary
+
+
+def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, progress=None):
+    """Predict the candidate views and choose the fewest that decide the characteristics.
+
+    Parameters
+    ----------
+    predict : callable
+        ``predict(part_to_camera, fixture_pose) -> PosePrediction``, as
+        :func:`partinspect.planning.search.search_poses` takes it.
+    start : ndarray, shape (4, 4)
+        The starting pose (fixture angles 0).
+    center : ndarray, shape (3,)
+        The part's bounding-box centre, part frame (the pivot).
+    max_views : int
+    step : float
+        Turn between candidate views, degrees.
+    flip : bool
+        Also the part upside down.
+    progress : callable, optional
+
+    Returns
+    -------
+    ViewPlan
+    """
+    poses = view_candidates(step, flip)
+    candidates = []
+    for k, fp in enumerate(poses, 1):
+        if progress:
+            progress(f"predicting candidate view {k} of {len(poses)}: {fp.label}")
+        candidates.append(predict(fixture_pose(start, center, fp), fp))
+    chosen, complete = fewest_views(candidates, max_views)
+    views = [candidates[i] for i in chosen]
+    decided_by, undecided, out_of_view = {}, [], []
+    for k, cid in enumerate(c.id for c in candidates[0].characteristics):
+        by = [v for v, p in enumerate(views) if p.characteristics[k].decidable and p.registration_error is None]
+        if by:
+            decided_by[cid] = by
+            continue
+        cps = [p.characteristics[k] for p in candidates]
+        if not any(c.inspected for c in cps) and cps[0].characteristic.source != "spec":
+            out_of_view.append(cid)
+            continue
+        covering = sum(c.decidable and p.registration_error is None for c, p in zip(cps, candidates))
+        best = min(cps, key=lambda c: c.ratio if not math.isnan(c.ratio) else math.inf)
+        undecided.append((best, _why_undecided(cps, cid, covering)))
+    return ViewPlan(views, decided_by, undecided, candidates, complete, out_of_view)
+
+
+def view_turns(views):
+    """The chosen views as ``inspect render --views`` text: each view's turn of the part in its own frame.
+
+    ``inspect render --views`` turns the part by extrinsic rotations about
+    the part frame's X, then Y, then Z (:func:`partinspect.poses.turned_pose`);
+    a fixture pose turns it about Z, then Y, then X
+    (:func:`~partinspect.planning.search.fixture_pose`). The same rotation
+    is written in the render's convention.
+
+    Parameters
+    ----------
+    views : list of PosePrediction
+
+    Returns
+    -------
+    str
+        E.g. ``"0.000,0.000,0.000;0.000,0.000,120.000"``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    out = []
+    for p in views:
+        rotation, tilt_x, tilt_y = p.angles
+        R = (Rotation.from_euler("x", tilt_x, degrees=True) * Rotation.from_euler("y", tilt_y, degrees=True)
+             * Rotation.from_euler("z", rotation, degrees=True))
+        angles = R.as_euler("xyz", degrees=True)
+        out.append(",".join(f"{0.0 if abs(a) < 5e-4 else a:.3f}" for a in angles))
+    return ";".join(out)

@@ -1,0 +1,86 @@
+"""Several views: the fewest turns of the part that decide its characteristics."""
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from partinspect.cli import main
+from partinspect.planning.views import fewest_views, view_candidates
+from tests.planning.conftest import REPO, SIZE
+
+PLATE = REPO / "examples" / "plate" / "part.step"
+
+
+def _pose(decides, n=6, registration_error=None):
+    chars = [SimpleNamespace(id=f"c{k}", decidable=k in decides, U=1.0 if k in decides else np.inf,
+                             characteristic=SimpleNamespace(source="spec")) for k in range(n)]
+    return SimpleNamespace(characteristics=chars, registration_error=registration_error,
+                           score=lambda: (len(decides), len(decides), 0.0, 0.0))
+
+
+def test_the_exact_cover_beats_the_greedy_one():
+    # Greedy takes the largest (A) first and then needs both others; two views do it.
+    A, B, C = _pose({0, 1, 2, 3}), _pose({0, 1, 4}), _pose({2, 3, 5})
+    assert fewest_views([A, B, C], 3) == ((1, 2), True)
+    # One view allowed: the one that decides the most, and it is said to be incomplete.
+    assert fewest_views([A, B, C], 1) == ((0,), False)
+
+
+def test_a_view_the_part_cannot_be_registered_in_decides_nothing():
+    A = _pose({0, 1, 2, 3, 4, 5}, registration_error="alignment is ambiguous")
+    B, C = _pose({0, 1, 2}), _pose({3, 4, 5})
+    assert fewest_views([A, B, C], 3) == ((1, 2), True)
+
+
+def test_candidates_cover_a_full_turn_upright_and_upside_down():
+    c = view_candidates(120.0)
+    assert [(p.rotation, p.tilt_x) for p in c] == [(0.0, 0.0), (120.0, 0.0), (-120.0, 0.0),
+                                                   (0.0, 180.0), (120.0, 180.0), (-120.0, 180.0)]
+
+
+@pytest.fixture(scope="module")
+def rig_file(tmp_path_factory):
+    from partinspect.simulate.rig import default_rig
+    from partinspect.vision.calibration import write_calibration
+
+    path = tmp_path_factory.mktemp("rig") / "calibration.yaml"
+    write_calibration(path, default_rig(SIZE))
+    return path
+
+
+def test_plate_views_decide_what_one_pose_leaves_out_of_view(rig_file, tmp_path, capsys):
+    """The plate's bottom rims, out of view from above, are decided by the view with the part upside down;
+    the printed --views text renders each chosen view in the pose the plan predicted."""
+    from partinspect.poses import parse_views, parse_pose, turned_pose
+
+    out = tmp_path / "plan"
+    code = main(["plan", str(PLATE), "--rig", str(rig_file), "--views", "3", "--step", "180", "-o", str(out), "-q"])
+    data = json.loads((out / "plan.json").read_text())
+    views = data["views"]
+    assert len(views["candidates"]) == 4 and 1 <= len(views["chosen"]) <= 3
+    start = {c["id"]: c for c in data["start"]["characteristics"]}
+    hidden = [cid for cid, c in start.items() if not c["inspected"]]
+    assert hidden, "the start pose sees every edge: nothing for the views to add"
+    decided = {cid for v in views["chosen"] for cid in v["decides"]}
+    assert set(hidden) <= decided | {u["id"] for u in views["undecided"]} | set(views["out_of_view"])
+    assert any(v["fixture"][1] == 180.0 for v in views["chosen"])
+    assert len(decided & set(hidden)) >= len(hidden) // 2
+    assert code == (0 if not views["undecided"] else 3)
+    # The render's convention (turns about X, then Y, then Z) reproduces each chosen fixture pose.
+    from partinspect.cad.step import load_step
+    from partinspect.planning.search import FixturePose, fixture_pose
+    from partinspect.poses import bounds_of
+
+    bounds = bounds_of(load_step(PLATE))
+    start_pose = parse_pose(views["pose"], bounds, None)
+    center = 0.5 * (bounds[0] + bounds[1])
+    turns = parse_views(views["render_views"])
+    assert len(turns) == len(views["chosen"])
+    for turn, v in zip(turns, views["chosen"]):
+        assert np.allclose(turned_pose(start_pose, turn, bounds),
+                           fixture_pose(start_pose, center, FixturePose(*v["fixture"])), atol=1e-6)
+    html = (out / "plan.html").read_text()
+    assert 'id="views"' in html and views["render_views"] in html
+
