@@ -96,7 +96,7 @@ def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=qu
     from partinspect.atomic import prepare_output_dir
     from partinspect.reports.assemble import with_timings
     from partinspect.reports.writer import render_reports, report_json, write_texts
-    from partinspect.results import figure_data
+    from partinspect.results import figure_data, view_figure
     from partinspect.timings import Timings
 
     timings = Timings() if timings is None else timings
@@ -121,9 +121,10 @@ def run_views(part, views_dir, out="inspection", *, tolerances=None, progress=qu
     first = used[0]
     with timings.stage("report"):
         out_dir = prepare_output_dir(out)
-        texts = render_reports(report, figure_data(first.inputs.left, first.inputs.right, first.inputs.calib,
-                                                   first.inputs.inv, first.measured.stereo,
-                                                   first.measured.registration, features))
+        figures = figure_data(first.inputs.left, first.inputs.right, first.inputs.calib, first.inputs.inv,
+                              first.measured.stereo, first.measured.registration, features)
+        figures["views"] = [view_figure(v.name, v.inputs, v.measured, features) for v in used]
+        texts = render_reports(report, figures)
     report = with_timings(report, timings)
     texts["report.json"] = report_json(report)
     write_texts(out_dir, texts)

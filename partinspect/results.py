@@ -190,6 +190,54 @@ def curve_3d(f, n=96):
     return f.center + f.radius * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
 
 
+def view_figure(name, inputs, measured, features):
+    """One view's entry of the report's view strip: its left image and the curves it measured there.
+
+    ``features``: the fused report entries, whose status the curves take.
+    """
+    overlays = feature_overlays(inputs.calib, measured.stereo, measured.registration, features, sides=("left",))
+    return {"name": name, "image": inputs.left, "overlays": overlays}
+
+
+def _cad_labels(stereo, registration):
+    """CAD id of each registered measured feature, keyed by ``id(feature)``."""
+    cad_of = {}
+    for kind, key in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
+        measured = [f for f in stereo.features if key(f)]
+        for i, cid in registration.assignment[kind].items():
+            cad_of[id(measured[i])] = cid
+    return cad_of
+
+
+def feature_overlays(calib, stereo, registration, features, sides=("left", "right")):
+    """The curves to draw over the images: each measured feature's 3D fit projected back, then the unmatched.
+
+    Distorted pixels; each curve's status is its feature's in ``features``
+    (report entries), "unmatched" where it found no CAD edge.
+    """
+    from partinspect.vision.calibration import project_points
+
+    status = {e["id"]: e["status"] for e in features}
+    cad_of = _cad_labels(stereo, registration)
+    cams = {"left": (calib.K1, calib.D1, np.eye(3), np.zeros(3)), "right": (calib.K2, calib.D2, calib.R, calib.T)}
+    overlays, used = [], {"left": set(), "right": set()}
+    for f in stereo.features:
+        label = cad_of.get(id(f), "")
+        X = curve_3d(f)
+        for side, index in (("left", f.left), ("right", f.right)):
+            if side not in sides:
+                continue
+            used[side].add(index)
+            K, D, R, t = cams[side]
+            overlays.append({"image": side, "xy": project_points(X, K, D, R, t), "kind": f.kind, "label": label,
+                             "status": status.get(label, "measured") if label else "unmatched"})
+    for side in sides:
+        for i, imf in enumerate((stereo.left if side == "left" else stereo.right).features):
+            if i not in used[side]:
+                overlays.append({"image": side, "xy": imf.uv, "kind": imf.kind, "label": "", "status": "unmatched"})
+    return overlays
+
+
 def figure_data(left, right, calib, inv, stereo, registration, features):
     """The data behind the report's figures (:mod:`partinspect.reports.figures`).
 
@@ -199,31 +247,17 @@ def figure_data(left, right, calib, inv, stereo, registration, features):
     part frame.
     """
     from partinspect.cad.edge_sampling import feature_geometry, sample_edge
-    from partinspect.vision.calibration import project_points
 
     status = {e["id"]: e["status"] for e in features}
-    cad_of = {}
-    for kind, key in (("circle", lambda f: f.kind != "line"), ("line", lambda f: f.kind == "line")):
-        measured = [f for f in stereo.features if key(f)]
-        for i, cid in registration.assignment[kind].items():
-            cad_of[id(measured[i])] = cid
-    cams = {"left": (calib.K1, calib.D1, np.eye(3), np.zeros(3)), "right": (calib.K2, calib.D2, calib.R, calib.T)}
-    overlays, residuals, used = [], [], {"left": set(), "right": set()}
+    cad_of = _cad_labels(stereo, registration)
+    residuals = []
     for f in stereo.features:
         label = cad_of.get(id(f), "")
-        X = curve_3d(f)
         for side, index in (("left", f.left), ("right", f.right)):
-            used[side].add(index)
-            K, D, R, t = cams[side]
-            overlays.append({"image": side, "xy": project_points(X, K, D, R, t), "kind": f.kind, "label": label,
-                             "status": status.get(label, "measured") if label else "unmatched"})
             fit = (stereo.left if side == "left" else stereo.right).features[index].fit
             residuals.append({"label": label or f"unregistered {f.kind}", "image": side, "residuals": np.asarray(fit.residuals),
                               "sigma": float(np.median(fit.point_std))})
-    for side in ("left", "right"):
-        for i, imf in enumerate((stereo.left if side == "left" else stereo.right).features):
-            if i not in used[side]:
-                overlays.append({"image": side, "xy": imf.uv, "kind": imf.kind, "label": "", "status": "unmatched"})
+    overlays = feature_overlays(calib, stereo, registration, features)
     points3d = [{"label": p.cad_id, "points": p.points, "covs": p.point_covs, "status": status.get(p.cad_id, "measured")}
                 for p in registration.features_in_part_frame() if p.cad_id is not None and p.points is not None]
     cad_edges = [{"label": f.id, "polyline": sample_edge(f.kind, feature_geometry(f), n=120)[0]} for f in inv.features]

@@ -107,6 +107,12 @@ def test_a_views_folder_is_one_inspection_with_fused_features(plate_views_report
         assert {"loading the CAD model", "measuring the images", "evaluating", "report"} <= stages
     html = (plate_views_report.out_dir / "report.html").read_text()
     assert 'id="views"' in html and "view-2" in html
+    # the view strip: each view's image with the curves it measured, named by their CAD ids
+    strip = html[html.index('id="fig-views"'):html.index('id="fig-images"')]
+    assert strip.count('class="photo-panel"') == 2 and "view-1 · left image" in strip and "view-2 · left image" in strip
+    for v in views:
+        shown = [f for f in v["features"] if f"<title>{f} (" in strip]
+        assert len(shown) >= v["features_measured"] - 1, (v["name"], shown)
 
 
 def test_shared_calibration_at_the_top_of_the_views_folder(plate_views, repo, tmp_path):

@@ -42,6 +42,7 @@ __all__ = [
     "STATUS_COLOURS",
     "build_figures",
     "image_figure",
+    "view_strip_figure",
     "residual_figure",
     "sigma_figure",
     "scene_figure",
@@ -50,6 +51,7 @@ __all__ = [
 ]
 
 IMAGE_WIDTH = 1000  # px of the downscaled images: keeps each inline JPEG to a few hundred kB
+THUMB_WIDTH = 480  # px of a view's thumbnail in the view strip
 JPEG_QUALITY = 82
 MAX_RESIDUAL_PANELS = 24
 MAX_OVERLAY_POINTS = 240  # per polyline in the image figure
@@ -227,7 +229,7 @@ def crop_box(shape, overlays, margin=0.06, keep=0.7):
     return int(x0), int(y0), int(x1), int(y1)
 
 
-def _overlay_svg(name, img, overlays, box):
+def _overlay_svg(name, img, overlays, box, width=IMAGE_WIDTH):
     """Inline SVG of one image (JPEG data URI) with its overlays as vector polylines.
 
     The SVG's user units are the full image's pixels, so overlays keep their
@@ -236,7 +238,7 @@ def _overlay_svg(name, img, overlays, box):
     grey = display_image(img)
     x0, y0, x1, y1 = box
     cw, ch = x1 - x0, y1 - y0
-    uri = jpeg_data_uri(np.ascontiguousarray(grey[y0:y1, x0:x1]))
+    uri = jpeg_data_uri(np.ascontiguousarray(grey[y0:y1, x0:x1]), width=width)
     parts = [
         f'<svg class="photo" viewBox="{x0} {y0} {cw} {ch}" role="img" aria-label="{_esc(name)} image with fitted features" '
         f'data-image="{_esc(name)}" xmlns="http://www.w3.org/2000/svg">',
@@ -319,6 +321,31 @@ def image_figure(figures):
     if not overlays:
         note = (note + " " if note else "") + "No fitted feature was given to draw over the images."
     return Figure("images", title, "Fig. 3", body=body, caption=caption, note=note)
+
+
+def view_strip_figure(figures):
+    """The views of a views folder side by side: each view's left image with its measured features; a Figure.
+
+    Each thumbnail is cropped to its view's curves and downscaled to
+    ``THUMB_WIDTH`` px; a curve takes the fused decision of its feature.
+    """
+    title = "The views"
+    views = [v for v in (figures.get("views") or []) if isinstance(v, dict) and _has_image(v.get("image"))]
+    if not views:
+        return Figure("views", title, "", note="The views: omitted, no view images were given.")
+    panels = []
+    for v in views:
+        mine = [o for o in (v.get("overlays") or []) if isinstance(o, dict)]
+        h, w = np.asarray(v["image"]).shape[:2]
+        box = crop_box((h, w), mine)
+        n = sum(1 for o in mine if o.get("label"))
+        panels.append(f'<div class="photo-panel"><div class="photo-title">{_esc(v.get("name", ""))} · left image · '
+                      f"{n} features matched to the CAD model</div>"
+                      f'{_overlay_svg(str(v.get("name", "")), v["image"], mine, box, THUMB_WIDTH)}</div>')
+    caption = (f"Each view's left image (cropped to its curves, at most {THUMB_WIDTH} px wide), with the 3D fits it "
+               "measured projected back, coloured by their feature's decision after fusing the views; "
+               "the characteristics table names the views behind each value.")
+    return Figure("views", title, "", body=f'<div class="photos views">{"".join(panels)}</div>', caption=caption)
 
 
 def _has_image(img):
@@ -729,6 +756,9 @@ def build_figures(figures, report=None):
           ``status`` as in ``overlays``.
         - ``cad_edges``: list of dicts: ``label``, ``polyline`` ndarray (K, 3),
           the nominal CAD edge, part frame, mm.
+        - ``views``: several views only, one dict per view: ``name``,
+          ``image`` (its left image) and ``overlays`` (as above, of that
+          image).
     report : dict, optional
         The report.json dict; its registration's ``part_to_camera`` puts the
         point figures' axes and the viewer in the left camera frame.
@@ -748,6 +778,8 @@ def build_figures(figures, report=None):
         ("sigmas", "Figs. 5-6", "Standard deviations of the 3D points", lambda: sigma_figure(figures, part_to_camera)),
         ("scene", "Fig. 7", "Reconstructed 3D edges", lambda: scene_figure(figures, part_to_camera)),
     )
+    if figures.get("views"):
+        makers = (("views", "", "The views", lambda: view_strip_figure(figures)),) + makers
     for key, paper, title, make in makers:
         try:
             out.append(make())
