@@ -219,3 +219,27 @@ def test_a_bumped_view_is_left_out_whole_and_good_views_are_kept(plate_three_vie
     assert "a camera moved since calibrating" in entries["view-3"]["reason"]
     # nothing the bumped view measured is passed on
     assert all("view-3" not in c["views"] for c in report["characteristics"])
+
+
+def test_a_views_folder_in_a_batch_is_one_part(plate_views, repo, tmp_path):
+    """inspect batch's worker inspects a views folder as one part, its input hashes over every view's files."""
+    from partinspect.digest import sha256_file
+    from partinspect.production.manifest import Job
+    from partinspect.production.worker import images_digest, inspect_part
+
+    folder, _ = plate_views
+    job = Job("V-001", repo / "examples/plate/part.step", folder, None, None, 2, None)
+    row = inspect_part(job, tmp_path)
+    part = row["part"]
+    assert part["status"] == "done" and part["exit_code"] in (0, 1, 3), part["error"]
+    report = json.loads((tmp_path / "V-001" / "report.json").read_text())
+    assert [v["name"] for v in report["views"]] == ["view-1", "view-2"]
+    assert len(row["characteristics"]) == len(report["characteristics"]) > 0
+    views = sorted(p for p in folder.iterdir() if p.is_dir())
+    lines = [f"{v.name}:{sha256_file(v / 'left.png')}" for v in views]
+    import hashlib
+
+    assert part["left_sha256"] == hashlib.sha256("\n".join(lines).encode()).hexdigest()
+    assert part["left_sha256"] != images_digest(folder, ("right.png",)) and part["calibration_sha256"] is not None
+    # a pair folder's digest is its file's hash
+    assert images_digest(views[0], ("left.png",)) == sha256_file(views[0] / "left.png")

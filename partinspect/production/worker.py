@@ -10,6 +10,7 @@ sha256: a part number is loaded once per worker, not once per part.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import socket
 import time
@@ -86,6 +87,7 @@ def inspect_part(job, out):
         verdict, inputs' sha256, timing, worker); ``characteristics``:
         report.json's characteristics (empty when the run could not be made).
     """
+    from partinspect.multiview import is_views_folder, run_views
     from partinspect.pipeline import CALIBRATION_NAMES, run_inspection
 
     t0 = time.perf_counter()
@@ -94,7 +96,8 @@ def inspect_part(job, out):
     # An earlier try of this part, killed while writing, may have left temporaries.
     remove_stale_temporaries(report_dir)
     try:
-        result = run_inspection(job.step, job.images, report_dir, tolerances=job.spec, load_cad=cached_model)
+        run = run_views if is_views_folder(job.images) else run_inspection
+        result = run(job.step, job.images, report_dir, tolerances=job.spec, load_cad=cached_model)
         report = result.report
         status, code, verdict = "done", result.exit_code, result.verdict
     except InputError as exc:
@@ -102,13 +105,12 @@ def inspect_part(job, out):
     except Exception as exc:  # one part's internal error must not end the batch
         status, code, verdict = "failed", 2, None
         error = f"internal error: {type(exc).__name__}: {' '.join(str(exc).split())}"
-    calibration = next((job.images / n for n in CALIBRATION_NAMES if (job.images / n).is_file()), None)
     spec = job.spec or _spec_used(report)
     part = {
         "serial": job.serial, "step_file": str(job.step), "step_sha256": sha256(job.step),
-        "images": str(job.images), "left_sha256": sha256(job.images / "left.png"),
-        "right_sha256": sha256(job.images / "right.png"),
-        "calibration_sha256": None if calibration is None else sha256(calibration),
+        "images": str(job.images), "left_sha256": images_digest(job.images, ("left.png",)),
+        "right_sha256": images_digest(job.images, ("right.png",)),
+        "calibration_sha256": images_digest(job.images, CALIBRATION_NAMES),
         "spec_file": None if spec is None else str(spec), "spec_sha256": None if spec is None else sha256(spec),
         "measured_at": job.time or datetime.now(timezone.utc).replace(tzinfo=None, microsecond=0),
         "software_version": __version__, "status": status, "exit_code": code, "verdict": verdict, "error": error,
@@ -118,6 +120,38 @@ def inspect_part(job, out):
     }
     chars = [] if report is None else [{k: c.get(k) for k in CHARACTERISTIC_KEYS} for c in report["characteristics"]]
     return {"part": part, "characteristics": chars}
+
+
+def images_digest(images, names):
+    """Hex sha256 of a part's input file in its images folder; for a views folder, of every view's.
+
+    Parameters
+    ----------
+    images : Path
+        A pair's folder, or a views folder (:func:`partinspect.multiview.is_views_folder`).
+    names : sequence of str
+        The file's accepted names, first found wins (``left.png``; the
+        calibration's names).
+
+    Returns
+    -------
+    str or None
+        A pair's file's sha256. A views folder's: the sha256 of its own file
+        (a calibration shared by the views) and of each view's, as lines
+        ``name:sha256`` (``.`` for the folder itself), in the views' order;
+        None when no such file exists.
+    """
+    from partinspect.multiview import is_views_folder, view_folders
+
+    def own(folder):
+        path = next((folder / n for n in names if (folder / n).is_file()), None)
+        return None if path is None else sha256(path)
+
+    if not is_views_folder(images):
+        return own(images)
+    folders = [(".", images)] + [(f.name, f) for f in view_folders(images)]
+    lines = [f"{name}:{d}" for name, f in folders if (d := own(f)) is not None]
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest() if lines else None
 
 
 def _spec_used(report):
