@@ -36,6 +36,27 @@ def view_folders(path):
     return sorted(subs, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
 
 
+def same_calibration(a, b):
+    """Whether two StereoCalibrations are the same rig as stated: every parameter and uncertainty equal.
+
+    Views measured with the same one share its error; a rig recalibrated, or
+    corrected for drift by one view's check, between views does not.
+    """
+    from dataclasses import fields
+
+    import numpy as np
+
+    def same(x, y):
+        if isinstance(x, dict) or isinstance(y, dict):
+            return isinstance(x, dict) and isinstance(y, dict) and x.keys() == y.keys() and all(
+                same(x[k], y[k]) for k in x)
+        if x is None or y is None:
+            return x is None and y is None
+        return np.array_equal(np.asarray(x), np.asarray(y))
+
+    return all(same(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
+
+
 def is_views_folder(path):
     """True for a folder without a pair of its own whose sub-folders hold pairs."""
     path = Path(path)
@@ -192,7 +213,9 @@ def evaluate_views(views, progress):
     inv = inputs.inv
     regs = [v.measured.registration for v in used]
     progress(f"fusing the features of {len(used)} views")
-    fused = fuse([r.features_in_part_frame() for r in regs], inv, rank={i: r.weighted_rms for i, r in enumerate(regs)})
+    one_rig = all(same_calibration(v.inputs.calib, inputs.calib) for v in used)
+    fused = fuse([r.features_in_part_frame() for r in regs], inv, rank={i: r.weighted_rms for i, r in enumerate(regs)},
+                 registrations=regs if one_rig else None)
     seen = {f.id: _SeenInViews([v.measured.seen[f.id] for v in used], names) for f in inv.features}
     judged, not_inspected = split_unseen(inputs.characteristics, seen, None, measured=set(fused))
     progress(f"evaluating {len(inputs.characteristics)} characteristics")

@@ -235,6 +235,24 @@ class Registration:
             out = out + a.pose_jacobian @ Kb.T @ Ab.T
         return out
 
+    def calibration_part(self, pf):
+        """A PartFeature's response to the calibration's principal directions, part frame, shape (n, q).
+
+        ``A G + B dxi/de``: the feature's own (``G``, rig frame, turned into
+        the part frame by ``A``) and through the pose, which the same error
+        moves (``dxi/de = -JA^T U``, :func:`~partinspect.cad.pose_refine.solve_pose`).
+        With ``e`` the calibration's error in those directions (Cov(e) = I)
+        this is the part of the feature's error that every measurement made
+        with the same calibration shares; q = 0 where the calibration states
+        no covariance.
+        """
+        G = calibration_response(pf.kind, self.measured_feature(pf.kind, pf.index))
+        H = self._rig_to_part(pf.kind) @ G
+        fit = self._fit
+        if fit is not None and G.shape[1] and fit["U"].shape[1] == G.shape[1]:
+            H = H - pf.pose_jacobian @ (fit["JA"].T @ fit["U"])
+        return H
+
     # -- internals -------------------------------------------------------
 
     def _rig_to_part(self, kind):

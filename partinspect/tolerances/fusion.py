@@ -34,9 +34,16 @@ weights and ``K_v`` the view's cross-covariance of the two
 distance between features seen in different views carries both views'
 pose uncertainty in full (:mod:`.evaluate_fused`).
 
-Not represented: the rig's calibration error, which all views share, is
-taken as independent between views (exact where the calibration states
-no uncertainty); edge points are not merged across views.
+Views taken with one rig calibration share its error: each feature's
+response to it, ``H_v`` (:meth:`~partinspect.cad.registration.Registration.calibration_part`,
+part frame), is common to every view, so the combination's covariance gains
+``sum_{v != w} W_v J_v H_v H_w^T J_w^T W_w^T`` (the shared part does not
+average down) and two combined features the same cross-view terms. The
+weights and the consistency tests still take the views as independent
+(the test is then a little lenient where the shared part would cancel in
+a difference). Views with different calibrations (a rig recalibrated or
+corrected for drift between them) are independent. Edge points are not
+merged across views.
 
 References
 ----------
@@ -249,6 +256,9 @@ class FusedFeature(FeatureParams):
     contributions : tuple
         ``(view, PartFeature, J, W)`` per view combined: ``J`` the
         derivative of :func:`reduce` at its parameters, ``W`` its weight.
+    shared : tuple
+        Per contribution, ``W J H``: its part of the combination's response
+        to the shared calibration error (empty when not shared).
     expand_jacobian : ndarray
         Derivative of :func:`expand` at the combined minimal parameters.
     """
@@ -263,13 +273,20 @@ class FusedFeature(FeatureParams):
     end: np.ndarray | None = None
     contributions: tuple = field(default=(), repr=False)
     expand_jacobian: np.ndarray | None = field(default=None, repr=False)
+    shared: tuple = field(default=(), repr=False)
     index: int = 0
     datum: bool = False
     points = None
     point_covs = None
 
 
-def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE):
+def _shared_terms(parts):
+    """``sum_{i != j} X_i X_j^T`` of the parts ``X_i = W_i J_i H_i``, each (n, q)."""
+    total = sum(parts)
+    return total @ total.T - sum(X @ X.T for X in parts)
+
+
+def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE, calibration_parts=None):
     """One CAD feature's views tested for consistency and the agreeing ones combined.
 
     Parameters
@@ -283,6 +300,10 @@ def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE
     rank : mapping int -> float, optional
         Per view, lower trusted more (see :func:`consistent_views`).
     significance : float
+    calibration_parts : sequence of ndarray, shape (n, q), optional
+        Per measurement, its response to the calibration error the views
+        share (:meth:`~partinspect.cad.registration.Registration.calibration_part`);
+        None: the views' errors are independent.
 
     Returns
     -------
@@ -295,6 +316,10 @@ def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE
     views = [v for v, _ in measured]
     kept, rejected = consistent_views(ys, covs, None if rank is None else [rank[v] for v in views], significance)
     y, C, W = combine([ys[i] for i in kept], [covs[i] for i in kept], SIZE_APART if kind == "circle" else None)
+    shared = ()
+    if calibration_parts is not None and calibration_parts[0].shape[1]:
+        shared = tuple(w @ red[i][1] @ calibration_parts[i] for i, w in zip(kept, W))
+        C = C + _shared_terms(shared)
     E = _jacobian(lambda z: expand(kind, z, nominal), y)
     params = expand(kind, y, nominal)
     cov = E @ C @ E.T
@@ -314,7 +339,7 @@ def fuse_feature(cad_id, nominal, measured, rank=None, significance=SIGNIFICANCE
         out_rej.append({"view": v, "chi2": r["chi2"], "dof": r["dof"], "threshold": r["threshold"], "reason": why})
     contributions = tuple((views[i], measured[i][1], red[i][1], w) for i, w in zip(kept, W))
     return FusedFeature(kind, cad_id, params, 0.5 * (cov + cov.T), tuple(views[i] for i in kept), tuple(out_rej),
-                        start, end, contributions, E)
+                        start, end, contributions, E, shared)
 
 
 VIEW_P = 1e-3
@@ -438,7 +463,7 @@ def consistent_view_set(view_parts, registrations, inventory, rank=None, p_min=V
     return kept, rejected
 
 
-def fuse(view_parts, inventory, rank=None, significance=SIGNIFICANCE):
+def fuse(view_parts, inventory, rank=None, significance=SIGNIFICANCE, registrations=None):
     """Every CAD feature measured in any view, combined over its consistent views.
 
     Parameters
@@ -448,6 +473,9 @@ def fuse(view_parts, inventory, rank=None, significance=SIGNIFICANCE):
     inventory : Inventory
     rank, significance
         See :func:`fuse_feature`.
+    registrations : sequence of Registration, optional
+        Per view, when all views were measured with one calibration: its
+        error is then shared between them (module notes). None: independent.
 
     Returns
     -------
@@ -458,7 +486,8 @@ def fuse(view_parts, inventory, rank=None, significance=SIGNIFICANCE):
     for f in inventory.features:
         measured = [(v, p) for v, parts in enumerate(view_parts) if (p := pick_feature(parts, f.id)) is not None]
         if measured:
-            out[f.id] = fuse_feature(f.id, f, measured, rank, significance)
+            parts = None if registrations is None else [registrations[v].calibration_part(p) for v, p in measured]
+            out[f.id] = fuse_feature(f.id, f, measured, rank, significance, parts)
     return out
 
 
@@ -476,8 +505,10 @@ def fused_cross_covariance(a, b, registrations):
     ndarray, shape (len(a.params), len(b.params))
     """
     inner = np.zeros((a.expand_jacobian.shape[1], b.expand_jacobian.shape[1]))
-    for va, pa, Ja, Wa in a.contributions:
-        for vb, pb, Jb, Wb in b.contributions:
+    for ia, (va, pa, Ja, Wa) in enumerate(a.contributions):
+        for ib, (vb, pb, Jb, Wb) in enumerate(b.contributions):
             if va == vb:
                 inner += Wa @ Ja @ registrations[va].cross_covariance(pa, pb) @ Jb.T @ Wb.T
+            elif a.shared and b.shared:
+                inner += a.shared[ia] @ b.shared[ib].T  # the calibration error both views share
     return a.expand_jacobian @ inner @ b.expand_jacobian.T

@@ -373,6 +373,7 @@ def _with_shared_error(m, z, scale):
         if circle:
             r.center, r.normal, r.radius = X + d[:3], a + d[3:6], rec.radius + d[6]
             r.normal_cov = rec.normal_cov + G[3:6] @ G[3:6].T
+            r.radius_std = float(np.hypot(rec.radius_std, np.linalg.norm(G[6])))
         else:
             r.point, r.direction = X + d[:3], a + d[3:6]
             r.start, r.end = rec.start + d[:3], rec.end + d[:3]

@@ -166,3 +166,40 @@ def test_a_distance_between_features_of_different_views_carries_both_poses(plate
     joint = pair_value(c, [one["circle-2"], one["circle-4"]], regs[:1], 2.0)
     assert joint.standard_uncertainty == pytest.approx(ev1.standard_uncertainty, rel=0.03)
     assert joint.measured == pytest.approx(ev1.measured, abs=1e-9)
+
+
+def test_views_with_one_calibration_share_its_error(plate):
+    """Two views through one rig whose calibration is off by a shared draw (a turn, a shift and a scale, the
+    scale mostly, 3.6 times the image noise on a radius): its part does not average down over the views. The
+    combined diameters' variance is about (n / 2 + g) against (n + g) / 2 taken as independent, and with the
+    shared part carried u covers the errors."""
+    from tests.cad.test_registration import _with_shared_error
+
+    inv, T, ids = plate
+    chars = [
+        C("d4", "diameter", ["circle-4"], 12.0, 11.9, 12.1),
+        C("d2", "diameter", ["circle-2"], 8.0, 7.9, 8.1),
+        C("cc", "distance", ["circle-2", "circle-4"], feature_distance(inv["circle-2"], inv["circle-4"]), 0, 100),
+    ]
+    rng = np.random.default_rng(8)
+    z, ratio = [], []
+    for draw in range(30):
+        e = rng.standard_normal(7)
+        regs = []
+        for turn in [(0, 0, 0), (0, 0, 25)]:
+            P = turned_pose(T, turn, BOUNDS)
+            m = measure_features(inv, P, ids, rng, n_points=0, lateral=0.0005, depth=0.002)
+            circles, lines = _with_shared_error(m, e, (2e-5, 0.01, 3e-4))
+            regs.append(register(circles, lines, inv, pose_hint=P))
+        parts = [r.features_in_part_frame() for r in regs]
+        shared, independent = fuse(parts, inv, registrations=regs), fuse(parts, inv)
+        f, g = shared["circle-4"], independent["circle-4"]
+        if f.views == (0, 1):
+            ratio.append(f.radius_std ** 2 / g.radius_std ** 2)
+        ev, _ = evaluate_fused(chars, shared, regs, inv, seed=draw, n_mc=200)
+        z.append([(x.measured - c.nominal) / x.standard_uncertainty for x, c in zip(ev, chars)])
+    n, g = 0.0005 ** 2, (6.0 * 3e-4) ** 2
+    assert len(ratio) >= 27
+    assert np.median(ratio) == pytest.approx((n / 2 + g) / ((n + g) / 2), rel=0.1)
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    assert np.all((rms > 0.6) & (rms < 1.4)), rms
