@@ -168,14 +168,17 @@ class PointErrorModel:
 
     def _draw(self, rng, n_draws, which, common):
         n = len(self.arc_length)
-        out = np.zeros((n_draws, n, 3))
+        # Every component moves the points along the same normal direction:
+        # their fields add first, then one product with the Jacobian.
+        across = np.zeros((n_draws, n))
         for k in which:
             std, length = self.components[k]
-            f = correlated_field(self.arc_length, length, rng, n_draws) * std
-            out += f[:, :, None] * self.normal_jacobian
+            across += correlated_field(self.arc_length, length, rng, n_draws) * std
+        out = across[:, :, None] * self.normal_jacobian
         if common and self.common_jacobian is not None and self.common_cov is not None:
             F = self._common_factor()
-            out += np.einsum("nik,dk->dni", F, rng.standard_normal((n_draws, F.shape[2])))
+            z = rng.standard_normal((n_draws, F.shape[2]))
+            out += (z @ F.reshape(-1, F.shape[2]).T).reshape(n_draws, n, 3)  # a BLAS product, not einsum's loop
         return out
 
 
