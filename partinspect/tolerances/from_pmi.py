@@ -16,8 +16,9 @@ linear distance         ``distances``: the pair of parallel lines, or
 angle                   ``angles``: a pair of lines, one on each face, whose
                         CAD angle is the nominal
 position (cylinder)     position of each rim circle, zone = the tolerance;
-                        an MMC/LMC modifier is not applied (no bonus): the
-                        check is the stricter regardless-of-feature-size one
+                        an MMC/LMC modifier becomes ``material``: the bonus
+                        from the rim's measured size (:mod:`.material`),
+                        a zero tolerance at MMC/LMC included
 circularity             circularity of each rim circle
 cylindricity            circularity of each rim circle (a necessary part)
 flatness, straightness  straightness of each straight boundary edge of the
@@ -59,6 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from partinspect.tolerances.geometry import feature_distance, line_angle
+from partinspect.tolerances.material import MODIFIERS
 
 __all__ = ["NotEvaluated", "PmiSpec", "load_pmi_spec", "merge_pmi", "spec_from_pmi"]
 
@@ -312,10 +314,9 @@ class _Mapper:
             self.skip(item.id, item.type, "attached to no face of the model")
             return
         t = item.type
-        if item.value <= 0:
-            bonus = [m for m in item.modifiers if m in ("MMC", "LMC")]
-            self.skip(item.id, t, f"zero tolerance at {bonus[0]}: all of it is the bonus from the feature's size, "
-                      "which an edge position does not apply" if bonus else "zero tolerance")
+        material = [m for m in item.modifiers if m in MODIFIERS] if t == "position" else []
+        if item.value <= 0 and not material:
+            self.skip(item.id, t, "zero tolerance")
             return
         zone = {"tolerance": item.value}
         if t in ("position", "circularity", "cylindricity"):
@@ -326,6 +327,13 @@ class _Mapper:
                           "position is a circle centre's" if t == "position" else
                           "no full circular edge bounds the toleranced cylinder")
                 return
+            if material:
+                sides = {f.convex for f in faces if f.surface == "cylinder"}
+                if len(sides) != 1 or None in sides:
+                    self.skip(item.id, t, f"at {material[0]}, but its faces are not one hole or one boss: no size to "
+                              "take the bonus from")
+                    return
+                zone["material"] = material[0]
             self.put_all(item, rims, "position" if t == "position" else "circularity", zone)
         elif t in ("flatness", "straightness"):
             lines = self.lines([f for f in faces if f.surface == "plane"] if t == "flatness" else faces)

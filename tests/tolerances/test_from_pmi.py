@@ -102,9 +102,14 @@ def test_inch_position_at_mmc(ctc03):
     pmi, inv, ps = ctc03
     pos = pmi["gtol-5"]  # Position.3: 0.05 in at MMC on the 0.438 in holes
     assert pos.name == "Position.3"
+    chars = {c.id: c for c in characteristics_for(ps.spec(), inv)}
     for cid in ps.applies_to["gtol-5"]:
         assert ps.data["features"][cid]["position"]["tolerance"] == pytest.approx(0.05 * INCH)
+        assert ps.data["features"][cid]["position"]["material"] == "MMC"
         assert 2 * inv[cid].radius == pytest.approx(0.438 * INCH, abs=1e-3)
+        # the bonus is taken from the hole's size: 0.438 +-0.005 in, MMC 0.433 in
+        m = chars[f"{cid}.position"].material
+        assert m.internal and m.size.id == f"{cid}.diameter" and m.reference == pytest.approx(0.433 * INCH, abs=1e-6)
 
 
 def test_spec_round_trips_and_resolves(ctc01):
@@ -154,19 +159,25 @@ def test_no_pmi_leaves_the_spec_alone():
     assert [c.to_dict() for c in with_part[1]] == [c.to_dict() for c in without[1]]
 
 
-def test_zero_position_at_mmc_is_not_evaluated(ctc01):
-    # ASME Y14.5 allows "0 (M)": all the tolerance is bonus from the size,
-    # which the edge position does not apply (ftc_10 has one at MMC, one at LMC).
+def test_zero_position_at_mmc_is_all_bonus(ctc01):
+    # ASME Y14.5 allows "0 (M)": all the tolerance is bonus from the size
+    # (ftc_10 has one at MMC, one at LMC); a zero without a modifier is no zone.
     from partinspect.cad.pmi import Pmi, PmiItem
 
     pmi, inv, _ = ctc01
     hole = pmi["dim-4"].faces
-    items = (PmiItem("gtol-1", "tolerance", "position", "Position.0", 0.0, modifiers=("MMC",), faces=hole),
-             PmiItem("gtol-2", "tolerance", "position", "Position.1", 0.1, faces=hole))
+    items = (pmi["dim-4"],
+             PmiItem("gtol-1", "tolerance", "position", "Position.0", 0.0, modifiers=("MMC",), faces=hole),
+             PmiItem("gtol-2", "tolerance", "position", "Position.1", 0.0, faces=hole))
     ps = spec_from_pmi(Pmi(items), inv)
     reasons = {n.item: n.reason for n in ps.not_evaluated}
-    assert "zero tolerance at MMC" in reasons["gtol-1"]
-    assert all(ps.data["features"][c]["position"] == {"tolerance": 0.1} for c in ps.applies_to["gtol-2"])
+    assert reasons["gtol-2"] == "zero tolerance" and "gtol-1" not in reasons
+    assert all(ps.data["features"][c]["position"] == {"tolerance": 0.0, "material": "MMC"} for c in ps.applies_to["gtol-1"])
+    chars = {c.id: c for c in characteristics_for(ps.spec(), inv)}
+    for cid in ps.applies_to["gtol-1"]:
+        # the hole's size is the PMI's 35 +0/-0.2: at MMC 34.8 mm
+        c = chars[f"{cid}.position"]
+        assert c.upper_limit == 0 and c.material.reference == pytest.approx(34.8) and c.material.internal
 
 
 def test_unusable_pmi_falls_back_and_says_so(ctc01, monkeypatch):
