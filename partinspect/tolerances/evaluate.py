@@ -8,7 +8,8 @@ uncertainty ``u`` and ``U = k u`` (k = 2, JCGM 100 6.2). Values:
   spec states broken, the wall's, with the break's Type B
   (:mod:`.edge_break`);
 - distance, angle: :func:`geometry.feature_distance` /
-  :func:`geometry.line_angle` on the measured features;
+  :func:`geometry.line_angle` on the measured features; parallelism (an
+  angle between parallel lines): :func:`geometry.line_tilt`;
 - straightness, circularity: the noise-corrected form (:mod:`.form`);
 - position: 2 x the centre's offset from its true position in the nominal
   circle's plane (ISO 1101; datum frame = the registration's datums); at
@@ -42,6 +43,7 @@ References
 
 from __future__ import annotations
 
+import functools
 import math
 import zlib
 from dataclasses import dataclass, field
@@ -69,6 +71,8 @@ __all__ = [
     "circle_profile",
     "measured_distance",
     "measured_angle",
+    "measured_tilt",
+    "PAIR_VALUES",
     "pick_feature",
     "measured_result",
     "unmeasured_result",
@@ -413,6 +417,15 @@ def measured_angle(fa, fb):
     return geometry.line_angle(fa.start, fa.end, fb.start, fb.end)
 
 
+def measured_tilt(fa, fb, towards=None):
+    """Tilt of measured line fa against fb towards a direction (same frame), as the nominal is defined (rad)."""
+    return geometry.line_tilt(fa.start, fa.end, fb.start, fb.end, towards)
+
+
+# The values between two measured features, by characteristic type.
+PAIR_VALUES = {"distance": measured_distance, "angle": measured_angle, "parallelism": measured_tilt}
+
+
 def _stacked(recs):
     """Rig-frame parameter vectors, joint covariance and rebuild info of measured records.
 
@@ -647,10 +660,15 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
             details["edge_break"] = {"min": c.edge_break[0], "max": c.edge_break[1], "standard_uncertainty": u_b}
         return measured_result(c, fr.value, u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        **details)
-    if t in ("distance", "angle"):
+    if t in PAIR_VALUES:
         x, cov, info, sizes = _stacked([(p.kind, r, registration.measured_params(p.kind, p.index))
                                         for p, r in zip(picked, rec)])
-        g = measured_distance if t == "distance" else measured_angle
+        g = PAIR_VALUES[t]
+        if t == "parallelism" and c.towards is not None:
+            # The direction into the rig frame with the estimated pose: an
+            # error of the pose turns both lines alike, and their tilt not.
+            towards = np.asarray(registration.rotation, float) @ np.asarray(c.towards, float)
+            g = functools.partial(measured_tilt, towards=towards)
         try:
             value, u = propagate(_pair_function(g, info, sizes), x, cov)
         except ValueError as e:

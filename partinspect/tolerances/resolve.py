@@ -34,7 +34,7 @@ import numpy as np
 
 from partinspect.errors import InputError
 from partinspect.tolerances import iso2768
-from partinspect.tolerances.geometry import feature_distance, line_angle
+from partinspect.tolerances.geometry import feature_distance, line_angle, line_tilt, lines_parallel
 from partinspect.tolerances.material import MaterialCondition
 from partinspect.tolerances.spec import APPLIES_TO, FEATURE_ID_RE, ToleranceSpec, format_loc, join_errors
 
@@ -80,7 +80,9 @@ class Characteristic:
         ``"angle(line-1,line-2)"``.
     type : str
         "diameter", "radius", "position", "straightness", "circularity",
-        "profile", "distance" or "angle".
+        "profile", "distance", "angle" or "parallelism" (an ``angles``
+        entry between parallel lines: the first's tilt in their common
+        plane, :func:`~partinspect.tolerances.geometry.line_tilt`).
     features : tuple of str
         CAD feature ids involved (one, or two for distances and angles).
     nominal : float
@@ -107,6 +109,9 @@ class Characteristic:
         :func:`with_material_sizes` resolved it, the size characteristic
         its bonus comes from (:mod:`partinspect.tolerances.material`);
         None: regardless of feature size.
+    towards : tuple of 3 float or None
+        Parallelism only: the unit direction (part frame) the tilt is
+        taken towards; None: the plane the two lines span.
     """
 
     id: str
@@ -120,6 +125,7 @@ class Characteristic:
     unit: str = "mm"
     edge_break: tuple[float, float] | None = None
     material: MaterialCondition | None = None
+    towards: tuple[float, float, float] | None = None
 
     @property
     def feature(self):
@@ -142,6 +148,7 @@ class Characteristic:
             "rule": self.rule,
             **({"edge_break": {"min": self.edge_break[0], "max": self.edge_break[1]}} if self.edge_break else {}),
             **({"material": self.material.to_dict()} if self.material is not None else {}),
+            **({"towards": [round(x, 12) for x in self.towards]} if self.towards is not None else {}),
         }
 
 
@@ -437,6 +444,11 @@ def _angle_characteristic(cid, fa, fb, item, rule, report):
             bad = True
     if bad:
         return None
+    if lines_parallel(fa.start, fa.end, fb.start, fb.end):
+        return _parallelism_characteristic(cid, fa, fb, item, rule, report)
+    if item.towards is not None:
+        report("towards is for an angle between parallel lines (a parallelism); these meet")
+        return None
     try:
         cad = line_angle(fa.start, fa.end, fb.start, fb.end)
     except ValueError as e:
@@ -454,6 +466,24 @@ def _angle_characteristic(cid, fa, fb, item, rule, report):
         nominal = math.radians(item.nominal)
     lower, upper = math.radians(item.lower), math.radians(item.upper)
     return Characteristic(cid, "angle", (fa.id, fb.id), nominal, nominal + lower, nominal + upper, "spec", rule, unit="rad")
+
+
+def _parallelism_characteristic(cid, fa, fb, item, rule, report):
+    # Two parallel lines have no vertex: their angle is the tilt of the first
+    # in the plane the two span (geometry.line_tilt), nominal zero.
+    towards = None if item.towards is None else tuple(float(x) for x in np.asarray(item.towards) / np.linalg.norm(item.towards))
+    try:
+        line_tilt(fa.start, fa.end, fb.start, fb.end, towards)
+    except ValueError as e:
+        report(f"no angle between {fa.id} and {fb.id}: {e}")
+        return None
+    if item.nominal is not None and abs(item.nominal) > item.upper - item.lower + 1e-9:
+        report(f"nominal {item.nominal:g} degrees disagrees with the CAD model: the lines are parallel (0 degrees)")
+        return None
+    nominal = math.radians(item.nominal or 0.0)
+    lower, upper = math.radians(item.lower), math.radians(item.upper)
+    return Characteristic(cid, "parallelism", (fa.id, fb.id), nominal, nominal + lower, nominal + upper, "spec", rule,
+                          unit="rad", towards=towards)
 
 
 def general_characteristics(inventory, spec, path=None):

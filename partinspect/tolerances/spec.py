@@ -210,6 +210,14 @@ def _point(value):
     return value
 
 
+def _direction(value):
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise PydanticCustomError("direction", "expected a direction [x, y, z], got {got}", {"got": _show(value)})
+    if all(isinstance(x, (int, float)) and not isinstance(x, bool) and x == 0 for x in value):
+        raise PydanticCustomError("direction", "expected a direction [x, y, z], got the zero vector")
+    return value
+
+
 def _pair(value):
     if not isinstance(value, (list, tuple)) or len(value) != 2:
         raise PydanticCustomError("pair", "expected two features [a, b], got {got}", {"got": _show(value)})
@@ -295,12 +303,22 @@ class AngleSpec(_Model):
         Nominal angle in degrees, in (0, 180); None takes it from the CAD
         model (see :func:`partinspect.tolerances.geometry.line_angle` for
         which of the two supplementary angles that is).
+
+    towards : tuple of 3 float or None
+        Between parallel lines only: the direction (part frame, e.g. a
+        datum plane's normal) the tilt is taken towards.
+
+    Between two parallel lines the angle is the first line's tilt towards
+    ``towards``, by default in the plane the two span, nominal 0 (a
+    parallelism over the first line's length L within a zone t is limits
+    +- atan(t / L); :func:`partinspect.tolerances.geometry.line_tilt`).
     """
 
     between: Annotated[tuple[str, str], BeforeValidator(_pair)]
     upper: Number
     lower: Number
     nominal: Number | None = None
+    towards: Annotated[tuple[Number, Number, Number], BeforeValidator(_direction)] | None = None
 
     @field_validator("nominal")
     @classmethod

@@ -194,3 +194,31 @@ def test_unusable_pmi_falls_back_and_says_so(ctc01, monkeypatch):
     (why,) = resolved.not_evaluated
     assert "#4711" in why.reason and "ISO 2768 apply instead" in why.reason
     assert all(c.source.startswith("ISO 2768") for c in chars)
+
+
+def test_parallelism_to_a_datum_plane_becomes_a_tilt_over_the_edge_length():
+    # ftc_08: five parallelism tolerances; 0.762 mm of face-121 (datum D) to datum A, and 0.508 mm of
+    # face-118 to D map to the longest edge of the face against a parallel edge of the datum plane;
+    # the other three sit on faces no straight edge bounds.
+    pmi, inv, ps = _load("nist_ftc_08_asme1_ap242-e1.stp")
+    par = [i for i in pmi.items if i.type == "parallelism"]
+    assert [(i.id, i.value) for i in par] == [("gtol-1", 0.381), ("gtol-3", 0.762), ("gtol-7", 0.381),
+                                             ("gtol-8", 0.762), ("gtol-30", 0.508)]
+    reasons = {n.item: n.reason for n in ps.not_evaluated}
+    for gid in ("gtol-1", "gtol-7", "gtol-8"):
+        assert "no straight edge bounds the face" in reasons[gid]
+    datum = {i.name: i.faces for i in pmi.items if i.kind == "datum"}
+    for gid in ("gtol-3", "gtol-30"):
+        item = pmi[gid]
+        (k,) = [k for k, v in ps.sources.items() if v == gid]
+        entry = ps.data["angles"][k[1]]
+        line, dl = (inv[x] for x in entry["between"])
+        assert item.faces[0] in line.faces and datum[item.datums[0]][0] in dl.faces
+        assert line.length == max(f.length for f in inv.features if f.kind == "line" and item.faces[0] in f.faces
+                                  and not f.smooth)
+        assert entry["towards"] == pytest.approx(list(inv[datum[item.datums[0]][0]].normal))
+        assert entry["upper"] == pytest.approx(math.degrees(math.atan(item.value / line.length)))
+        assert entry["lower"] == -entry["upper"]
+    chars = {c.id: c for c in resolve_spec(parse_spec(dump_spec(ps.spec())), inv).characteristics}
+    c = chars["angle(line-33,line-2)"]  # gtol-3: 0.762 mm over the 152.4 mm edge
+    assert c.type == "parallelism" and c.upper_limit == pytest.approx(math.atan(0.762 / 152.4))
