@@ -127,3 +127,6 @@ def test_plan_uses_the_pmi_when_no_spec_is_given(rig_file, tmp_path, capsys):
     assert len(rims) == 2 and all(c[f"{r}.diameter"]["tolerance"] == pytest.approx(0.2) for r in rims)
     assert [n["item"] for n in data["not_evaluated"]] == [n.item for n in ps.not_evaluated]
     assert "PMI" in (out / "plan.html").read_text()
+    err = capsys.readouterr().err
+    assert f"inspect: {ctc01.name} PMI: {len(ps.not_evaluated)} items not evaluated (" in err
+    assert err.rstrip().endswith("reasons in plan.json")
