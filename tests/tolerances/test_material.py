@@ -108,6 +108,15 @@ def test_hole_larger_than_mmc_gets_exactly_that_bonus(plate):
     assert decide(replace(e_pos, measured=d["position"], expanded_uncertainty=2 * d["position_standard_uncertainty"])).decision == "fail"
     out = e_pos.to_dict()
     assert out["material"]["reference_size"] == 11.95 and out["details"]["bonus"] == pytest.approx(d["bonus"])
+    # report.html shows where the value came from
+    from partinspect.reports.html import render_html
+    from tests.reports.synthetic import make_report
+
+    report = make_report()
+    report["characteristics"] = [decide(e_pos).to_dict()]
+    html = render_html(report)
+    assert (f"at MMC: position {d['position']:.4f} − bonus {d['bonus']:.4f} (measured size {d['measured_size']:.4f}, "
+            "11.9500 at MMC)") in html
 
 
 def test_the_fits_centre_size_covariance_reaches_u(plate):
