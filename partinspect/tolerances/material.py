@@ -53,6 +53,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 __all__ = ["MODIFIERS", "MaterialCondition", "bonus_sign", "reference_size", "position_with_bonus"]
 
 MODIFIERS = ("MMC", "LMC")
@@ -147,8 +149,6 @@ def position_with_bonus(position, u_position, gradient, size, u_size, cov_center
         ``correlation`` is that of the position with the bonus (the
         covariance term's share), clipped to [-1, 1].
     """
-    import numpy as np
-
     s = bonus_sign(modifier, internal)
     bonus = s * (float(size) - float(reference))
     u_bonus = abs(s) * float(u_size)

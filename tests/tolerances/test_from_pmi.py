@@ -110,6 +110,9 @@ def test_inch_position_at_mmc(ctc03):
         # the bonus is taken from the hole's size: 0.438 +-0.005 in, MMC 0.433 in
         m = chars[f"{cid}.position"].material
         assert m.internal and m.size.id == f"{cid}.diameter" and m.reference == pytest.approx(0.433 * INCH, abs=1e-6)
+    # `inspect spec` writes the modifier, and it reads back
+    again = parse_spec(dump_spec(ps.spec()))
+    assert again.features[ps.applies_to["gtol-5"][0]].position.material == "MMC"
 
 
 def test_spec_round_trips_and_resolves(ctc01):
