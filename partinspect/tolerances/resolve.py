@@ -81,8 +81,9 @@ class Characteristic:
     type : str
         "diameter", "radius", "position", "straightness", "circularity",
         "profile", "distance", "angle" or "parallelism" (an ``angles``
-        entry between parallel lines: the first's tilt in their common
-        plane, :func:`~partinspect.tolerances.geometry.line_tilt`).
+        entry between parallel lines: the first's tilt towards
+        ``towards``, or in their common plane,
+        :func:`~partinspect.tolerances.geometry.line_tilt`).
     features : tuple of str
         CAD feature ids involved (one, or two for distances and angles).
     nominal : float

@@ -117,6 +117,11 @@ def test_hole_larger_than_mmc_gets_exactly_that_bonus(plate):
     html = render_html(report)
     assert (f"at MMC: position {d['position']:.4f} − bonus {d['bonus']:.4f} (measured size {d['measured_size']:.4f}, "
             "11.9500 at MMC)") in html
+    # and junit.xml's failure body, had it failed
+    from partinspect.reports.junit import junit_xml
+
+    report["characteristics"][0]["decision"] = "fail"
+    assert f"at MMC: position {d['position']:.4f} - bonus {d['bonus']:.4f}" in junit_xml(report)
 
 
 def test_the_fits_centre_size_covariance_reaches_u(plate):
