@@ -393,6 +393,7 @@ def _run_plan(args):
                       progress=_progress(args.quiet))
     out = write_plan(args.output, result)
     if not args.quiet:
+        _say_pmi_problems(os.path.basename(str(args.part)), result.not_evaluated, "plan.json")
         try:
             print(plan_table(result))
             print(f"\n{result.summary_line()}; report: {out / 'plan.html'}", flush=True)
@@ -465,6 +466,15 @@ def _run_calibrate(args):
     return EXIT_PASS
 
 
+def _say_pmi_problems(part_name, not_evaluated, where):
+    """The PMI items a run does not check, summed up in one line on stderr (the reports list each)."""
+    from partinspect.tolerances.pmi_text import pmi_problems_line
+
+    line = pmi_problems_line(part_name, not_evaluated, where)
+    if line:
+        print(f"inspect: {line}", file=sys.stderr, flush=True)
+
+
 def _progress(quiet):
     from partinspect.progress import Progress
 
@@ -498,6 +508,8 @@ def _run_inspect(args):
     if args.timings:
         print(timings.table(), file=sys.stderr)
     if not args.quiet:
+        _say_pmi_problems(os.path.basename(str(args.part)), result.report.get("tolerances", {}).get("not_evaluated", ()),
+                          "report.json")
         try:
             print(result.summary_line(), flush=True)
         except BrokenPipeError:

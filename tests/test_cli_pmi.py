@@ -75,3 +75,41 @@ def test_report_lists_pmi_not_evaluated_escaped():
     assert "&lt;needs&gt;" in html and "<needs>" not in html
     del report["tolerances"]["not_evaluated"]
     assert 'id="not-evaluated"' not in render_html(report)
+
+
+def test_pmi_problems_line():
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+    from partinspect.tolerances.from_pmi import NotEvaluated, load_pmi_spec
+    from partinspect.tolerances.pmi_text import pmi_problems_line
+
+    path = CTC_01.with_name("nist_ctc_03_asme1_ap242-e2.stp")
+    _, ps = load_pmi_spec(path, inventory(load_step(path)))
+    line = pmi_problems_line(path.name, ps.not_evaluated)
+    # ctc_03: 16 items not evaluated, the per-area flatness OCCT drops among them
+    assert line.startswith(f"{path.name} PMI: 16 items not evaluated (1 not read by OCCT; ")
+    assert "3 profile of surface" in line and line.endswith("reasons in report.json")
+    assert pmi_problems_line("p.stp", []) is None
+    broken = NotEvaluated("p.stp", "PMI", "the PMI could not be used (boom); the spec and ISO 2768 apply instead")
+    assert pmi_problems_line("p.stp", [broken]) == f"p.stp: {broken.reason}"
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_inspect_sums_up_pmi_problems_on_stderr(quiet, tmp_path, capsys, monkeypatch):
+    import partinspect.pipeline as pipeline
+
+    summary = {"pass": 1, "fail": 0, "inconclusive": 0, "characteristics": 1, "features_measured": 1, "features": 1}
+    report = {"verdict": "pass", "summary": summary, "tolerances": {"not_evaluated": [
+        {"item": "gtol-3", "type": "profile_of_surface", "reason": "a surface profile needs the surface"},
+        {"item": "gtol-4", "type": "profile_of_surface", "reason": "a surface profile needs the surface"},
+        {"item": "Flatness.1", "type": "flatness", "reason": "not read by OCCT (the file's FLATNESS_TOLERANCE)"}]}}
+    monkeypatch.setattr(pipeline, "run_inspection",
+                        lambda *a, **k: pipeline.InspectionResult("pass", report, tmp_path / "out"))
+    code = main([str(CTC_01), str(tmp_path), "-o", str(tmp_path / "out")] + (["--quiet"] if quiet else []))
+    assert code == 0
+    err = capsys.readouterr().err
+    if quiet:
+        assert "PMI" not in err
+    else:
+        assert err.strip().splitlines() == [f"inspect: {CTC_01.name} PMI: 3 items not evaluated (1 not read by OCCT; "
+                                            "2 profile of surface); reasons in report.json"]

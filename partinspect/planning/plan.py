@@ -54,6 +54,9 @@ class PlanResult:
         The fewest views that decide the characteristics
         (:func:`partinspect.planning.views.plan_views`); None when not
         asked for. With it, its decisions are the plan's.
+    not_evaluated : tuple of NotEvaluated
+        What the STEP file's PMI holds that no edge characteristic checks
+        (`partinspect.tolerances.from_pmi`), with the reasons.
     """
 
     part: Path
@@ -70,6 +73,7 @@ class PlanResult:
     search: object = None
     check: object = None
     views: object = None
+    not_evaluated: tuple = ()
 
     @property
     def best(self):
@@ -139,8 +143,9 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         Calibration (``calibration.yaml``, or a folder holding it); it must
         give the image size.
     tolerances : str or Path, optional
-        Tolerance spec; default ``PART.tol.yaml`` beside the STEP file, else
-        ISO 2768-mK.
+        Tolerance spec; default ``PART.tol.yaml`` beside the STEP file. The
+        STEP file's PMI tolerances what the spec does not, ISO 2768-mK the
+        rest, as for `inspect`.
     pose : str, optional
         ``--pose`` text (``RX,RY,RZ[,TX,TY,TZ]`` or a JSON file with
         ``part_to_camera``, e.g. a render's ``truth.json``); default the
@@ -207,16 +212,11 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     inv = inventory(shape)
     if not inv.features:
         raise InputError(part, "no line or circle edges to measure")
-    from partinspect.tolerances.resolve import characteristics_for
-    from partinspect.tolerances.spec import default_spec, load_spec
+    from partinspect.tolerances.loading import load_characteristics
 
-    spec = load_spec(tol_path) if tol_path is not None else default_spec()
-    chars = characteristics_for(spec, inv, tol_path)
-    datums = None
-    if spec.datums is not None:
-        from partinspect.tolerances.resolve import resolve_spec
-
-        datums = tuple(resolve_spec(spec, inv, tol_path).datums)
+    # As `inspect` does: the STEP file's PMI for what the spec leaves out.
+    resolved, chars = load_characteristics(inv, tol_path, part=part)
+    datums = tuple(resolved.datums) if resolved.spec.datums is not None else None
 
     bounds = bounds_of(shape)
     start = parse_pose(pose, bounds, calib) if pose is not None else default_pose(bounds, calib)
@@ -255,4 +255,4 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         checked = check_pose(inv, scene, calib, best, chars, model, renderer, datums=datums, draws=check, seed=seed,
                              progress=say)
     return PlanResult(part, rig, tol_path, calib, inv, chars, datums, model, max_ratio, center, start_pred, result,
-                      checked, view_plan)
+                      checked, view_plan, tuple(resolved.not_evaluated))

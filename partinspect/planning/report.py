@@ -76,6 +76,7 @@ def plan_to_dict(result):
                   "end_trim": m.run_trim, "arc_end_trim": m.arc_trim, "min_points": m.min_points},
         "datums": None if result.datums is None else list(result.datums),
         "characteristics": len(result.characteristics),
+        "not_evaluated": [n.to_dict() for n in result.not_evaluated],
         "start": _pose_dict(result.start, result.center),
         "best": _pose_dict(result.best, result.center),
         "all_decidable": result.all_decidable,

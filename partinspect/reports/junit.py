@@ -46,6 +46,10 @@ def _details(c):
         lines.append(f"deviation {c['deviation']:+.4f} {c.get('unit') or 'mm'}")
     if c.get("rule") or c.get("source"):
         lines.append(f"tolerance from {c.get('rule') or c.get('source')}")
+    d, m = c.get("details") or {}, c.get("material")
+    if m and d.get("bonus") is not None:
+        lines.append(f"at {m['modifier']}: position {d['position']:.4f} - bonus {d['bonus']:.4f} (measured size "
+                     f"{d['measured_size']:.4f}, {d['size_at_condition']:.4f} at {m['modifier']})")
     if c.get("method"):
         lines.append(f"uncertainty: {c['method']}")
     return "\n".join(lines)

@@ -8,10 +8,13 @@ uncertainty ``u`` and ``U = k u`` (k = 2, JCGM 100 6.2). Values:
   spec states broken, the wall's, with the break's Type B
   (:mod:`.edge_break`);
 - distance, angle: :func:`geometry.feature_distance` /
-  :func:`geometry.line_angle` on the measured features;
+  :func:`geometry.line_angle` on the measured features; parallelism (an
+  angle between parallel lines): :func:`geometry.line_tilt`;
 - straightness, circularity: the noise-corrected form (:mod:`.form`);
 - position: 2 x the centre's offset from its true position in the nominal
-  circle's plane (ISO 1101; datum frame = the registration's datums);
+  circle's plane (ISO 1101; datum frame = the registration's datums); at
+  MMC or LMC, that minus the bonus from the measured size
+  (:mod:`.material`), the limit staying the stated tolerance;
 - profile: 2 x the largest offset of the measured edge (a line over its
   measured extent, a circle over the nominal range) from the nominal CAD
   edge, plus the form (ISO 1101 line profile, two-sided zone).
@@ -40,6 +43,7 @@ References
 
 from __future__ import annotations
 
+import functools
 import math
 import zlib
 from dataclasses import dataclass, field
@@ -51,6 +55,7 @@ from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
 from partinspect.tolerances.edge_break import band_rms, size_on_broken_rim
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
+from partinspect.tolerances.material import position_with_bonus
 
 __all__ = [
     "COVERAGE_FACTOR",
@@ -61,10 +66,13 @@ __all__ = [
     "propagate",
     "monte_carlo",
     "true_position",
+    "position_gradient",
     "line_profile",
     "circle_profile",
     "measured_distance",
     "measured_angle",
+    "measured_tilt",
+    "PAIR_VALUES",
     "pick_feature",
     "measured_result",
     "unmeasured_result",
@@ -249,12 +257,31 @@ def true_position(center, cov, nominal_center, nominal_normal, rng, n=N_MC):
         it is the Rice/Rayleigh RMS, far from zero the radial standard
         uncertainty.
     """
+    d, mu, P = _offsets(center, cov, nominal_center, nominal_normal)
+    value = 2.0 * float(np.linalg.norm(d))
+    draws = mu + rng.standard_normal((n, 3)) @ _sqrt_psd(np.asarray(cov, float)).T
+    v = 2.0 * np.linalg.norm(draws @ P, axis=1)
+    return value, float(np.sqrt(np.mean((v - 2.0 * np.linalg.norm(mu)) ** 2)))
+
+
+def position_gradient(center, cov, nominal_center, nominal_normal):
+    """``d position / d centre`` at the offset :func:`true_position` simulates at, shape (3,).
+
+    ``2 P m / |P m|`` with ``m`` the bias-corrected in-plane offset; zero
+    when that offset is not significant (at a zero offset the position's
+    error is uncorrelated with the centre's by symmetry).
+    """
+    _, mu, _ = _offsets(center, cov, nominal_center, nominal_normal)
+    norm = float(np.linalg.norm(mu))
+    return 2.0 * mu / norm if norm > 0 else np.zeros(3)
+
+
+def _offsets(center, cov, nominal_center, nominal_normal):
+    """The in-plane offset, its bias-corrected value and the in-plane projector."""
     N = np.asarray(nominal_normal, float)
     P = np.eye(3) - np.outer(N, N)
-    C0 = np.asarray(nominal_center, float)
     cov = np.asarray(cov, float)
-    d = P @ (np.asarray(center, float) - C0)
-    value = 2.0 * float(np.linalg.norm(d))
+    d = P @ (np.asarray(center, float) - np.asarray(nominal_center, float))
     # Near the true position the offset's length is Rice-distributed and
     # biased up: E|d|^2 = |mu|^2 + tr(P cov P). The RMS error of the
     # estimate is therefore simulated at a shrunk offset mu_hat, a
@@ -266,9 +293,7 @@ def true_position(center, cov, nominal_center, nominal_normal, rng, n=N_MC):
     # error at zero offset, and the interval undercovers.
     excess = float(d @ d) - _SHRINK * float(np.trace(P @ cov @ P))
     mu = d * np.sqrt(max(excess, 0.0) / float(d @ d)) if d @ d > 0 else d
-    draws = mu + rng.standard_normal((n, 3)) @ _sqrt_psd(cov).T
-    v = 2.0 * np.linalg.norm(draws @ P, axis=1)
-    return value, float(np.sqrt(np.mean((v - 2.0 * np.linalg.norm(mu)) ** 2)))
+    return d, mu, P
 
 
 def line_profile(point, direction, cov, s0, s1, nominal_start, nominal_end, rng, n=N_MC):
@@ -390,6 +415,15 @@ def measured_distance(fa, fb):
 def measured_angle(fa, fb):
     """Angle between two measured lines, as the nominal is defined (rad)."""
     return geometry.line_angle(fa.start, fa.end, fb.start, fb.end)
+
+
+def measured_tilt(fa, fb, towards=None):
+    """Tilt of measured line fa against fb towards a direction (same frame), as the nominal is defined (rad)."""
+    return geometry.line_tilt(fa.start, fa.end, fb.start, fb.end, towards)
+
+
+# The values between two measured features, by characteristic type.
+PAIR_VALUES = {"distance": measured_distance, "angle": measured_angle, "parallelism": measured_tilt}
 
 
 def _stacked(recs):
@@ -543,6 +577,48 @@ def form_scene_spreads(c, parts, registration, n_images, *, seed=0, n_scenes=N_S
         return None  # no range over scenes: the caller judges by chance alone
 
 
+def _size_result(c, rec, registration, inventory, k):
+    """The measured diameter or radius of a circle record (:class:`Evaluation` of size characteristic ``c``)."""
+    f = 2.0 if c.type == "diameter" else 1.0
+    if c.edge_break is None:
+        return measured_result(c, f * float(rec.radius), f * float(rec.radius_std), k, "first order (pose-invariant)")
+    convex = _cylinder_side(inventory, c.features[0])
+    if not _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
+        # A rim seen through its hole (or past its boss) shows the wall's
+        # own silhouette, where the break has not begun.
+        return measured_result(c, f * float(rec.radius), f * float(rec.radius_std), k,
+                               "first order (pose-invariant); the wall's silhouette, seen through the hole past its "
+                               "broken rim")
+    r, u, corr, u_b = size_on_broken_rim(float(rec.radius), float(rec.radius_std), convex, *c.edge_break)
+    wall = {False: "the hole's wall", True: "the boss's wall", None: "the wall (material side unknown)"}[convex]
+    return measured_result(c, f * r, f * u, k, "first order (pose-invariant), edge break Type B",
+                           edge_break={"min": c.edge_break[0], "max": c.edge_break[1], "correction": f * corr,
+                                       "standard_uncertainty": f * u_b, "rim": f * float(rec.radius),
+                                       "measured_as": f"{wall}, from its broken rim"})
+
+
+def _position_with_bonus(c, position, u_position, pf, rec, nominal, registration, inventory, k, method):
+    """A position at MMC or LMC: ``position - bonus(d) <= t`` (:mod:`.material`), ``d`` as its size characteristic measures it."""
+    m = c.material
+    size = _size_result(m.size, rec, registration, inventory, k)
+    scale = 2.0 if m.size.type == "radius" else 1.0
+    d, u_d = scale * size.measured, scale * size.standard_uncertainty
+    grad = position_gradient(pf.center, pf.covariance, nominal.center, nominal.normal)
+    # Centre and radius come out of one fit: their covariance is in the
+    # feature's parameter covariance (centre rows, radius column); an edge
+    # break's correction is an independent Type B shift and adds none.
+    cov_cd = 2.0 * np.asarray(pf.param_cov, float)[:3, 6]
+    q, u, bonus, u_bonus, rho = position_with_bonus(position, u_position, grad, d, u_d, cov_cd, m.modifier,
+                                                    m.internal, m.reference)
+    return measured_result(
+        c, q, u, k, f"{method}; minus the {m.modifier} bonus from the measured size, GUM law of propagation with the "
+        "fit's centre-size covariance", datums=list(registration.datums), position=position,
+        position_standard_uncertainty=u_position, bonus=bonus, bonus_standard_uncertainty=u_bonus,
+        position_bonus_correlation=rho, measured_size=d, measured_size_standard_uncertainty=u_d,
+        size_at_condition=m.reference, size_characteristic=m.size.id, modifier=m.modifier,
+        feature_of_size="hole" if m.internal else "boss")
+
+
 def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC,
                             one_scene=False):
     """One characteristic; ``parts`` as ``registration.features_in_part_frame()`` returns.
@@ -563,22 +639,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
     if t in ("diameter", "radius"):
         if pf.kind != "circle":
             return unmeasured_result(c, f"{c.features[0]} is not measured as a circle")
-        f = 2.0 if t == "diameter" else 1.0
-        if c.edge_break is None:
-            return measured_result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k, "first order (pose-invariant)")
-        convex = _cylinder_side(inventory, c.features[0])
-        if not _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
-            # A rim seen through its hole (or past its boss) shows the wall's
-            # own silhouette, where the break has not begun.
-            return measured_result(c, f * float(rec[0].radius), f * float(rec[0].radius_std), k,
-                           "first order (pose-invariant); the wall's silhouette, seen through the hole past its "
-                           "broken rim")
-        r, u, corr, u_b = size_on_broken_rim(float(rec[0].radius), float(rec[0].radius_std), convex, *c.edge_break)
-        wall = {False: "the hole's wall", True: "the boss's wall", None: "the wall (material side unknown)"}[convex]
-        return measured_result(c, f * r, f * u, k, "first order (pose-invariant), edge break Type B",
-                       edge_break={"min": c.edge_break[0], "max": c.edge_break[1], "correction": f * corr,
-                                   "standard_uncertainty": f * u_b, "rim": f * float(rec[0].radius),
-                                   "measured_as": f"{wall}, from its broken rim"})
+        return _size_result(c, rec[0], registration, inventory, k)
     if t in ("straightness", "circularity"):
         points = _form_points(rec[0])
         if points is None:
@@ -599,10 +660,15 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
             details["edge_break"] = {"min": c.edge_break[0], "max": c.edge_break[1], "standard_uncertainty": u_b}
         return measured_result(c, fr.value, u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
                        **details)
-    if t in ("distance", "angle"):
+    if t in PAIR_VALUES:
         x, cov, info, sizes = _stacked([(p.kind, r, registration.measured_params(p.kind, p.index))
                                         for p, r in zip(picked, rec)])
-        g = measured_distance if t == "distance" else measured_angle
+        g = PAIR_VALUES[t]
+        if t == "parallelism" and c.towards is not None:
+            # The direction into the rig frame with the estimated pose: an
+            # error of the pose turns both lines alike, and their tilt not.
+            towards = np.asarray(registration.rotation, float) @ np.asarray(c.towards, float)
+            g = functools.partial(measured_tilt, towards=towards)
         try:
             value, u = propagate(_pair_function(g, info, sizes), x, cov)
         except ValueError as e:
@@ -613,7 +679,10 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
         if pf.kind != "circle":
             return unmeasured_result(c, f"{c.features[0]} is not measured as a circle")
         value, u = true_position(pf.center, pf.covariance, nominal.center, nominal.normal, rng, n_mc)
-        return measured_result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", datums=list(registration.datums))
+        method = "Monte Carlo (JCGM 101), pose covariance included"
+        if c.material is None:
+            return measured_result(c, value, u, k, method, datums=list(registration.datums))
+        return _position_with_bonus(c, value, u, pf, rec[0], nominal, registration, inventory, k, method)
     if t == "profile":
         form_fn = straightness if pf.kind == "line" else (circularity if nominal.kind == "circle" else None)
         if pf.kind == "line":

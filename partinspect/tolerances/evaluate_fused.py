@@ -17,6 +17,7 @@ References
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -26,8 +27,7 @@ from partinspect.tolerances.evaluate import (
     COVERAGE_FACTOR,
     N_MC,
     evaluate_characteristic,
-    measured_angle,
-    measured_distance,
+    PAIR_VALUES,
     measured_result,
     propagate,
     unmeasured_result,
@@ -128,7 +128,7 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
             v = views[0]
             evaluations.append(evaluate_characteristic(c, parts[v], registrations[v], inventory, k=k, seed=seed,
                                                        n_mc=n_mc))
-        elif c.type in ("distance", "angle"):
+        elif c.type in PAIR_VALUES:
             evaluations.append(pair_value(c, fs, registrations, k))
         else:
             view = _FusedView(fs[0], registrations, _form_view(fs[0], registrations))
@@ -146,7 +146,7 @@ def pair_value(c, fs, registrations, k=COVERAGE_FACTOR):
     Parameters
     ----------
     c : Characteristic
-        Of type "distance" or "angle".
+        Of type "distance", "angle" or "parallelism".
     fs : (FusedFeature, FusedFeature)
     registrations : sequence of Registration
         Per view (for the cross-covariance through a view that measured both).
@@ -161,7 +161,9 @@ def pair_value(c, fs, registrations, k=COVERAGE_FACTOR):
     x = np.r_[a.params, b.params]
     cov = np.block([[a.param_cov, K], [K.T, b.param_cov]])
     na, ea, eb = len(a.params), _extent(a), _extent(b)
-    g = measured_distance if c.type == "distance" else measured_angle
+    g = PAIR_VALUES[c.type]
+    if c.type == "parallelism" and c.towards is not None:
+        g = functools.partial(g, towards=np.asarray(c.towards, float))  # the part frame's, as these features
 
     def f(z):
         return g(_rebuilt(a.kind, z[:na], ea), _rebuilt(b.kind, z[na:], eb))

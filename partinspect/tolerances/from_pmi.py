@@ -16,8 +16,9 @@ linear distance         ``distances``: the pair of parallel lines, or
 angle                   ``angles``: a pair of lines, one on each face, whose
                         CAD angle is the nominal
 position (cylinder)     position of each rim circle, zone = the tolerance;
-                        an MMC/LMC modifier is not applied (no bonus): the
-                        check is the stricter regardless-of-feature-size one
+                        an MMC/LMC modifier becomes ``material``: the bonus
+                        from the rim's measured size (:mod:`.material`),
+                        a zero tolerance at MMC/LMC included
 circularity             circularity of each rim circle
 cylindricity            circularity of each rim circle (a necessary part)
 flatness, straightness  straightness of each straight boundary edge of the
@@ -29,9 +30,16 @@ angularity (plane)      across the line where it meets the datum plane,
                         angle is the dihedral angle), nominal from the CAD
                         model, limits +- atan(t / L) over the line's
                         length L
+parallelism (plane)     ``angles`` between parallel lines: the longest
+                        boundary line of the toleranced plane against the
+                        longest datum plane line parallel to it,
+                        ``towards`` the datum's normal; the value is the
+                        line's tilt towards it (its distance from the
+                        datum plane spreads by L sin(tilt) over its length
+                        L), nominal 0, limits +- atan(t / L)
 ======================  ======================================================
 
-Everything else (surface profile, parallelism, symmetry, run-out, an
+Everything else (surface profile, parallelism of an axis, symmetry, run-out, an
 orientation of an axis, thickness, items without a value or without a face
 in the model, tolerances OCCT did not read) is *not evaluated*, each with
 its reason. Datums the PMI names become the spec's ``datums``: the
@@ -58,7 +66,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from partinspect.tolerances.geometry import feature_distance, line_angle
+from partinspect.tolerances.geometry import feature_distance, line_angle, lines_parallel
+from partinspect.tolerances.material import MODIFIERS
 
 __all__ = ["NotEvaluated", "PmiSpec", "load_pmi_spec", "merge_pmi", "spec_from_pmi"]
 
@@ -312,10 +321,9 @@ class _Mapper:
             self.skip(item.id, item.type, "attached to no face of the model")
             return
         t = item.type
-        if item.value <= 0:
-            bonus = [m for m in item.modifiers if m in ("MMC", "LMC")]
-            self.skip(item.id, t, f"zero tolerance at {bonus[0]}: all of it is the bonus from the feature's size, "
-                      "which an edge position does not apply" if bonus else "zero tolerance")
+        material = [m for m in item.modifiers if m in MODIFIERS] if t == "position" else []
+        if item.value <= 0 and not material:
+            self.skip(item.id, t, "zero tolerance")
             return
         zone = {"tolerance": item.value}
         if t in ("position", "circularity", "cylindricity"):
@@ -326,6 +334,13 @@ class _Mapper:
                           "position is a circle centre's" if t == "position" else
                           "no full circular edge bounds the toleranced cylinder")
                 return
+            if material:
+                sides = {f.convex for f in faces if f.surface == "cylinder"}
+                if len(sides) != 1 or None in sides:
+                    self.skip(item.id, t, f"at {material[0]}, but its faces are not one hole or one boss: no size to "
+                              "take the bonus from")
+                    return
+                zone["material"] = material[0]
             self.put_all(item, rims, "position" if t == "position" else "circularity", zone)
         elif t in ("flatness", "straightness"):
             lines = self.lines([f for f in faces if f.surface == "plane"] if t == "flatness" else faces)
@@ -344,7 +359,7 @@ class _Mapper:
         elif t == "profile_of_surface":
             self.skip(item.id, t, "a surface profile needs the surface; its boundary edges do not sample it")
         elif t == "parallelism":
-            self.skip(item.id, t, "parallel edges have no angle, and the spec has no parallelism characteristic")
+            self.parallelism(item, faces)
         else:
             self.skip(item.id, t, f"{t.replace('_', ' ')} is not checked from edges")
 
@@ -354,10 +369,8 @@ class _Mapper:
             self.skip(item.id, item.type, "an axis's orientation is not an edge characteristic (only a plane's is, "
                       "as an angle between edges)")
             return
-        datum = item.datums[0] if item.datums else None
-        dplanes = [f for f in self.datum_faces.get(datum, ()) if f.surface == "plane"]
-        if not dplanes:
-            self.skip(item.id, item.type, f"its datum {datum or '(none)'} is not a plane attached to the model")
+        dplanes = self._datum_planes(item)
+        if dplanes is None:
             return
         # Both edges must run across the planes' line of intersection: the
         # angle between them is then the dihedral angle the tolerance bounds.
@@ -380,9 +393,51 @@ class _Mapper:
             self.skip(item.id, item.type, "no edge of the face, or none of its datum plane, runs across the line "
                       "where the two planes meet")
             return
-        line, dl = best
+        self.tilt_entry(item, *best)
+
+
+    def parallelism(self, item, faces):
+        planes = [f for f in faces if f.surface == "plane"]
+        if not planes or len(planes) != len(faces):
+            self.skip(item.id, item.type, "an axis's orientation is not an edge characteristic (only a plane's is, "
+                      "as the tilt between edges)")
+            return
+        dplanes = self._datum_planes(item)
+        if dplanes is None:
+            return
+        n = np.asarray(dplanes[0].normal, float)
+        if np.linalg.norm(np.cross(np.asarray(planes[0].normal, float), n)) > _ALONG:
+            self.skip(item.id, item.type, "the face is not parallel to its datum plane in the model")
+            return
+        # The longest face line against the longest datum-plane line
+        # parallel to it; the tilt is taken towards the datum's normal, so
+        # it is the tilt out of the datum plane that the zone bounds.
+        best = None
+        for line in self.lines(planes):
+            for dl in self.lines(dplanes):
+                if lines_parallel(line.start, line.end, dl.start, dl.end):
+                    if best is None or (line.length, dl.length) > (best[0].length, best[1].length):
+                        best = (line, dl)
+        if best is None:
+            what = "edge of the face has" if self.lines(planes) else "straight edge bounds the face, so none has"
+            self.skip(item.id, item.type, f"no {what} an edge of its datum plane parallel to it")
+            return
+        self.tilt_entry(item, *best, towards=n)
+
+    def _datum_planes(self, item):
+        datum = item.datums[0] if item.datums else None
+        dplanes = [f for f in self.datum_faces.get(datum, ()) if f.surface == "plane"]
+        if not dplanes:
+            self.skip(item.id, item.type, f"its datum {datum or '(none)'} is not a plane attached to the model")
+            return None
+        return dplanes
+
+    def tilt_entry(self, item, line, dl, towards=None):
+        """An ``angles`` entry of ``line`` against datum line ``dl``: +- atan(t / L) over the line's length."""
         half = math.degrees(math.atan(item.value / line.length))
         entry = {"between": [line.id, dl.id], "upper": _r(half), "lower": _r(-half)}
+        if towards is not None:
+            entry["towards"] = [_r(x) for x in towards]
         if any(set(e["between"]) == {line.id, dl.id} for e in self.out.data["angles"]):
             self.skip(item.id, item.type, f"{line.id} and {dl.id} are already toleranced by another item")
             return

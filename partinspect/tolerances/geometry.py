@@ -24,8 +24,10 @@ import numpy as np
 
 __all__ = [
     "line_angle",
+    "line_tilt",
     "angle_shorter_leg",
     "feature_distance",
+    "lines_parallel",
 ]
 
 # Below this sine two directions count as parallel: CAD directions agree to
@@ -34,6 +36,8 @@ _PARALLEL_SIN = 1e-9
 # Lines a distance is toleranced between must be parallel as the CAD module
 # counts parallel (cad.features.DIRECTION_TOL).
 _DISTANCE_PARALLEL_SIN = 1e-6
+# Below this part of their length apart two lines are one line.
+_COINCIDENT = 1e-6
 
 
 def _vec(v):
@@ -86,6 +90,44 @@ def line_angle(a_start, a_end, b_start, b_end):
     return math.acos(max(-1.0, min(1.0, cosang)))
 
 
+def line_tilt(a_start, a_end, b_start, b_end, towards=None):
+    """Signed tilt of line a against a parallel line b, towards a direction, radians.
+
+    With ``u_b`` the unit direction of b (start to end), ``u_a`` a's turned
+    to agree with it and ``w`` the unit direction the tilt is taken towards,
+    made perpendicular to b, the tilt is ``asin(u_a . w)``: how fast a's
+    distance from b, along ``w``, grows along b. Over a's length ``L`` that
+    distance so spreads by ``L sin(tilt)``: the parallelism of a line to a
+    datum plane with normal ``w`` (ISO 1101 18.5, a zone of two planes
+    parallel to the datum). A tilt across ``w`` changes it only to second
+    order. Zero for parallel lines; the sign follows b's orientation.
+
+    Parameters
+    ----------
+    a_start, a_end, b_start, b_end : array_like, shape (3,)
+    towards : array_like, shape (3,), optional
+        The direction (a datum plane's normal), same frame. By default the
+        offset from b to a's midpoint, across b: the plane the two span.
+
+    Raises
+    ------
+    ValueError
+        If the direction runs along b, or by default if the lines lie on
+        one line.
+    """
+    a0, a1, b0, b1 = _vec(a_start), _vec(a_end), _vec(b_start), _vec(b_end)
+    ua, ub = _unit(a1 - a0), _unit(b1 - b0)
+    if ua @ ub < 0:
+        ua = -ua
+    v = 0.5 * (a0 + a1) - 0.5 * (b0 + b1) if towards is None else _unit(towards)
+    across = v - (v @ ub) * ub
+    dist = float(np.linalg.norm(across))
+    scale = max(1.0, float(np.linalg.norm(b1 - b0))) if towards is None else 1.0
+    if dist < _COINCIDENT * scale:
+        raise ValueError("the lines lie on one line" if towards is None else "the direction runs along the lines")
+    return math.asin(max(-1.0, min(1.0, float(ua @ across) / dist)))
+
+
 def angle_shorter_leg(a_start, a_end, b_start, b_end):
     """Length of the shorter of the two segments, mm (ISO 2768-1 picks the angle tolerance by it)."""
     return min(float(np.linalg.norm(_vec(a_end) - _vec(a_start))), float(np.linalg.norm(_vec(b_end) - _vec(b_start))))
@@ -123,3 +165,9 @@ def _point_line_distance(p, line):
     d = _unit(_vec(line.end) - a)
     v = _vec(p) - a
     return float(np.linalg.norm(v - (v @ d) * d))
+
+
+def lines_parallel(a_start, a_end, b_start, b_end):
+    """Whether two lines are parallel as the CAD module counts parallel (for a distance, a parallelism)."""
+    da, db = _unit(_vec(a_end) - _vec(a_start)), _unit(_vec(b_end) - _vec(b_start))
+    return float(np.linalg.norm(np.cross(da, db))) <= _DISTANCE_PARALLEL_SIN

@@ -35,7 +35,7 @@ def load_characteristics(inv, tol_path, part=None, pmi=None):
     reading it again.
     """
     from partinspect.tolerances import spec as spec_mod
-    from partinspect.tolerances.resolve import general_characteristics, resolve_spec, with_edge_breaks
+    from partinspect.tolerances.resolve import general_characteristics, resolve_spec, with_edge_breaks, with_material_sizes
 
     spec = spec_mod.load_spec(tol_path) if tol_path is not None else spec_mod.default_spec()
     resolved = resolve_spec(spec, inv, tol_path)
@@ -43,4 +43,5 @@ def load_characteristics(inv, tol_path, part=None, pmi=None):
         from partinspect.tolerances.from_pmi import merge_pmi
 
         resolved = merge_pmi(resolved, inv, part, pmi=pmi)
-    return resolved, with_edge_breaks(list(resolved.characteristics) + general_characteristics(inv, resolved), resolved)
+    chars = with_edge_breaks(list(resolved.characteristics) + general_characteristics(inv, resolved), resolved)
+    return resolved, with_material_sizes(chars, inv, tol_path)

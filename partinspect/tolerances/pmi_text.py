@@ -8,7 +8,7 @@ evaluated, so that `load_spec` reads it back to the same spec.
 
 import math
 
-__all__ = ["describe_item", "pmi_listing", "spec_yaml"]
+__all__ = ["describe_item", "pmi_listing", "pmi_problems_line", "spec_yaml"]
 
 
 def describe_item(item):
@@ -64,6 +64,43 @@ def pmi_listing(pmi, pmi_spec, path=None):
              "  ".join(h.ljust(w) for h, w in zip(("id", "PMI", "name"), widths)) + "  applies to"]
     lines += ["  ".join(c.ljust(w) for c, w in zip(r[:3], widths)) + "  " + r[3] for r in rows]
     return "\n".join(lines)
+
+
+def pmi_problems_line(part_name, not_evaluated, where="report.json"):
+    """One line summing up the PMI items a run does not check, or None when there are none.
+
+    Parameters
+    ----------
+    part_name : str
+        The STEP file's name.
+    not_evaluated : sequence of NotEvaluated or of their dicts
+        ``item``, ``type``, ``reason`` each.
+    where : str
+        Where the reasons are listed in full.
+
+    Returns
+    -------
+    str or None
+        E.g. ``part.stp PMI: 16 items not evaluated (1 not read by OCCT;
+        7 profile of surface, 4 datum, ...); reasons in report.json``; a PMI
+        that could not be used at all says so and that ISO 2768 applies.
+    """
+    items = [n if isinstance(n, dict) else n.to_dict() for n in not_evaluated]
+    if not items:
+        return None
+    broken = [n for n in items if n["type"] == "PMI"]
+    if broken:
+        return f"{part_name}: {broken[0]['reason']}"
+    unread = sum("not read by OCCT" in n["reason"] for n in items)
+    counts = {}
+    for n in items:
+        if "not read by OCCT" not in n["reason"]:
+            kind = n["type"].replace("_", " ")
+            counts[kind] = counts.get(kind, 0) + 1
+    parts = ([f"{unread} not read by OCCT"] if unread else []) + [
+        ", ".join(f"{c} {k}" for k, c in sorted(counts.items(), key=lambda kc: (-kc[1], kc[0])))]
+    return (f"{part_name} PMI: {len(items)} item{'s' if len(items) != 1 else ''} not evaluated "
+            f"({'; '.join(p for p in parts if p)}); reasons in {where}")
 
 
 def _compact(ids, limit=8):

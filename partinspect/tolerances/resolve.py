@@ -34,7 +34,8 @@ import numpy as np
 
 from partinspect.errors import InputError
 from partinspect.tolerances import iso2768
-from partinspect.tolerances.geometry import feature_distance, line_angle
+from partinspect.tolerances.geometry import feature_distance, line_angle, line_tilt, lines_parallel
+from partinspect.tolerances.material import MaterialCondition
 from partinspect.tolerances.spec import APPLIES_TO, FEATURE_ID_RE, ToleranceSpec, format_loc, join_errors
 
 __all__ = [
@@ -47,6 +48,7 @@ __all__ = [
     "general_characteristics",
     "characteristics_for",
     "with_edge_breaks",
+    "with_material_sizes",
 ]
 
 # An at: point is meant to lie on the edge; 1 mm is far beyond CAD rounding
@@ -78,7 +80,10 @@ class Characteristic:
         ``"angle(line-1,line-2)"``.
     type : str
         "diameter", "radius", "position", "straightness", "circularity",
-        "profile", "distance" or "angle".
+        "profile", "distance", "angle" or "parallelism" (an ``angles``
+        entry between parallel lines: the first's tilt towards
+        ``towards``, or in their common plane,
+        :func:`~partinspect.tolerances.geometry.line_tilt`).
     features : tuple of str
         CAD feature ids involved (one, or two for distances and angles).
     nominal : float
@@ -100,6 +105,14 @@ class Characteristic:
         Sizes and circularity of circles only: the rim's edge break (min,
         max), mm, from the spec (:mod:`partinspect.tolerances.edge_break`);
         None for a sharp rim.
+    material : MaterialCondition or None
+        Position only: the MMC or LMC modifier and, once
+        :func:`with_material_sizes` resolved it, the size characteristic
+        its bonus comes from (:mod:`partinspect.tolerances.material`);
+        None: regardless of feature size.
+    towards : tuple of 3 float or None
+        Parallelism only: the unit direction (part frame) the tilt is
+        taken towards; None: the plane the two lines span.
     """
 
     id: str
@@ -112,6 +125,8 @@ class Characteristic:
     rule: str = ""
     unit: str = "mm"
     edge_break: tuple[float, float] | None = None
+    material: MaterialCondition | None = None
+    towards: tuple[float, float, float] | None = None
 
     @property
     def feature(self):
@@ -133,6 +148,8 @@ class Characteristic:
             "source": self.source,
             "rule": self.rule,
             **({"edge_break": {"min": self.edge_break[0], "max": self.edge_break[1]}} if self.edge_break else {}),
+            **({"material": self.material.to_dict()} if self.material is not None else {}),
+            **({"towards": [round(x, 12) for x in self.towards]} if self.towards is not None else {}),
         }
 
 
@@ -391,7 +408,9 @@ def _feature_characteristic(cid, ctype, feature, tol, rule):
     if ctype in ("diameter", "radius"):
         nominal = 2.0 * float(feature.radius) if ctype == "diameter" else float(feature.radius)
         return Characteristic(cid, ctype, (feature.id,), nominal, nominal + tol.lower, nominal + tol.upper, "spec", rule)
-    return Characteristic(cid, ctype, (feature.id,), 0.0, None, tol.tolerance, "spec", rule)
+    material = getattr(tol, "material", None)
+    return Characteristic(cid, ctype, (feature.id,), 0.0, None, tol.tolerance, "spec", rule,
+                          material=None if material is None else MaterialCondition(material))
 
 
 def _check_nominal(given, cad, width, unit, report):
@@ -426,6 +445,11 @@ def _angle_characteristic(cid, fa, fb, item, rule, report):
             bad = True
     if bad:
         return None
+    if lines_parallel(fa.start, fa.end, fb.start, fb.end):
+        return _parallelism_characteristic(cid, fa, fb, item, rule, report)
+    if item.towards is not None:
+        report("towards is for an angle between parallel lines (a parallelism); these meet")
+        return None
     try:
         cad = line_angle(fa.start, fa.end, fb.start, fb.end)
     except ValueError as e:
@@ -443,6 +467,24 @@ def _angle_characteristic(cid, fa, fb, item, rule, report):
         nominal = math.radians(item.nominal)
     lower, upper = math.radians(item.lower), math.radians(item.upper)
     return Characteristic(cid, "angle", (fa.id, fb.id), nominal, nominal + lower, nominal + upper, "spec", rule, unit="rad")
+
+
+def _parallelism_characteristic(cid, fa, fb, item, rule, report):
+    # Two parallel lines have no vertex: their angle is the tilt of the first
+    # in the plane the two span (geometry.line_tilt), nominal zero.
+    towards = None if item.towards is None else tuple(float(x) for x in np.asarray(item.towards) / np.linalg.norm(item.towards))
+    try:
+        line_tilt(fa.start, fa.end, fb.start, fb.end, towards)
+    except ValueError as e:
+        report(f"no angle between {fa.id} and {fb.id}: {e}")
+        return None
+    if item.nominal is not None and abs(item.nominal) > item.upper - item.lower + 1e-9:
+        report(f"nominal {item.nominal:g} degrees disagrees with the CAD model: the lines are parallel (0 degrees)")
+        return None
+    nominal = math.radians(item.nominal or 0.0)
+    lower, upper = math.radians(item.lower), math.radians(item.upper)
+    return Characteristic(cid, "parallelism", (fa.id, fb.id), nominal, nominal + lower, nominal + upper, "spec", rule,
+                          unit="rad", towards=towards)
 
 
 def general_characteristics(inventory, spec, path=None):
@@ -558,7 +600,8 @@ def characteristics_for(spec, inventory, path=None):
     list of Characteristic
     """
     resolved = resolve_spec(spec, inventory, path)
-    return with_edge_breaks(list(resolved.characteristics) + general_characteristics(inventory, resolved), resolved)
+    chars = with_edge_breaks(list(resolved.characteristics) + general_characteristics(inventory, resolved), resolved)
+    return with_material_sizes(chars, inventory, resolved.path)
 
 
 def with_edge_breaks(characteristics, resolved):
@@ -580,4 +623,56 @@ def with_edge_breaks(characteristics, resolved):
     for c in characteristics:
         eb = own.get(c.features[0], spec.edge_break) if c.type in ("diameter", "radius", "circularity") else None
         out.append(replace(c, edge_break=(float(eb.min), float(eb.max))) if eb is not None else c)
+    return out
+
+
+def with_material_sizes(characteristics, inventory, path=None):
+    """The characteristics with each MMC/LMC position tied to its feature's size.
+
+    A position's bonus comes from the measured size of the same edge
+    (:mod:`partinspect.tolerances.material`): its diameter or radius
+    characteristic (the spec's, the PMI's or the general one, edge break
+    included) gives the size at MMC or LMC, and the cylinder the edge
+    bounds tells a hole from a boss.
+
+    Parameters
+    ----------
+    characteristics : list of Characteristic
+        With the sizes of every circle and arc (as
+        :func:`general_characteristics` completes them).
+    inventory : partinspect.cad.features.Inventory
+    path : str or os.PathLike, optional
+        The spec file, for error messages.
+
+    Returns
+    -------
+    list of Characteristic
+
+    Raises
+    ------
+    partinspect.errors.InputError
+        A modified position on an edge that bounds no single cylinder side
+        (no hole or boss to take a size from), or whose size is not
+        toleranced.
+    """
+    sizes = {c.features[0]: c for c in characteristics if c.type in ("diameter", "radius")}
+    out, problems = [], []
+    for c in characteristics:
+        if c.material is None or c.material.size is not None:
+            out.append(c)
+            continue
+        fid = c.features[0]
+        sides = {inventory[x].convex for x in inventory[fid].faces if x in inventory and inventory[x].surface == "cylinder"}
+        if len(sides) != 1:
+            problems.append(f"{c.id} at {c.material.modifier}: {fid} bounds "
+                            f"{'no cylinder' if not sides else 'both a hole and a boss'}, so there is no size to take "
+                            "the bonus from")
+            continue
+        if fid not in sizes:
+            problems.append(f"{c.id} at {c.material.modifier}: {fid} has no size tolerance to take the bonus from")
+            continue
+        internal = not sides.pop()
+        out.append(replace(c, material=replace(c.material, internal=internal, size=sizes[fid])))
+    if problems:
+        raise InputError(path, "; ".join(problems))
     return out

@@ -17,7 +17,10 @@ name          applies to          meaning
 diameter      circle, arc         size, ``{upper, lower}`` limit deviations
 radius        circle, arc         size, ``{upper, lower}`` limit deviations
 position      circle, arc         ``{tolerance}``: diameter of the centre's
-                                  true-position zone
+                                  true-position zone; ``material: MMC`` or
+                                  ``LMC`` adds the bonus from the measured
+                                  size (:mod:`.material`; a zero tolerance
+                                  is allowed then)
 straightness  line                ``{tolerance}``: width of the zone
 circularity   circle              ``{tolerance}``: radial width of the zone
 profile       line, circle, arc   ``{tolerance}``: width of the line-profile
@@ -56,6 +59,7 @@ __all__ = [
     "APPLIES_TO",
     "Limits",
     "Zone",
+    "PositionZone",
     "FeatureSpec",
     "DistanceSpec",
     "AngleSpec",
@@ -149,6 +153,32 @@ class Zone(_Model):
         return v
 
 
+class PositionZone(Zone):
+    """A position tolerance: the zone's diameter, mm, and an optional material modifier.
+
+    ``material`` MMC or LMC (ISO 2692 (M), (L)) gives the zone the bonus
+    from the measured size's departure from that condition
+    (:mod:`partinspect.tolerances.material`); with it the tolerance may be
+    zero (all of the zone is then the bonus).
+    """
+
+    material: Literal["MMC", "LMC"] | None = None
+
+    @field_validator("tolerance")
+    @classmethod
+    def _positive(cls, v):
+        if not v >= 0:  # zero is for the model check: allowed with a material modifier
+            raise PydanticCustomError("positive", "expected a positive number, got {got}", {"got": _show(v)})
+        return v
+
+    @model_validator(mode="after")
+    def _zero_needs_material(self):
+        if self.tolerance == 0 and self.material is None:
+            raise PydanticCustomError("zero_position", "tolerance {got} needs material: MMC or LMC (all of the zone is "
+                                      "then the bonus)", {"got": 0})
+        return self
+
+
 class EdgeBreak(_Model):
     """An edge state (ISO 13715): material removed from the ideal sharp edge, mm along each face.
 
@@ -180,6 +210,14 @@ def _point(value):
     return value
 
 
+def _direction(value):
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise PydanticCustomError("direction", "expected a direction [x, y, z], got {got}", {"got": _show(value)})
+    if all(isinstance(x, (int, float)) and not isinstance(x, bool) and x == 0 for x in value):
+        raise PydanticCustomError("direction", "expected a direction [x, y, z], got the zero vector")
+    return value
+
+
 def _pair(value):
     if not isinstance(value, (list, tuple)) or len(value) != 2:
         raise PydanticCustomError("pair", "expected two features [a, b], got {got}", {"got": _show(value)})
@@ -200,7 +238,9 @@ class FeatureSpec(_Model):
         For a named feature: a point (part frame, mm) on the wanted CAD edge.
     diameter, radius : Limits or None
         Size limit deviations, mm.
-    position, straightness, circularity, profile : Zone or None
+    position : PositionZone or None
+        Position tolerance, mm, with its material modifier.
+    straightness, circularity, profile : Zone or None
         Geometrical tolerances, mm.
     edge_break : EdgeBreak or None
         This edge's break, overriding the spec's general one.
@@ -209,7 +249,7 @@ class FeatureSpec(_Model):
     at: Annotated[tuple[Number, Number, Number], BeforeValidator(_point)] | None = None
     diameter: Limits | None = None
     radius: Limits | None = None
-    position: Zone | None = None
+    position: PositionZone | None = None
     straightness: Zone | None = None
     circularity: Zone | None = None
     profile: Zone | None = None
@@ -263,12 +303,22 @@ class AngleSpec(_Model):
         Nominal angle in degrees, in (0, 180); None takes it from the CAD
         model (see :func:`partinspect.tolerances.geometry.line_angle` for
         which of the two supplementary angles that is).
+
+    towards : tuple of 3 float or None
+        Between parallel lines only: the direction (part frame, e.g. a
+        datum plane's normal) the tilt is taken towards.
+
+    Between two parallel lines the angle is the first line's tilt towards
+    ``towards``, by default in the plane the two span, nominal 0 (a
+    parallelism over the first line's length L within a zone t is limits
+    +- atan(t / L); :func:`partinspect.tolerances.geometry.line_tilt`).
     """
 
     between: Annotated[tuple[str, str], BeforeValidator(_pair)]
     upper: Number
     lower: Number
     nominal: Number | None = None
+    towards: Annotated[tuple[Number, Number, Number], BeforeValidator(_direction)] | None = None
 
     @field_validator("nominal")
     @classmethod

@@ -108,3 +108,25 @@ def test_check_sets_the_prediction_beside_rendered_draws(rig_file, tmp_path, cap
     assert data["all_decidable"] == chk["all_decidable"] and code == (0 if chk["all_decidable"] else 3)
     html = (out / "plan.html").read_text()
     assert 'id="check"' in html and "<script" not in html
+
+
+def test_plan_uses_the_pmi_when_no_spec_is_given(rig_file, tmp_path, capsys):
+    """NIST CTC 01: the hole's PMI diameter 35 +0/-0.2 mm is the plan's limit (ISO 2768-m would give +-0.3)."""
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+    from partinspect.tolerances.from_pmi import load_pmi_spec
+
+    ctc01 = REPO / "tests" / "data" / "step" / "nist_ctc_01_asme1_ap242-e1.stp"
+    out = tmp_path / "plan"
+    code = main(["plan", str(ctc01), "--rig", str(rig_file), "--no-search", "-o", str(out)])
+    assert code in (0, 3)
+    data = json.loads((out / "plan.json").read_text())
+    _, ps = load_pmi_spec(ctc01, inventory(load_step(ctc01)))
+    c = {c["id"]: c for c in data["start"]["characteristics"]}
+    rims = ps.applies_to["dim-4"]
+    assert len(rims) == 2 and all(c[f"{r}.diameter"]["tolerance"] == pytest.approx(0.2) for r in rims)
+    assert [n["item"] for n in data["not_evaluated"]] == [n.item for n in ps.not_evaluated]
+    assert "PMI" in (out / "plan.html").read_text()
+    err = capsys.readouterr().err
+    assert f"inspect: {ctc01.name} PMI: {len(ps.not_evaluated)} items not evaluated (" in err
+    assert err.rstrip().endswith("reasons in plan.json")

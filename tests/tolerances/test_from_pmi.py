@@ -102,9 +102,17 @@ def test_inch_position_at_mmc(ctc03):
     pmi, inv, ps = ctc03
     pos = pmi["gtol-5"]  # Position.3: 0.05 in at MMC on the 0.438 in holes
     assert pos.name == "Position.3"
+    chars = {c.id: c for c in characteristics_for(ps.spec(), inv)}
     for cid in ps.applies_to["gtol-5"]:
         assert ps.data["features"][cid]["position"]["tolerance"] == pytest.approx(0.05 * INCH)
+        assert ps.data["features"][cid]["position"]["material"] == "MMC"
         assert 2 * inv[cid].radius == pytest.approx(0.438 * INCH, abs=1e-3)
+        # the bonus is taken from the hole's size: 0.438 +-0.005 in, MMC 0.433 in
+        m = chars[f"{cid}.position"].material
+        assert m.internal and m.size.id == f"{cid}.diameter" and m.reference == pytest.approx(0.433 * INCH, abs=1e-6)
+    # `inspect spec` writes the modifier, and it reads back
+    again = parse_spec(dump_spec(ps.spec()))
+    assert again.features[ps.applies_to["gtol-5"][0]].position.material == "MMC"
 
 
 def test_spec_round_trips_and_resolves(ctc01):
@@ -154,19 +162,25 @@ def test_no_pmi_leaves_the_spec_alone():
     assert [c.to_dict() for c in with_part[1]] == [c.to_dict() for c in without[1]]
 
 
-def test_zero_position_at_mmc_is_not_evaluated(ctc01):
-    # ASME Y14.5 allows "0 (M)": all the tolerance is bonus from the size,
-    # which the edge position does not apply (ftc_10 has one at MMC, one at LMC).
+def test_zero_position_at_mmc_is_all_bonus(ctc01):
+    # ASME Y14.5 allows "0 (M)": all the tolerance is bonus from the size
+    # (ftc_10 has one at MMC, one at LMC); a zero without a modifier is no zone.
     from partinspect.cad.pmi import Pmi, PmiItem
 
     pmi, inv, _ = ctc01
     hole = pmi["dim-4"].faces
-    items = (PmiItem("gtol-1", "tolerance", "position", "Position.0", 0.0, modifiers=("MMC",), faces=hole),
-             PmiItem("gtol-2", "tolerance", "position", "Position.1", 0.1, faces=hole))
+    items = (pmi["dim-4"],
+             PmiItem("gtol-1", "tolerance", "position", "Position.0", 0.0, modifiers=("MMC",), faces=hole),
+             PmiItem("gtol-2", "tolerance", "position", "Position.1", 0.0, faces=hole))
     ps = spec_from_pmi(Pmi(items), inv)
     reasons = {n.item: n.reason for n in ps.not_evaluated}
-    assert "zero tolerance at MMC" in reasons["gtol-1"]
-    assert all(ps.data["features"][c]["position"] == {"tolerance": 0.1} for c in ps.applies_to["gtol-2"])
+    assert reasons["gtol-2"] == "zero tolerance" and "gtol-1" not in reasons
+    assert all(ps.data["features"][c]["position"] == {"tolerance": 0.0, "material": "MMC"} for c in ps.applies_to["gtol-1"])
+    chars = {c.id: c for c in characteristics_for(ps.spec(), inv)}
+    for cid in ps.applies_to["gtol-1"]:
+        # the hole's size is the PMI's 35 +0/-0.2: at MMC 34.8 mm
+        c = chars[f"{cid}.position"]
+        assert c.upper_limit == 0 and c.material.reference == pytest.approx(34.8) and c.material.internal
 
 
 def test_unusable_pmi_falls_back_and_says_so(ctc01, monkeypatch):
@@ -183,3 +197,31 @@ def test_unusable_pmi_falls_back_and_says_so(ctc01, monkeypatch):
     (why,) = resolved.not_evaluated
     assert "#4711" in why.reason and "ISO 2768 apply instead" in why.reason
     assert all(c.source.startswith("ISO 2768") for c in chars)
+
+
+def test_parallelism_to_a_datum_plane_becomes_a_tilt_over_the_edge_length():
+    # ftc_08: five parallelism tolerances; 0.762 mm of face-121 (datum D) to datum A, and 0.508 mm of
+    # face-118 to D map to the longest edge of the face against a parallel edge of the datum plane;
+    # the other three sit on faces no straight edge bounds.
+    pmi, inv, ps = _load("nist_ftc_08_asme1_ap242-e1.stp")
+    par = [i for i in pmi.items if i.type == "parallelism"]
+    assert [(i.id, i.value) for i in par] == [("gtol-1", 0.381), ("gtol-3", 0.762), ("gtol-7", 0.381),
+                                             ("gtol-8", 0.762), ("gtol-30", 0.508)]
+    reasons = {n.item: n.reason for n in ps.not_evaluated}
+    for gid in ("gtol-1", "gtol-7", "gtol-8"):
+        assert "no straight edge bounds the face" in reasons[gid]
+    datum = {i.name: i.faces for i in pmi.items if i.kind == "datum"}
+    for gid in ("gtol-3", "gtol-30"):
+        item = pmi[gid]
+        (k,) = [k for k, v in ps.sources.items() if v == gid]
+        entry = ps.data["angles"][k[1]]
+        line, dl = (inv[x] for x in entry["between"])
+        assert item.faces[0] in line.faces and datum[item.datums[0]][0] in dl.faces
+        assert line.length == max(f.length for f in inv.features if f.kind == "line" and item.faces[0] in f.faces
+                                  and not f.smooth)
+        assert entry["towards"] == pytest.approx(list(inv[datum[item.datums[0]][0]].normal))
+        assert entry["upper"] == pytest.approx(math.degrees(math.atan(item.value / line.length)))
+        assert entry["lower"] == -entry["upper"]
+    chars = {c.id: c for c in resolve_spec(parse_spec(dump_spec(ps.spec())), inv).characteristics}
+    c = chars["angle(line-33,line-2)"]  # gtol-3: 0.762 mm over the 152.4 mm edge
+    assert c.type == "parallelism" and c.upper_limit == pytest.approx(math.atan(0.762 / 152.4))

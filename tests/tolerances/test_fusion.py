@@ -203,3 +203,25 @@ def test_views_with_one_calibration_share_its_error(plate):
     assert np.median(ratio) == pytest.approx((n / 2 + g) / ((n + g) / 2), rel=0.1)
     rms = np.sqrt(np.mean(np.square(z), axis=0))
     assert np.all((rms > 0.6) & (rms < 1.4)), rms
+
+
+def test_fused_position_at_mmc_and_parallelism(plate):
+    """Over two views: the bonus from the combined size, the tilt from the combined lines."""
+    from partinspect.tolerances.resolve import characteristics_for
+    from partinspect.tolerances.spec import parse_spec
+
+    inv = plate[0]
+    chars = {c.id: c for c in characteristics_for(parse_spec(
+        "features:\n  circle-4:\n    diameter: {upper: 0.1, lower: -0.05}\n"
+        "    position: {tolerance: 0.05, material: MMC}\n"
+        "angles:\n  - {between: [line-8, line-5], upper: 0.5, lower: -0.5, towards: [0, 1, 0]}\n"), inv)}
+    picked = [chars["circle-4.position"], chars["circle-4.diameter"], chars["angle(line-8,line-5)"]]
+    regs = _views(plate, [(0, 0, 0), (0, 0, 25)], np.random.default_rng(6))
+    fused = fuse([r.features_in_part_frame() for r in regs], inv)
+    (pos, size, par), used = evaluate_fused(picked, fused, regs, inv, n_mc=1000)
+    assert used == [(0, 1)] * 3
+    assert pos.details["measured_size"] == size.measured
+    assert pos.details["bonus"] == pytest.approx(size.measured - 11.95, abs=1e-12)
+    assert pos.measured == pytest.approx(pos.details["position"] - pos.details["bonus"], abs=1e-12)
+    assert par.characteristic.type == "parallelism" and "combined" in par.method
+    assert abs(par.measured) < 4 * par.standard_uncertainty and 0 < par.standard_uncertainty < 1e-3

@@ -280,7 +280,7 @@ def test_distance_and_angle_mistakes(inv):
         "  - {between: [circle-1, circle-2], upper: 0.1, lower: -0.1, nominal: 45}\n"
         "  - {between: [bottom, line-1], upper: 0.1, lower: 0}\n"
         "angles:\n"
-        "  - {between: [line-1, line-2], upper: 1, lower: -1}\n"
+        "  - {between: [line-1, line-2], upper: 1, lower: -1, nominal: 30}\n"
         "  - {between: [line-5, line-6], upper: 1, lower: -1, nominal: 60}\n"
         "  - {between: [line-1, bottom], upper: 1, lower: -1}\n",
         inv,
@@ -288,7 +288,8 @@ def test_distance_and_angle_mistakes(inv):
     assert "line 5: distances[0]: no distance between line-1 and line-3: the lines are not parallel (90 degrees apart)" in msg
     assert "line 6: distances[1]: nominal 45 mm disagrees with the CAD model (40 mm) by more than the tolerance" in msg
     assert "line 7: distances[2].between: bottom and line-1 are the same edge line-1" in msg
-    assert "line 9: angles[0]: no angle between line-1 and line-2: the lines are parallel" in msg
+    # parallel lines: an angle is a parallelism, nominal 0
+    assert "line 9: angles[0]: nominal 30 degrees disagrees with the CAD model: the lines are parallel (0 degrees)" in msg
     assert "line 10: angles[1]: nominal 60 degrees disagrees with the CAD model (120 degrees" in msg
     assert "line 11: angles[2].between: line-1 and bottom are the same edge line-1" in msg
 
