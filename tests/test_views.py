@@ -243,3 +243,26 @@ def test_a_views_folder_in_a_batch_is_one_part(plate_views, repo, tmp_path):
     assert part["left_sha256"] != images_digest(folder, ("right.png",)) and part["calibration_sha256"] is not None
     # a pair folder's digest is its file's hash
     assert images_digest(views[0], ("left.png",)) == sha256_file(views[0] / "left.png")
+
+
+@pytest.mark.parametrize("two_cpus", [True, False])
+def test_two_views_measured_side_by_side_give_the_same_report(two_cpus, plate_views_report, plate_views, repo,
+                                                               tmp_path, monkeypatch):
+    """With a CPU idle, two views are measured at once (one in a forked child): the same report as one after the
+    other, the child's stages added to the timings."""
+    from partinspect.multiview import run_views
+    from partinspect.vision import forked
+
+    monkeypatch.setattr(forked, "can_fork", lambda: two_cpus)
+    monkeypatch.setattr(forked, "idle_cpus", lambda: 2.0 if two_cpus else 0.0)
+    out, _ = plate_views
+    result = run_views(repo / "examples/plate/part.step", out, tmp_path / "o")
+
+    def numbers(report):
+        return [(c["id"], c["measured"], c["standard_uncertainty"], c["decision"]) for c in report["characteristics"]]
+
+    assert numbers(result.report) == numbers(plate_views_report.report)
+    assert result.report["fusion"] == plate_views_report.report["fusion"]
+    if "SOURCE_DATE_EPOCH" not in os.environ:
+        stages = {s["stage"]: s["seconds"] for s in result.report["timings"]["stages"]}
+        assert stages["registering"] > 0 and stages["measuring the images"] > 0
