@@ -31,10 +31,15 @@ Three rules keep it metrology rather than curve fitting.
   camera, and is otherwise kept at its stated value, which is said.
 
 When the run's calibration check found the rig drifted
-(:mod:`partinspect.vision.epipolar_drift`), the stated rotation is known to
-be off by more than its uncertainty: its prior is released (the images
-alone determine it) and the drift taken as independent of the
-calibration's own errors.
+(:mod:`partinspect.vision.epipolar_drift`), the stated rig is known to be
+off by more than its uncertainty, along the turn the check measured. The
+prior is then widened by that turn as a Type B component (its outer
+product and its covariance, JCGM 100 4.3.7), independent of the
+calibration's own errors, so that the images, not the stale calibration,
+decide along it, while the stated covariance still holds the directions
+the circles hardly see (the convergence angle trades with the baseline's
+direction, and a principal point with its camera's turn). Where the
+calibration states no uncertainty the prior is flat: the images alone.
 
 The correction of each parameter is reported with its posterior standard
 uncertainty, the stated one, and its significance against the stated
@@ -42,7 +47,7 @@ calibration: under "the stated calibration is right", the correction
 ``d = s_hat - s_0`` has covariance ``V = (I - P0 L) S (I - P0 L)^T + C_n``
 (``S`` the stated covariance, ``L`` the prior's information, ``P0`` the
 inverse normal matrix, ``C_n`` the image noise's part of the posterior),
-which is ``S - P`` for a prior kept and ``S + P`` for one released.
+which is ``S - P`` for the stated prior and ``P`` for none.
 
 Units: rad and mm for the rig (degrees in reports), px for principal
 points; frames as :mod:`partinspect.vision.calibration`.
@@ -68,7 +73,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from partinspect.vision.calibration import validate_calibration
-from partinspect.vision.calibration_uncertainty import full_covariance
+from partinspect.vision.calibration_uncertainty import full_covariance, perturbed_calibration
 from partinspect.vision.fit3d import information_parts, minimal_residuals
 from partinspect.vision.ideal import camera_matrices
 
@@ -77,7 +82,7 @@ __all__ = ["MIN_CIRCLES", "DETERMINED", "SIGNIFICANCE", "RefinementError", "RigR
 
 MIN_CIRCLES = 3
 """Circles the adjustment needs: each leaves 4 conditions on the rig, and
-with the rotation's prior released 5 parameters are free; three keep the
+with no stated prior 5 parameters are free; three keep the
 relative orientation determined where two would leave it barely so."""
 
 DETERMINED = 0.5
@@ -114,11 +119,15 @@ class CircleObservation:
         Per view, the change of the ideal points with (cx1, cy1, cx2, cy2),
         px/px (ideal pixels depend on the principal point through the lens
         distortion); None without distortion.
+    views_at : callable
+        ``views_at(calib, remap=False)``: the views under another
+        calibration (:func:`partinspect.vision.stereo.views_of`).
     """
 
     views: list
     fit: object
     dxy: list | None = None
+    views_at: object = None
 
 
 def circle_observations(stereo, indices, calib):
@@ -162,7 +171,7 @@ def circle_observations(stereo, indices, calib):
                     moved.append(views_at(replace(calib, K1=K1, K2=K2), remap=True))
                 for n in range(2):
                     dxy[n][:, :, k] = (moved[0][n].xy - moved[1][n].xy) / (2 * _STEPS["c"])
-        out.append(CircleObservation(views, f.fit, dxy))
+        out.append(CircleObservation(views, f.fit, dxy, views_at))
     return out
 
 
@@ -299,23 +308,70 @@ def _adjust(observations, calib, s0, start, thetas, free, info, basis, length, m
     return s, thetas, blocks, cost
 
 
-def _posterior(blocks, p, info):
-    """Sandwich covariance of all parameters, its image-noise part and the inverse normal matrix."""
+def _consider_jacobians(observations, cal, thetas, Zinv, consider, steps):
+    """Per circle, the derivatives (N_i, q) of its weighted residuals along the fixed parameters that carry a stated uncertainty.
+
+    Central differences at +-1 standard uncertainty of each (as
+    :func:`~partinspect.vision.calibration_uncertainty.residual_changes`),
+    the edge points mapped to ideal pixels again by the moved calibration.
+    """
+    sizes = (4 + np.size(cal.D1), 4 + np.size(cal.D2), 6)
+    labels = [(g, k) for g, n in zip(("intrinsics1", "intrinsics2", "extrinsics"), sizes) for k in range(n)]
+    out = []
+    for obs, th in zip(observations, thetas):
+        cols = []
+        for j, h in zip(consider, steps):
+            side = []
+            for sign in (1.0, -1.0):
+                dx = sign * h * Zinv[:, j]
+                moved = perturbed_calibration(cal, {lab: v for lab, v in zip(labels, dx) if v != 0})
+                res, _, _ = minimal_residuals(obs.fit, "arc", obs.views_at(moved, remap=True))
+                side.append(res(th))
+            cols.append((side[0] - side[1]) / (2 * h))
+        n = sum(len(v.xy) for v in obs.views)
+        out.append(np.stack(cols, 1) if cols else np.zeros((n, 0)))
+    return out
+
+
+def _posterior(blocks, p, info, Jc, Cu):
+    """Covariance of the estimate's error, its image-noise part, and its response to the prior's errors.
+
+    The estimate solves ``H dx = -J^T e - L u_s + J^T J_c u_c`` to first
+    order: ``e`` the points' errors, ``u_s`` the stated values' errors of
+    the refined parameters (weighted by the prior's information ``L``) and
+    ``u_c`` those of the parameters held at their stated values, which the
+    images also depend on (``J_c``: a "consider" covariance). So the error
+    is ``H^-1 (-J^T e) + K u`` with ``K = H^-1 [-L, J^T J_c]``, and its
+    covariance ``H^-1 M H^-1 + K C_u K^T`` (``M`` the points' sandwich
+    middle: noise correlated along the edge, and a rim's systematic part).
+
+    Returns
+    -------
+    cov : ndarray, shape (m, m)
+        Over (refined rig parameters, every circle's 6).
+    noise : ndarray, shape (m, m)
+        Its image-noise part.
+    K : ndarray, shape (m, p + q)
+        Response of the estimate to the prior errors ``u = (u_s, u_c)``.
+    """
     H, _ = _normal_equations(blocks, p, info, np.zeros(p))
-    m = H.shape[0]
-    M = np.zeros((m, m))
+    m, q = H.shape[0], Jc[0].shape[1] if Jc else 0
+    M, A = np.zeros((m, m)), np.zeros((m, p + q))
+    A[:p, :p] = -info
     for i, (_, Js, Jt, views) in enumerate(blocks):
         idx = np.r_[np.arange(p), p + 6 * i + np.arange(6)]
-        _, Mr, Mb = information_parts(views, np.hstack([Js, Jt]))
+        Jx = np.hstack([Js, Jt])
+        _, Mr, Mb = information_parts(views, Jx)
         M[np.ix_(idx, idx)] += Mr + Mb
-    if np.linalg.cond(H) > 1e14:
+        A[idx, p:] += Jx.T @ Jc[i]
+    d = np.sqrt(np.diag(H))
+    if not np.all(d > 0) or np.linalg.cond(H / np.outer(d, d)) > 1e12:  # scaled: the parameters mix rad, mm, px
         raise RefinementError("the circles do not determine the rig's orientation (singular normal matrix)")
     Hinv = np.linalg.inv(H)
     noise = Hinv @ M @ Hinv
-    prior = np.zeros((m, m))
-    prior[:p, :p] = info
-    cov = noise + Hinv @ prior @ Hinv
-    return 0.5 * (cov + cov.T), 0.5 * (noise + noise.T), Hinv
+    K = Hinv @ A
+    cov = noise + K @ Cu @ K.T
+    return 0.5 * (cov + cov.T), 0.5 * (noise + noise.T), K
 
 
 @dataclass(frozen=True)
@@ -338,8 +394,8 @@ class RigRefinement:
         Posterior standard uncertainties.
     prior_std : ndarray, shape (p,)
         The stated ones (0: none stated).
-    released : ndarray of bool, shape (p,)
-        Whose prior was released (the rotation of a drifted rig).
+    widened : ndarray of bool, shape (p,)
+        Whose prior was widened by the drift the calibration check corrected.
     z : ndarray, shape (p,)
         Correction over the standard deviation the stated calibration
         allows it (module notes).
@@ -364,7 +420,7 @@ class RigRefinement:
     refined: np.ndarray
     std: np.ndarray
     prior_std: np.ndarray
-    released: np.ndarray
+    widened: np.ndarray
     z: np.ndarray
     chi2: float
     dof: int
@@ -404,7 +460,8 @@ class RigRefinement:
                 "correction": round(float(self.correction[k] * f), 7),
                 "standard_uncertainty": round(float(self.std[k] * f), 7),
                 "prior_standard_uncertainty": round(float(self.prior_std[k] * f), 7) if self.prior_std[k] > 0 else None,
-                "prior": "released" if self.released[k] else ("stated" if self.prior_std[k] > 0 else "none stated"),
+                "prior": ("none stated" if self.prior_std[k] == 0
+                          else "stated, widened by the drift" if self.widened[k] else "stated"),
                 "significance": round(float(self.z[k]), 3)})
         return {
             "method": ("bundle adjustment of the rig's relative orientation to the edge points of the registered "
@@ -431,7 +488,7 @@ class RigRefinement:
                 + (f"; kept: {', '.join(self.fixed)}" if self.fixed else ""))
 
 
-def refine_rig(calib, observations, start=None, release_rotation=False):
+def refine_rig(calib, observations, start=None, drifted=False):
     """Re-estimate the rig's relative orientation (and principal points the images determine) from circles.
 
     Parameters
@@ -443,10 +500,11 @@ def refine_rig(calib, observations, start=None, release_rotation=False):
         The part's circles (:func:`circle_observations`), measured with
         ``start`` (the views' ideal points depend on the intrinsics only).
     start : StereoCalibration, optional
-        Where the adjustment starts (a drift-corrected rig); default ``calib``.
-    release_rotation : bool
-        The rig is known to have turned since it was calibrated: no prior
-        on the rotation.
+        Where the adjustment starts; default ``calib``.
+    drifted : bool
+        ``start`` is the rig the calibration check corrected for a drift
+        (its covariance holding the correction's): the prior is widened by
+        that correction (module notes).
 
     Returns
     -------
@@ -466,8 +524,13 @@ def refine_rig(calib, observations, start=None, release_rotation=False):
     length = float(np.linalg.norm(calib.T))
     s0 = _rig_vector(calib, basis)
     s_start = _rig_vector(start, basis)
-    released = np.array([release_rotation] * 3 + [False] * 6)
     stated_var = np.diag(C)[:9]
+    Cp = C.copy()
+    if drifted:
+        d = np.where(stated_var > 0, s_start - s0, 0.0)
+        W = np.outer(d, d) + (Z @ full_covariance(start) @ Z.T - C)[:9, :9]
+        Cp[:9, :9] += np.where(np.outer(stated_var > 0, stated_var > 0), W, 0.0)
+    widened = np.diag(Cp)[:9] > stated_var * (1 + 1e-9)
     fixed = {}
     free = list(range(5))
     for k in range(5, 9):
@@ -476,10 +539,16 @@ def refine_rig(calib, observations, start=None, release_rotation=False):
         else:
             fixed[_NAMES[k]] = "the calibration states no uncertainty for it"
     thetas = [np.r_[o.fit.center, 0.0, 0.0, o.fit.radius] for o in observations]
+    Zinv = np.linalg.inv(Z)
     while True:
-        info = _prior_information(C[:9, :9], free, released)
-        s, th, blocks, cost = _adjust(observations, start, s0, s_start, thetas, free, info, basis, length)
-        cov, noise, Hinv = _posterior(blocks, len(free), info)
+        info = _prior_information(Cp[:9, :9], free)
+        s, th, blocks, _ = _adjust(observations, start, s0, s_start, thetas, free, info, basis, length)
+        # Every other parameter with a stated uncertainty: held at its value, its error carried.
+        consider = [j for j in range(len(C)) if j not in free and C[j, j] > 0]
+        fc = free + consider
+        Jc = _consider_jacobians(observations, _rig_at(start, s, basis, length), th, Zinv, consider,
+                                 np.sqrt(np.diag(C)[consider]))
+        cov, noise, K = _posterior(blocks, len(free), info, Jc, Cp[np.ix_(fc, fc)])
         p = len(free)
         post_std = np.sqrt(np.diag(cov)[:p])
         weak = [c for c, k in enumerate(free) if k >= 5 and post_std[c] > DETERMINED * np.sqrt(stated_var[k])]
@@ -487,16 +556,18 @@ def refine_rig(calib, observations, start=None, release_rotation=False):
             break
         for c in weak:
             fixed[_NAMES[free[c]]] = (f"not determined by the images (standard uncertainty "
-                                      f"{post_std[c] / np.sqrt(stated_var[free[c]]):.2f} of the stated one)")
+                                      f"{post_std[c] / np.sqrt(stated_var[free[c]]):.2f} of the stated one); "
+                                      f"held at its stated value, its uncertainty carried")
         s_start, thetas = s.copy(), th
         s_start[[free[c] for c in weak]] = s0[[free[c] for c in weak]]
         free = [k for c, k in enumerate(free) if c not in weak]
     n_res = sum(len(b[0]) for b in blocks)
-    z, chi2, dof = _significance(s[free] - s0[free], C[np.ix_(free, free)], info, Hinv[:p, :p], noise[:p, :p])
+    E = np.eye(p, len(fc))
+    z, chi2, dof = _significance(s[free] - s0[free], K[:p] + E, C[np.ix_(fc, fc)], noise[:p, :p])
     refined = _rig_at(start, s, basis, length)
     return RigRefinement(
-        _with_posterior(refined, Z, C, free, released, cov[:p, :p]), tuple(_NAMES[k] for k in free), s0[free],
-        s[free], post_std, np.sqrt(stated_var[free]), released[free], z, chi2, dof, fixed, len(observations), length,
+        _with_posterior(refined, Zinv, Cp, fc, cov[:p, :p], K[:p]), tuple(_NAMES[k] for k in free), s0[free],
+        s[free], post_std, np.sqrt(stated_var[free]), widened[free], z, chi2, dof, fixed, len(observations), length,
         float(np.sqrt(C[9, 9])), float(np.sqrt(sum(b[0] @ b[0] for b in blocks) / max(n_res, 1))))
 
 
@@ -506,9 +577,9 @@ def _rig_vector(calib, basis):
                  calib.K1[0, 2], calib.K1[1, 2], calib.K2[0, 2], calib.K2[1, 2]]
 
 
-def _prior_information(C9, free, released):
-    """The stated prior's information on the free parameters; none on released or unstated ones."""
-    keep = [c for c, k in enumerate(free) if not released[k] and C9[k, k] > 0]
+def _prior_information(C9, free):
+    """The prior's information on the free parameters; none on those with no stated uncertainty."""
+    keep = [c for c, k in enumerate(free) if C9[k, k] > 0]
     info = np.zeros((len(free), len(free)))
     if keep:
         idx = [free[c] for c in keep]
@@ -516,10 +587,15 @@ def _prior_information(C9, free, released):
     return info
 
 
-def _significance(d, S, info, P0, noise):
-    """Each correction's z and the joint chi-square against "the stated calibration is right"."""
-    A = np.eye(len(d)) - P0 @ info
-    V = A @ S @ A.T + noise
+def _significance(d, G, C, noise):
+    """Each correction's z and the joint chi-square against "the stated calibration is right".
+
+    The correction ``d = s_hat - s_0`` is ``G u`` plus the image noise's
+    part, ``G = K_s + [I, 0]`` (:func:`_posterior`), ``u`` the stated
+    values' errors drawn from the stated covariance ``C`` (no drift's
+    widening: that is what is tested).
+    """
+    V = G @ C @ G.T + noise
     z = d / np.sqrt(np.maximum(np.diag(V), 1e-300))
     w, U = np.linalg.eigh(0.5 * (V + V.T))
     keep = w > 1e-10 * w.max()
@@ -527,31 +603,24 @@ def _significance(d, S, info, P0, noise):
     return z, chi2, int(keep.sum())
 
 
-def _with_posterior(refined, Z, C, free, released, P):
-    """The refined calibration with the joint posterior covariance of all its parameters.
+def _with_posterior(refined, Zinv, C, fc, P, K):
+    """The refined calibration with the joint covariance of all its parameters' errors.
 
-    In the coordinates ``z = Z x``: the refined ones take the posterior
-    ``P``; every other one keeps its stated covariance conditioned on the
-    refined ones with a kept prior, ``C_o|k = C_o - L C_k,o`` with ``L =
-    C_o,k C_k^-1``, and gains back ``L P L^T`` (the Gaussian update when the
-    images depend on the refined parameters alone). A released rotation is
-    independent of the calibration's other errors.
+    In the coordinates ``z = Z x``: the refined parameters' error has the
+    covariance ``P`` and responds to the prior errors of ``fc`` (refined,
+    then held) as ``K`` (:func:`_posterior`); every other parameter keeps
+    its stated value, so its error is the stated one, ``C`` (a drift's
+    widening included), and the two correlate as ``-K C_fc,o``.
     """
     n = C.shape[0]
+    p = len(P)
+    free = fc[:p]
     others = [i for i in range(n) if i not in free]
-    kept = [c for c, k in enumerate(free) if not released[k] and C[k, k] > 0]
-    L = np.zeros((len(others), len(free)))
-    Co = C[np.ix_(others, others)].copy()
-    if kept:
-        idx = [free[c] for c in kept]
-        Lk = C[np.ix_(others, idx)] @ np.linalg.pinv(C[np.ix_(idx, idx)], rcond=1e-12, hermitian=True)
-        L[:, kept] = Lk
-        Co -= Lk @ C[np.ix_(idx, others)]
     post = np.zeros((n, n))
     post[np.ix_(free, free)] = P
-    post[np.ix_(others, free)] = L @ P
-    post[np.ix_(free, others)] = (L @ P).T
-    post[np.ix_(others, others)] = Co + L @ P @ L.T
-    Zinv = np.linalg.inv(Z)
+    cross = -K @ C[np.ix_(fc, others)]
+    post[np.ix_(free, others)] = cross
+    post[np.ix_(others, free)] = cross.T
+    post[np.ix_(others, others)] = C[np.ix_(others, others)]
     X = Zinv @ post @ Zinv.T
     return validate_calibration(replace(refined, std={}, cov=0.5 * (X + X.T)))
