@@ -349,3 +349,41 @@ def test_a_rig_drifted_beyond_correction_is_refused(workdir, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "calibration.yaml" in err[0] and "recalibrate" in err[0], err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_refine_rig_re_estimates_a_rolled_rig_and_says_so(workdir, tmp_path, capsys):
+    """The stated rig rolled by 1 px at the image's sides: with --refine-rig the run measures with the
+    rig refined from the registered circles, says so on its summary line and in the report, and the
+    rotation it states is the true one within its standard uncertainties."""
+    from dataclasses import replace
+
+    from partinspect.vision.calibration import read_calibration, write_calibration
+
+    true = read_calibration(workdir / "images")
+    Q = cv2.Rodrigues(np.array([0.0, 0.0, 1.0 / (0.5 * true.image_size[0])]))[0]
+    write_calibration(workdir / "images" / "calibration.yaml", replace(true, R=Q @ true.R, T=Q @ np.ravel(true.T)))
+    out = tmp_path / "out"
+    code = main([str(workdir / "part.step"), str(workdir / "images"), "-o", str(out), "--refine-rig"])
+    assert code in (0, 3)
+    assert "measured with the rig refined from" in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    jsonschema.validate(report, SCHEMA)
+    rr = report["rig_refinement"]
+    assert rr["refined"] and rr["significant"] and rr["circles"] >= 6
+    rows = {p["name"]: p for p in rr["parameters"]}
+    true_r = np.degrees(cv2.Rodrigues(true.R)[0].ravel())
+    for k, name in enumerate(("rx", "ry", "rz")):
+        assert abs(rows[name]["refined"] - true_r[k]) < 3 * rows[name]["standard_uncertainty"], rows[name]
+    assert abs(rows["rz"]["significance"]) > 10
+    assert rr["baseline_mm"] == pytest.approx(np.linalg.norm(true.T), rel=1e-9)
+    assert report["uncertainty"]["calibration"]["stated"] == "covariance"  # the refinement's, carried
+    html = (out / "report.html").read_text()
+    assert "rig refined from the part (--refine-rig)" in html
+
+
+def test_refine_rig_is_refused_for_a_views_folder(tmp_path, plate, capsys):
+    views = tmp_path / "views"
+    shutil.copytree(plate.parent / "images", views / "view-1")
+    assert main([str(plate), str(views), "-o", str(tmp_path / "out"), "--refine-rig", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--refine-rig" in err[0] and "views folder" in err[0], err
