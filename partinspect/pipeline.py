@@ -283,7 +283,9 @@ def refined_rig(inputs, m, stated, check, progress):
     from partinspect.vision.rig_refinement import RefinementError, circle_observations, refine_rig
 
     circles = [i for i, f in enumerate(m.stereo.features) if f.kind != "line"]
-    indices = [circles[i] for i in sorted(m.registration.assignment.get("circle", {}))]
+    # A circle the pose fit left out as inconsistent may be a wrong pair of arcs: it would bend the rig.
+    assigned = m.registration.assignment.get("circle", {})
+    indices = [circles[i] for i in sorted(assigned) if assigned[i] not in m.registration.outliers]
     progress(f"refining the rig from {len(indices)} registered circles")
     try:
         with inputs.timings.stage("refining the rig"):

@@ -200,16 +200,12 @@ def rig_coordinates(calib):
     b1 = np.cross(t_hat, [0.0, 1.0, 0.0])
     b1 /= np.linalg.norm(b1)
     basis = np.array([b1, np.cross(t_hat, b1), t_hat])
-    rows = []
-    for k in range(3):
-        rows.append(np.eye(n)[n - 6 + k])
-    for b in basis:
-        r = np.zeros(n)
-        r[n - 3:] = b
-        rows.append(r)
-    first = rows[:5] + [np.eye(n)[i] for i in (2, 3, n1 + 2, n1 + 3)] + [rows[5]]
-    used = {2, 3, n1 + 2, n1 + 3} | set(range(n - 6, n))
-    Z = np.array(first + [np.eye(n)[i] for i in range(n) if i not in used])
+    eye = np.eye(n)
+    along_T = np.zeros((3, n))
+    along_T[:, n - 3:] = basis
+    principal = [2, 3, n1 + 2, n1 + 3]
+    rest = [i for i in range(n) if i not in set(principal) | set(range(n - 6, n))]
+    Z = np.vstack([eye[n - 6:n - 3], along_T[:2], eye[principal], along_T[2:], eye[rest]])
     return Z, basis
 
 
@@ -223,8 +219,8 @@ def _rig_at(calib, s, basis, length):
     return replace(calib, R=R, T=T, K1=K1, K2=K2)
 
 
-def _circle_residuals(obs, calib, s, s0, theta):
-    """Weighted residuals of one circle's points under the rig ``s``, circle ``theta`` (minimal parameters)."""
+def _circle_residuals(obs, calib, s, s0):
+    """The weighted residuals of one circle's points under the rig ``s``, as a function of its minimal parameters, and its views."""
     P1, P2 = camera_matrices(calib)
     views = []
     for n, (v, P) in enumerate(zip(obs.views, (P1, P2))):
@@ -240,7 +236,7 @@ def _blocks(observations, calib, s, s0, thetas, free, basis, length):
     steps = np.array([_STEPS[k] for k in "rrrttcccc"])
     cal = _rig_at(calib, s, basis, length)
     for obs, th in zip(observations, thetas):
-        res, views = _circle_residuals(obs, cal, s, s0, th)
+        res, views = _circle_residuals(obs, cal, s, s0)
         r = res(th)
         h = 1e-6 * np.maximum(1.0, np.abs(th))
         rows = res.batch(np.concatenate([th + np.diag(h), th - np.diag(h)]))
@@ -251,7 +247,7 @@ def _blocks(observations, calib, s, s0, thetas, free, basis, length):
             for sign in (1.0, -1.0):
                 sk = np.array(s, float)
                 sk[k] += sign * steps[k]
-                res_k, _ = _circle_residuals(obs, _rig_at(calib, sk, basis, length), sk, s0, th)
+                res_k, _ = _circle_residuals(obs, _rig_at(calib, sk, basis, length), sk, s0)
                 side.append(res_k(th))
             Js[:, c] = (side[0] - side[1]) / (2 * steps[k])
         out.append((r, Js, Jt, views))
