@@ -41,13 +41,21 @@ the circles hardly see (the convergence angle trades with the baseline's
 direction, and a principal point with its camera's turn). Where the
 calibration states no uncertainty the prior is flat: the images alone.
 
+Every other parameter with a stated uncertainty (focal lengths,
+distortion, the baseline's length, principal points held) keeps its value,
+but the images depend on it too: it is a "consider" parameter, its error
+carried through the adjustment's response to it, so that the posterior is
+the joint covariance of the refined parameters' errors and the held ones'
+(:func:`_posterior`, :func:`_with_posterior`).
+
 The correction of each parameter is reported with its posterior standard
 uncertainty, the stated one, and its significance against the stated
 calibration: under "the stated calibration is right", the correction
-``d = s_hat - s_0`` has covariance ``V = (I - P0 L) S (I - P0 L)^T + C_n``
-(``S`` the stated covariance, ``L`` the prior's information, ``P0`` the
-inverse normal matrix, ``C_n`` the image noise's part of the posterior),
-which is ``S - P`` for the stated prior and ``P`` for none.
+``d = s_hat - s_0`` has covariance ``V = G C G^T + C_n`` (``C`` the stated
+covariance of the refined and held parameters, ``G`` the correction's
+response to their errors, ``C_n`` the image noise's part of the
+posterior); about ``S - P`` for a refined parameter's stated ``S`` and
+posterior ``P``, and ``P`` where none is stated.
 
 Units: rad and mm for the rig (degrees in reports), px for principal
 points; frames as :mod:`partinspect.vision.calibration`.
