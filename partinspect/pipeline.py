@@ -280,6 +280,7 @@ def refined_rig(inputs, m, stated, check, progress):
     circles cannot determine the rig, the run goes on with the checked
     calibration and the report says why it was not refined.
     """
+    from partinspect.vision.calibration_uncertainty import budget_entry
     from partinspect.vision.rig_refinement import RefinementError, circle_observations, refine_rig
 
     circles = [i for i, f in enumerate(m.stereo.features) if f.kind != "line"]
@@ -297,7 +298,10 @@ def refined_rig(inputs, m, stated, check, progress):
     progress(result.summary())
     inputs.calib = result.calib
     again = measure(inputs, progress, check)
-    return replace(again, refinement={"refined": True, **result.to_dict()})
+    # The budget as the calibration stated it, and that the refined rig's posterior is what is carried.
+    budget = {**budget_entry(stated), "refined_rig": True}
+    return replace(again, uncertainty={**again.uncertainty, "calibration": budget},
+                   refinement={"refined": True, **result.to_dict()})
 
 
 def _stereo_round(inputs, params, progress):

@@ -376,9 +376,11 @@ def test_refine_rig_re_estimates_a_rolled_rig_and_says_so(workdir, tmp_path, cap
         assert abs(rows[name]["refined"] - true_r[k]) < 3 * rows[name]["standard_uncertainty"], rows[name]
     assert abs(rows["rz"]["significance"]) > 10
     assert rr["baseline_mm"] == pytest.approx(np.linalg.norm(true.T), rel=1e-9)
-    assert report["uncertainty"]["calibration"]["stated"] == "covariance"  # the refinement's, carried
+    budget = report["uncertainty"]["calibration"]
+    assert budget["stated"] == "none" and budget["refined_rig"] and not budget["complete"]
     html = (out / "report.html").read_text()
     assert "rig refined from the part (--refine-rig)" in html
+    assert "only the refined rig's orientation uncertainty is carried" in html
 
 
 def test_refine_rig_is_refused_for_a_views_folder(tmp_path, plate, capsys):
