@@ -389,3 +389,28 @@ def test_refine_rig_is_refused_for_a_views_folder(tmp_path, plate, capsys):
     assert main([str(plate), str(views), "-o", str(tmp_path / "out"), "--refine-rig", "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--refine-rig" in err[0] and "views folder" in err[0], err
+
+
+def test_refine_rig_leaves_an_oversize_hole_oversize(deviated, tmp_path):
+    """circle-4 made 0.1 mm oversize, the stated rig a board session's rolled by 1 px since: the refined
+    run still reads it 12.1 and fails it; the registration told the refinement which circle it is, never
+    how large it should be."""
+    from dataclasses import replace
+
+    from partinspect.simulate.calibration import drifted_rig, simulated_calibration
+    from partinspect.vision.calibration import read_calibration, write_calibration
+
+    step, render = deviated
+    images = tmp_path / "images"
+    shutil.copytree(render / "images", images)
+    board = simulated_calibration(read_calibration(images), np.random.default_rng(3))
+    write_calibration(images / "calibration.yaml",
+                      replace(drifted_rig(board, "roll", 1.0), std=board.std, cov=board.cov))
+    out = tmp_path / "out"
+    assert main([str(step), str(images), "-o", str(out), "-q", "--refine-rig"]) == 1
+    report = json.loads((out / "report.json").read_text())
+    rr = report["rig_refinement"]
+    assert rr["refined"] and rr["significant"] and "rz" in {p["name"] for p in rr["parameters"]}
+    c = next(c for c in report["characteristics"] if c["id"] == "circle-4.diameter")
+    assert c["decision"] == "fail" and abs(c["measured"] - 12.1) < 3 * c["standard_uncertainty"] + 0.005
+    assert c["measured"] - 12.0 > 10 * c["standard_uncertainty"]

@@ -25,10 +25,12 @@ Three rules keep it metrology rather than curve fitting.
 - The baseline's length is not determined by images (a rig twice as wide
   sees a part twice as large alike): it keeps its stated value and
   uncertainty, and only the direction of ``T`` is refined.
-- A principal point is refined only where the images bring its standard
-  uncertainty below ``DETERMINED`` of the stated one; near the image
-  centre a principal point trades almost one for one with a turn of its
-  camera, and is otherwise kept at its stated value, which is said.
+- A parameter with a stated uncertainty is refined only where the images
+  bring its standard uncertainty below ``DETERMINED`` of the prior's; near
+  the image centre a principal point trades almost one for one with a turn
+  of its camera, and the convergence angle is seen only through the
+  circles' roundness. Otherwise it is held at its stated value, its
+  uncertainty carried, and that is said.
 
 When the run's calibration check found the rig drifted
 (:mod:`partinspect.vision.epipolar_drift`), the stated rig is known to be
@@ -94,10 +96,14 @@ with no stated prior 5 parameters are free; three keep the
 relative orientation determined where two would leave it barely so."""
 
 DETERMINED = 0.5
-"""A principal point is refined only where the images bring its standard
-uncertainty below this fraction of the stated one (its variance to a
-quarter: the images know three times what the calibration did); a weaker
-reading is the rig's turn seen through it."""
+"""A parameter with a stated uncertainty is refined only where the images
+bring its standard uncertainty below this fraction of the prior's (its
+variance to a quarter: the images know three times what the calibration
+did). A weaker reading is mostly the images' own systematic errors and the
+held parameters' (a principal point trades with its camera's turn, the
+convergence angle with the baseline's direction and the focal lengths),
+and moving it would make the rig worse than stated (the convergence
+angle sets the scale in depth: a diameter follows it)."""
 
 SIGNIFICANCE = 3.0
 """A correction is called significant beyond this many standard
@@ -416,6 +422,8 @@ class RigRefinement:
     rms : float
         RMS of the weighted residuals at the solution (about 1 when the
         points' stated uncertainties hold; correlated noise keeps it below).
+    turn : float
+        Angle of the refined ``R`` against the stated one, rad.
     """
 
     calib: object
@@ -433,6 +441,7 @@ class RigRefinement:
     baseline: float
     baseline_std: float
     rms: float
+    turn: float = 0.0
 
     @property
     def correction(self):
@@ -449,9 +458,7 @@ class RigRefinement:
 
     def rotation_deg(self):
         """Angle of the refined rotation relative to the stated one, degrees."""
-        R0 = cv2.Rodrigues(self.stated[:3].reshape(3, 1))[0]
-        R1 = cv2.Rodrigues(self.refined[:3].reshape(3, 1))[0]
-        return float(np.degrees(np.linalg.norm(cv2.Rodrigues(R1 @ R0.T)[0])))
+        return float(np.degrees(self.turn))
 
     def to_dict(self):
         """report.json's "rig_refinement" (rotation in degrees, T in mm, principal points in px)."""
@@ -485,15 +492,14 @@ class RigRefinement:
     def summary(self):
         """One line for the terminal and the report."""
         word = "significant" if self.significant else "not significant"
-        rot = self.std[:3] * np.degrees(1.0)
-        return (f"rig refined from {self.circles} circles: right camera turned {self.rotation_deg():.5f} deg "
-                f"(u {float(np.sqrt(np.sum(rot**2))):.5f} deg), {word} against the stated calibration "
+        return (f"rig refined from {self.circles} circles ({', '.join(self.names)}): right camera turned "
+                f"{self.rotation_deg():.5f} deg, {word} against the stated calibration "
                 f"(chi-square {self.chi2:.1f} on {self.dof}); baseline kept at {self.baseline:.3f} mm"
-                + (f"; kept: {', '.join(self.fixed)}" if self.fixed else ""))
+                + (f"; held: {', '.join(self.fixed)}" if self.fixed else ""))
 
 
 def refine_rig(calib, observations, start=None, drifted=False):
-    """Re-estimate the rig's relative orientation (and principal points the images determine) from circles.
+    """Re-estimate the rig's relative orientation and principal points, where the images determine them, from circles.
 
     Parameters
     ----------
@@ -555,13 +561,19 @@ def refine_rig(calib, observations, start=None, drifted=False):
         cov, noise, K = _posterior(blocks, len(free), info, Jc, Cp[np.ix_(fc, fc)])
         p = len(free)
         post_std = np.sqrt(np.diag(cov)[:p])
-        weak = [c for c, k in enumerate(free) if k >= 5 and post_std[c] > DETERMINED * np.sqrt(stated_var[k])]
+        prior_std = np.sqrt(np.diag(Cp)[free])
+        weak = [c for c in range(p) if prior_std[c] > 0 and post_std[c] > DETERMINED * prior_std[c]]
         if not weak:
             break
         for c in weak:
-            fixed[_NAMES[free[c]]] = (f"not determined by the images (standard uncertainty "
-                                      f"{post_std[c] / np.sqrt(stated_var[free[c]]):.2f} of the stated one); "
-                                      f"held at its stated value, its uncertainty carried")
+            k = free[c]
+            fixed[_NAMES[k]] = (f"not determined by the images better than by the calibration (standard "
+                                f"uncertainty {post_std[c] / prior_std[c]:.2f} of the "
+                                f"{'widened' if widened[k] else 'stated'} one); held at its stated value, "
+                                f"its uncertainty carried")
+        if len(weak) == p:
+            raise RefinementError("the images determine none of the rig's parameters better than the stated "
+                                  "calibration does (to half its standard uncertainty)")
         s_start, thetas = s.copy(), th
         s_start[[free[c] for c in weak]] = s0[[free[c] for c in weak]]
         free = [k for c, k in enumerate(free) if c not in weak]
@@ -572,7 +584,8 @@ def refine_rig(calib, observations, start=None, drifted=False):
     return RigRefinement(
         _with_posterior(refined, Zinv, Cp, fc, cov[:p, :p], K[:p]), tuple(_NAMES[k] for k in free), s0[free],
         s[free], post_std, np.sqrt(stated_var[free]), widened[free], z, chi2, dof, fixed, len(observations), length,
-        float(np.sqrt(C[9, 9])), float(np.sqrt(sum(b[0] @ b[0] for b in blocks) / max(n_res, 1))))
+        float(np.sqrt(C[9, 9])), float(np.sqrt(sum(b[0] @ b[0] for b in blocks) / max(n_res, 1))),
+        float(np.linalg.norm(cv2.Rodrigues(refined.R @ np.asarray(calib.R, float).T)[0])))
 
 
 def _rig_vector(calib, basis):
