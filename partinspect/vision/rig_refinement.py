@@ -530,35 +530,16 @@ def refine_rig(calib, observations, start=None, drifted=False):
         raise RefinementError(f"{len(observations)} circle(s) measured; the rig's refinement needs {MIN_CIRCLES}")
     start = calib if start is None else start
     Z, basis = rig_coordinates(calib)
-    C = Z @ full_covariance(calib) @ Z.T
-    length = float(np.linalg.norm(calib.T))
-    s0 = _rig_vector(calib, basis)
-    s_start = _rig_vector(start, basis)
+    C, Cp = _prior_covariances(calib, start, Z, basis, drifted)
     stated_var = np.diag(C)[:9]
-    Cp = C.copy()
-    if drifted:
-        d = np.where(stated_var > 0, s_start - s0, 0.0)
-        W = np.outer(d, d) + (Z @ full_covariance(start) @ Z.T - C)[:9, :9]
-        Cp[:9, :9] += np.where(np.outer(stated_var > 0, stated_var > 0), W, 0.0)
     widened = np.diag(Cp)[:9] > stated_var * (1 + 1e-9)
-    fixed = {}
-    free = list(range(5))
-    for k in range(5, 9):
-        if stated_var[k] > 0:
-            free.append(k)
-        else:
-            fixed[_NAMES[k]] = "the calibration states no uncertainty for it"
+    free = [k for k in range(9) if k < 5 or stated_var[k] > 0]
+    fixed = {_NAMES[k]: "the calibration states no uncertainty for it" for k in range(5, 9) if k not in free}
+    s0, s, length = _rig_vector(calib, basis), _rig_vector(start, basis), float(np.linalg.norm(calib.T))
     thetas = [np.r_[o.fit.center, 0.0, 0.0, o.fit.radius] for o in observations]
-    Zinv = np.linalg.inv(Z)
+    setting = (observations, start, s0, basis, length, C, Cp, np.linalg.inv(Z))
     while True:
-        info = _prior_information(Cp[:9, :9], free)
-        s, th, blocks, _ = _adjust(observations, start, s0, s_start, thetas, free, info, basis, length)
-        # Every other parameter with a stated uncertainty: held at its value, its error carried.
-        consider = [j for j in range(len(C)) if j not in free and C[j, j] > 0]
-        fc = free + consider
-        Jc = _consider_jacobians(observations, _rig_at(start, s, basis, length), th, Zinv, consider,
-                                 np.sqrt(np.diag(C)[consider]))
-        cov, noise, K = _posterior(blocks, len(free), info, Jc, Cp[np.ix_(fc, fc)])
+        s, thetas, blocks, fc, cov, noise, K = _refine_free(setting, s, thetas, free)
         p = len(free)
         post_std = np.sqrt(np.diag(cov)[:p])
         prior_std = np.sqrt(np.diag(Cp)[free])
@@ -574,18 +555,52 @@ def refine_rig(calib, observations, start=None, drifted=False):
         if len(weak) == p:
             raise RefinementError("the images determine none of the rig's parameters better than the stated "
                                   "calibration does (to half its standard uncertainty)")
-        s_start, thetas = s.copy(), th
-        s_start[[free[c] for c in weak]] = s0[[free[c] for c in weak]]
-        free = [k for c, k in enumerate(free) if c not in weak]
+        held = [free[c] for c in weak]
+        s[held] = s0[held]
+        free = [k for k in free if k not in held]
     n_res = sum(len(b[0]) for b in blocks)
-    E = np.eye(p, len(fc))
-    z, chi2, dof = _significance(s[free] - s0[free], K[:p] + E, C[np.ix_(fc, fc)], noise[:p, :p])
+    z, chi2, dof = _significance(s[free] - s0[free], K[:p] + np.eye(p, len(fc)), C[np.ix_(fc, fc)], noise[:p, :p])
     refined = _rig_at(start, s, basis, length)
     return RigRefinement(
-        _with_posterior(refined, Zinv, Cp, fc, cov[:p, :p], K[:p]), tuple(_NAMES[k] for k in free), s0[free],
-        s[free], post_std, np.sqrt(stated_var[free]), widened[free], z, chi2, dof, fixed, len(observations), length,
-        float(np.sqrt(C[9, 9])), float(np.sqrt(sum(b[0] @ b[0] for b in blocks) / max(n_res, 1))),
+        _with_posterior(refined, setting[-1], Cp, fc, cov[:p, :p], K[:p]), tuple(_NAMES[k] for k in free),
+        s0[free], s[free], post_std, np.sqrt(stated_var[free]), widened[free], z, chi2, dof, fixed,
+        len(observations), length, float(np.sqrt(C[9, 9])),
+        float(np.sqrt(sum(b[0] @ b[0] for b in blocks) / max(n_res, 1))),
         float(np.linalg.norm(cv2.Rodrigues(refined.R @ np.asarray(calib.R, float).T)[0])))
+
+
+def _prior_covariances(calib, start, Z, basis, drifted):
+    """The stated covariance in the rig's coordinates, and the prior's: widened by a drift's correction.
+
+    The correction ``d`` (``start`` against ``calib``) and its covariance are
+    added to the rig's block as a Type B independent of the calibration's
+    own errors, only where the calibration states an uncertainty.
+    """
+    C = Z @ full_covariance(calib) @ Z.T
+    Cp = C.copy()
+    if drifted:
+        stated = np.diag(C)[:9] > 0
+        d = np.where(stated, _rig_vector(start, basis) - _rig_vector(calib, basis), 0.0)
+        W = np.outer(d, d) + (Z @ full_covariance(start) @ Z.T - C)[:9, :9]
+        Cp[:9, :9] += np.where(np.outer(stated, stated), W, 0.0)
+    return C, Cp
+
+
+def _refine_free(setting, s, thetas, free):
+    """The adjustment over the ``free`` rig parameters, every other stated one held and considered.
+
+    Returns the solution, the circles', the last linearisation's blocks,
+    the order ``fc`` (free, then held) and :func:`_posterior`'s results.
+    """
+    observations, start, s0, basis, length, C, Cp, Zinv = setting
+    info = _prior_information(Cp[:9, :9], free)
+    s, thetas, blocks, _ = _adjust(observations, start, s0, s, thetas, free, info, basis, length)
+    # Every other parameter with a stated uncertainty: held at its value, its error carried.
+    consider = [j for j in range(len(C)) if j not in free and C[j, j] > 0]
+    fc = free + consider
+    Jc = _consider_jacobians(observations, _rig_at(start, s, basis, length), thetas, Zinv, consider,
+                             np.sqrt(np.diag(C)[consider]))
+    return (s, thetas, blocks, fc, *_posterior(blocks, len(free), info, Jc, Cp[np.ix_(fc, fc)]))
 
 
 def _rig_vector(calib, basis):
