@@ -20,12 +20,16 @@ true partners' band offset difference under the stated calibration) and
 the run's estimate with its u and verdict; per characteristic type the
 share of true values within +-U (the claim: 95.45 %) and the RMS of
 (measured - true) / u; and false accepts (a pass whose true value lies
-outside the limits).
+outside the limits). With ``--refine-rig`` every run re-estimates the rig
+from the part's circles (``inspect --refine-rig``), and the row adds the
+refinement's rotation correction, deg, and its joint chi-square against the
+stated calibration.
 
 Usage::
 
     python3 benchmarks/bench_drift.py                         # plate and bracket, both kinds, 0-2 px
     python3 benchmarks/bench_drift.py --parts plate --kinds shift --levels 0,0.5,2
+    python3 benchmarks/bench_drift.py --parts plate --kinds roll --levels 1 --draws 1 --refine-rig
 """
 
 from __future__ import annotations
@@ -98,7 +102,7 @@ def part_inputs(part, tmp):
     return step, folder / "images", json.loads((folder / "truth.json").read_text()), run["tolerances"]
 
 
-def inspect(part, images, stated, work, tolerances=None):
+def inspect(part, images, stated, work, tolerances=None, refine_rig=False):
     """run_inspection on a copy of the pair with the stated calibration; (report or None, message)."""
     from partinspect.errors import InputError
     from partinspect.pipeline import run_inspection
@@ -112,7 +116,7 @@ def inspect(part, images, stated, work, tolerances=None):
         shutil.copy(images / name, folder / name)
     write_calibration(folder / "calibration.yaml", stated)
     try:
-        return run_inspection(part, folder, work / "out", tolerances=tolerances).report, ""
+        return run_inspection(part, folder, work / "out", tolerances=tolerances, refine_rig=refine_rig).report, ""
     except InputError as e:
         return None, str(e)
 
@@ -132,6 +136,10 @@ def row(report, truth, true_res):
     out["circles"] = sum(f["measured"] is not None and f["kind"] != "line" for f in feats)
     cc = report.get("calibration_check", {})
     out.update(est=cc.get("epipolar_residual_px"), u=cc.get("standard_uncertainty_px"), verdict=cc.get("verdict"))
+    rr = report.get("rig_refinement")
+    if rr is not None:
+        out["rig"] = (f"rig {rr['rotation_correction_deg']:.5f} deg, chi2 {rr['chi_square']:.1f}/{rr['dof']}"
+                      if rr["refined"] else f"rig not refined: {rr['reason']}")
     cover, z = defaultdict(list), defaultdict(list)
     false_accepts = 0
     for c in report["characteristics"]:
@@ -164,6 +172,7 @@ def main():
     ap.add_argument("--kinds", default="shift,roll")
     ap.add_argument("--levels", default="0,0.25,0.5,1,2")
     ap.add_argument("--draws", type=int, default=3, help="calibrations drawn as a board session states them")
+    ap.add_argument("--refine-rig", action="store_true", help="inspect with --refine-rig")
     args = ap.parse_args()
     from partinspect.simulate.calibration import simulated_calibration
     from partinspect.vision.calibration import read_calibration
@@ -185,7 +194,7 @@ def main():
                         stated = stated_calibration(base, kind, d)
                         t0 = time.perf_counter()
                         report, message = inspect(step, images, stated, Path(tmp) / f"{part}-{kind}-{d}-{name}",
-                                                  tolerances)
+                                                  tolerances, args.refine_rig)
                         r = row(report, truth, true_residual(calib, stated, truth))
                         dt = time.perf_counter() - t0
                         if report is None:
@@ -195,7 +204,8 @@ def main():
                         est = "-" if r["est"] is None else f"{r['est']:9.3f}"
                         u = "-" if r["u"] is None else f"{r['u']:7.3f}"
                         print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f} {est:>9} {u:>7} {r['verdict'] or '-':>12} "
-                              f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types}",
+                              f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types}"
+                              + (f"; {r['rig']}" if "rig" in r else ""),
                               flush=True)
                         if name != "exact":
                             for t, (a, n) in r["cover"].items():

@@ -91,6 +91,10 @@ def _main_parser():
         "Monte Carlo of the edge points and calibration (JCGM 101; slower)",
     )
     p.add_argument("--draws", metavar="N", type=int, default=200, help="Monte Carlo draws per feature (default 200)")
+    p.add_argument("--refine-rig", action="store_true",
+                   help="re-estimate the rig's relative orientation from the part's own circles (a bundle adjustment, "
+                   "the stated calibration as prior, the baseline's length kept) and measure with it; the report "
+                   "shows the correction beside the stated calibration")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--timings", action="store_true",
                    help="print each stage's wall-clock seconds on stderr at the end (report.json holds them always)")
@@ -501,9 +505,14 @@ def _run_inspect(args):
         raise InputError(None, "-o: the output folder name is empty")
     if args.draws < 10:
         raise InputError(None, f"--draws {args.draws}: a Monte Carlo needs at least 10 draws")
-    result = (run_views if is_views_folder(args.images) else run_inspection)(
+    views = is_views_folder(args.images)
+    if views and args.refine_rig:
+        raise InputError(args.images, "--refine-rig refines the rig from one image pair; this is a views folder")
+    more = {} if views else {"refine_rig": args.refine_rig}
+    result = (run_views if views else run_inspection)(
         args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet),
         uncertainty=args.uncertainty, draws=args.draws, pose_hint=args.pose_hint, timings=(timings := Timings(_START)),
+        **more,
     )
     if args.timings:
         print(timings.table(), file=sys.stderr)

@@ -10,7 +10,7 @@ characteristics are inconclusive, and no number is ever invented.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,8 +55,19 @@ class InspectionResult:
             + (f", {counts['not_inspected']} general-tolerance characteristics of edges out of view not inspected; "
                if counts.get("not_inspected") else "; ")
             + self._views_note()
+            + self._refinement_note()
             + f"report: {self.out_dir / 'report.html'}"
         )
+
+    def _refinement_note(self):
+        rr = self.report.get("rig_refinement")
+        if rr is None:
+            return ""
+        if not rr["refined"]:
+            return f"rig not refined ({rr['reason']}); "
+        return (f"measured with the rig refined from {rr['circles']} circles "
+                f"(turned {rr['rotation_correction_deg']:.5f} deg"
+                f"{', significant' if rr['significant'] else ''}); ")
 
     def _views_note(self):
         views = self.report.get("views")
@@ -97,10 +108,11 @@ class Measured:
     adaptive: dict
     uncertainty: dict
     calibration: object = None
+    refinement: dict | None = None
 
 
 def run_inspection(part, images, out="inspection", *, tolerances=None, progress=quiet, uncertainty="first-order",
-                   draws=200, pose_hint=None, load_cad=None, timings=None):
+                   draws=200, pose_hint=None, load_cad=None, timings=None, refine_rig=False):
     """Inspect a part from a stereo pair and write the reports.
 
     Parameters
@@ -136,6 +148,11 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
         ``load_cad(path) -> partinspect.cad.model.CadModel`` in place of
         `load_cad_model`: a batch worker keeps each part number's model in
         memory, so it is read once, not once per part.
+    refine_rig : bool
+        Once registered, re-estimate the rig's relative orientation from the
+        part's own circles (:func:`refined_rig`) and measure again with it;
+        the report says so and shows the correction beside the stated
+        calibration.
     timings : partinspect.timings.Timings, optional
         Receives each stage's wall-clock seconds (report.json's ``timings``
         holds them too); a new one counting from this call by default.
@@ -155,8 +172,11 @@ def run_inspection(part, images, out="inspection", *, tolerances=None, progress=
 
     timings = Timings() if timings is None else timings
     inputs = load_inputs(part, images, out, tolerances, pose_hint, progress, load_cad, timings=timings)
+    stated = inputs.calib
     check, first = check_calibration(inputs, progress)
     m = measure(inputs, progress, check, first)
+    if refine_rig:
+        m = refined_rig(inputs, m, stated, check, progress)
     if uncertainty == "montecarlo":
         with timings.stage("Monte Carlo"):
             m = with_monte_carlo(inputs, m, draws, progress)
@@ -249,6 +269,39 @@ def check_calibration(inputs, progress):
         return result, stereo
     inputs.calib = result.calib
     return result, None
+
+
+def refined_rig(inputs, m, stated, check, progress):
+    """The rig re-estimated from the registered circles (:mod:`partinspect.vision.rig_refinement`), measured again.
+
+    The registration supplies only which measured circles are the part's;
+    the stated calibration is the prior (widened by the drift the check
+    corrected, if any), the checked one the start. Where the
+    circles cannot determine the rig, the run goes on with the checked
+    calibration and the report says why it was not refined.
+    """
+    from partinspect.vision.calibration_uncertainty import budget_entry
+    from partinspect.vision.rig_refinement import RefinementError, circle_observations, refine_rig
+
+    circles = [i for i, f in enumerate(m.stereo.features) if f.kind != "line"]
+    # A circle the pose fit left out as inconsistent may be a wrong pair of arcs: it would bend the rig.
+    assigned = m.registration.assignment.get("circle", {})
+    indices = [circles[i] for i in sorted(assigned) if assigned[i] not in m.registration.outliers]
+    progress(f"refining the rig from {len(indices)} registered circles")
+    try:
+        with inputs.timings.stage("refining the rig"):
+            result = refine_rig(stated, circle_observations(m.stereo, indices, inputs.calib), start=inputs.calib,
+                                drifted=check.verdict == "drifted")
+    except RefinementError as e:
+        progress(f"rig not refined: {e}")
+        return replace(m, refinement={"refined": False, "reason": str(e), "circles": len(indices)})
+    progress(result.summary())
+    inputs.calib = result.calib
+    again = measure(inputs, progress, check)
+    # The budget as the calibration stated it, and that the refined rig's posterior is what is carried.
+    budget = {**budget_entry(stated), "refined_rig": True}
+    return replace(again, uncertainty={**again.uncertainty, "calibration": budget},
+                   refinement={"refined": True, **result.to_dict()})
 
 
 def _stereo_round(inputs, params, progress):
@@ -353,7 +406,7 @@ def with_monte_carlo(inputs, m, draws, progress):
             "draws": draws, "seed": 0, "coverage_factor": 2.0,
             "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None,
             "calibration": m.uncertainty["calibration"]}
-    return Measured(stereo, registration, m.seen, m.adaptive, info, m.calibration)
+    return Measured(stereo, registration, m.seen, m.adaptive, info, m.calibration, m.refinement)
 
 
 def evaluate(inputs, m, progress):
@@ -388,6 +441,7 @@ def evaluate(inputs, m, progress):
         inputs=input_entries(inputs.part, images / IMAGE_NAMES[0], images / IMAGE_NAMES[1], inputs.calib_file,
                              inputs.tol_path),
         calibration=None if m.calibration is None else m.calibration.to_dict(),
+        rig_refinement=m.refinement,
         image={"width": inputs.left.shape[1], "height": inputs.left.shape[0], "bit_depth": inputs.bit_depth},
         tolerances={"file": None if inputs.tol_path is None else str(inputs.tol_path),
                     "general": inputs.resolved.general, "decision_rule": inputs.resolved.decision_rule,

@@ -349,3 +349,68 @@ def test_a_rig_drifted_beyond_correction_is_refused(workdir, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "calibration.yaml" in err[0] and "recalibrate" in err[0], err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_refine_rig_re_estimates_a_rolled_rig_and_says_so(workdir, tmp_path, capsys):
+    """The stated rig rolled by 1 px at the image's sides: with --refine-rig the run measures with the
+    rig refined from the registered circles, says so on its summary line and in the report, and the
+    rotation it states is the true one within its standard uncertainties."""
+    from dataclasses import replace
+
+    from partinspect.vision.calibration import read_calibration, write_calibration
+
+    true = read_calibration(workdir / "images")
+    Q = cv2.Rodrigues(np.array([0.0, 0.0, 1.0 / (0.5 * true.image_size[0])]))[0]
+    write_calibration(workdir / "images" / "calibration.yaml", replace(true, R=Q @ true.R, T=Q @ np.ravel(true.T)))
+    out = tmp_path / "out"
+    code = main([str(workdir / "part.step"), str(workdir / "images"), "-o", str(out), "--refine-rig"])
+    assert code in (0, 3)
+    assert "measured with the rig refined from" in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    jsonschema.validate(report, SCHEMA)
+    rr = report["rig_refinement"]
+    assert rr["refined"] and rr["significant"] and rr["circles"] >= 6
+    rows = {p["name"]: p for p in rr["parameters"]}
+    true_r = np.degrees(cv2.Rodrigues(true.R)[0].ravel())
+    for k, name in enumerate(("rx", "ry", "rz")):
+        assert abs(rows[name]["refined"] - true_r[k]) < 3 * rows[name]["standard_uncertainty"], rows[name]
+    assert abs(rows["rz"]["significance"]) > 10
+    assert rr["baseline_mm"] == pytest.approx(np.linalg.norm(true.T), rel=1e-9)
+    budget = report["uncertainty"]["calibration"]
+    assert budget["stated"] == "none" and budget["refined_rig"] and not budget["complete"]
+    html = (out / "report.html").read_text()
+    assert "rig refined from the part (--refine-rig)" in html
+    assert "only the refined rig's orientation uncertainty is carried" in html
+
+
+def test_refine_rig_is_refused_for_a_views_folder(tmp_path, plate, capsys):
+    views = tmp_path / "views"
+    shutil.copytree(plate.parent / "images", views / "view-1")
+    assert main([str(plate), str(views), "-o", str(tmp_path / "out"), "--refine-rig", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--refine-rig" in err[0] and "views folder" in err[0], err
+
+
+def test_refine_rig_leaves_an_oversize_hole_oversize(deviated, tmp_path):
+    """circle-4 made 0.1 mm oversize, the stated rig a board session's rolled by 1 px since: the refined
+    run still reads it 12.1 and fails it; the registration told the refinement which circle it is, never
+    how large it should be."""
+    from dataclasses import replace
+
+    from partinspect.simulate.calibration import drifted_rig, simulated_calibration
+    from partinspect.vision.calibration import read_calibration, write_calibration
+
+    step, render = deviated
+    images = tmp_path / "images"
+    shutil.copytree(render / "images", images)
+    board = simulated_calibration(read_calibration(images), np.random.default_rng(3))
+    write_calibration(images / "calibration.yaml",
+                      replace(drifted_rig(board, "roll", 1.0), std=board.std, cov=board.cov))
+    out = tmp_path / "out"
+    assert main([str(step), str(images), "-o", str(out), "-q", "--refine-rig"]) == 1
+    report = json.loads((out / "report.json").read_text())
+    rr = report["rig_refinement"]
+    assert rr["refined"] and rr["significant"] and "rz" in {p["name"] for p in rr["parameters"]}
+    c = next(c for c in report["characteristics"] if c["id"] == "circle-4.diameter")
+    assert c["decision"] == "fail" and abs(c["measured"] - 12.1) < 3 * c["standard_uncertainty"] + 0.005
+    assert c["measured"] - 12.0 > 10 * c["standard_uncertainty"]

@@ -73,7 +73,7 @@ def mat(m, digits=15):
 
 
 def assemble_report(*, part, verdict, inputs, image, tolerances, uncertainty, adaptive, registration, features,
-                    characteristics, not_inspected, skipped_edges, calibration=None):
+                    characteristics, not_inspected, skipped_edges, calibration=None, rig_refinement=None):
     """report.json (schema report/1) from its parts, with the summary counted.
 
     Parameters
@@ -92,6 +92,9 @@ def assemble_report(*, part, verdict, inputs, image, tolerances, uncertainty, ad
     calibration : dict, optional
         The calibration checked against the images (its epipolar residual,
         verdict and any correction); left out when not checked.
+    rig_refinement : dict, optional
+        The rig re-estimated from the part's circles (``inspect
+        --refine-rig``), or why it was not; left out when not asked for.
     features, characteristics, not_inspected : list of dict
     skipped_edges : dict
         Edges of the model that are neither lines nor circles, by kind.
@@ -112,6 +115,7 @@ def assemble_report(*, part, verdict, inputs, image, tolerances, uncertainty, ad
         "uncertainty": uncertainty,
         "adaptive": adaptive,
         **({"calibration_check": calibration} if calibration is not None else {}),
+        **({"rig_refinement": rig_refinement} if rig_refinement is not None else {}),
         "registration": registration,
         "features": features,
         "characteristics": characteristics,

@@ -38,7 +38,7 @@ from partinspect.frames import plane_basis
 from partinspect.vision.fitting import fit_ellipse, information_matrices, trace_r2
 
 __all__ = ["View", "Line3D", "Circle3D", "fit_line_3d", "fit_circle_3d", "circle_image_conic",
-           "circle_consistency", "minimal_residuals", "circle_residuals_at"]
+           "circle_consistency", "minimal_residuals", "circle_residuals_at", "information_parts"]
 
 
 @dataclass(frozen=True)
@@ -255,8 +255,35 @@ def _covariance(views, J):
     R D H_w) S^-1``, the first two the random one. The views' errors are
     independent of each other.
     """
+    S, M, Mb = information_parts(views, J)
+    Sinv = np.linalg.inv(S)
+    cov, cov_b = Sinv @ M @ Sinv, Sinv @ Mb @ Sinv
+    return 0.5 * (cov + cov.T), 0.5 * (cov_b + cov_b.T)
+
+
+def information_parts(views, J):
+    """The normal matrix of weighted residuals and the two middles of its sandwich covariance.
+
+    Parameters
+    ----------
+    views : sequence of View
+        Whose points' residuals are the rows of ``J``, views stacked in order.
+    J : ndarray, shape (N, p)
+        Jacobian of the residuals divided by each point's ``total_sigma``,
+        in any p parameters (one feature's, or several features' and a
+        rig's together).
+
+    Returns
+    -------
+    S : ndarray, shape (p, p)
+        ``J^T J``.
+    M_random, M_systematic : ndarray, shape (p, p)
+        ``J^T D R D J`` of the random errors (image noise and the
+        correction's, each with its correlation along the edge) and of the
+        systematic displacements (``View.bias``); the estimate's covariance
+        is ``S^-1 (M_random + M_systematic) S^-1`` (:func:`_covariance`).
+    """
     p = J.shape[1]
-    S = J.T @ J
     M, Mb = np.zeros((p, p)), np.zeros((p, p))
     start = 0
     for v in views:
@@ -269,9 +296,7 @@ def _covariance(views, J):
         if v.bias is not None:
             Mb += _gram_dense(hw * (v.bias / t)[:, None], v.xy, v.bias_corr_length)
         start += n
-    Sinv = np.linalg.inv(S)
-    cov, cov_b = Sinv @ M @ Sinv, Sinv @ Mb @ Sinv
-    return 0.5 * (cov + cov.T), 0.5 * (cov_b + cov_b.T)
+    return J.T @ J, M, Mb
 
 
 def _line_residuals(views, c0, d0, e1, e2):
