@@ -154,6 +154,10 @@ def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, unce
             m = pipeline.measure(inputs, say, check, first)
             if uncertainty == "montecarlo":
                 m = pipeline.with_monte_carlo(inputs, m, draws, say)
+            if m.registration.competing:
+                # Fusion places each view's features by its one pose: a view whose pose is ambiguous has none.
+                raise InputError(view.folder, "cannot align the CAD model to the images: alignment is ambiguous: "
+                                 + m.registration.ambiguity)
             view.measured = m
         except InputError as e:
             view.problem = e.problem

@@ -336,7 +336,7 @@ def settle(inputs, stereo, registration, progress):
     try:
         # The pose is known: no new search (it is the expensive part).
         with inputs.timings.stage("registering"):
-            again = _register(more, inputs, registration.part_to_camera)
+            again = _register(more, inputs, registration.poses)
     except InputError:
         return stereo, registration, seen
     return more, again, seen_at(again.part_to_camera)
@@ -374,6 +374,8 @@ def evaluate(inputs, m, progress):
     progress(f"evaluating {len(inputs.characteristics)} characteristics")
     judged, not_inspected = split_unseen(inputs.characteristics, m.seen, m.registration)
     decisions = decide_all(_evaluate_on_two_cores(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
+    if m.registration.competing:
+        decisions = _judged_across_poses(judged, decisions, m.registration, inputs, progress)
     characteristics = [characteristic_entry(d) for d in decisions]
     why = unmeasured_reasons(inputs.inv, m.stereo, m.registration, m.seen, inputs.calib,
                              (inputs.left, inputs.right, inputs.bit_depth))
@@ -401,6 +403,26 @@ def evaluate(inputs, m, progress):
         skipped_edges=inputs.inv.to_dict().get("skipped", {}),
     )
     return report, features
+
+
+def _judged_across_poses(characteristics, decisions, registration, inputs, progress):
+    """The decisions, inconclusive where a competing pose would decide otherwise (:mod:`partinspect.tolerances.ambiguity`).
+
+    Under each competing pose only the characteristics whose features it
+    assigns alike are evaluated: the others depend on it whatever their values.
+    """
+    from partinspect.tolerances.ambiguity import alike, reconcile
+    from partinspect.tolerances.decision import decide_all
+
+    rivals = []
+    for k, rival in enumerate(registration.competing, 1):
+        same = alike(characteristics, registration, rival.registration)
+        progress(f"evaluating {len(same)} characteristics under competing pose {k} of {len(registration.competing)} "
+                 f"({rival.angle:.1f} degrees away)")
+        evaluated = decide_all(_evaluate_on_two_cores(same, rival.registration, inputs.inv),
+                               inputs.resolved.decision_rule)
+        rivals.append({d.id: d for d in evaluated})
+    return reconcile(decisions, registration, rivals)
 
 
 def _evaluate_on_two_cores(characteristics, registration, inv):

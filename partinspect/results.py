@@ -12,7 +12,7 @@ import numpy as np
 
 from partinspect.reports.assemble import mat, vec
 
-__all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "feature_entries", "curve_3d",
+__all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "ambiguity_entry", "feature_entries", "curve_3d",
            "figure_data", "fused_feature_entries", "view_entry"]
 
 
@@ -55,7 +55,39 @@ def registration_entry(reg):
         "translation_std": vec(std[3:], 9),
         "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
         **({"symmetry": reg.symmetry} if reg.symmetry else {}),
+        **({"ambiguity": ambiguity_entry(reg)} if reg.competing else {}),
     }
+
+
+def ambiguity_entry(reg):
+    """report.json's "registration.ambiguity": the poses that explain the features as well as the chosen one."""
+    return {
+        "summary": reg.ambiguity,
+        "deciding_features": sorted({fid for c in reg.competing for fid in c.deciding}),
+        "competing": [{
+            "part_to_camera": mat(c.registration.part_to_camera, 12),
+            "angle_deg": round(c.angle, 6),
+            "shift": round(c.shift, 6),
+            "chi2": round(float(c.registration.chi2), 6),
+            "dof": int(c.registration.dof),
+            "weighted_rms": round(float(c.registration.weighted_rms), 6),
+            "deciding_features": list(c.deciding),
+            "assignment_differs": _assignment_differs(reg, c.registration),
+        } for c in reg.competing],
+    }
+
+
+def _assignment_differs(reg, other):
+    """CAD ids that the two registrations assign different measured features to (sorted)."""
+    def table(r):
+        out = {}
+        for kind, pairs in r.assignment.items():
+            for i, fid in pairs.items():
+                out.setdefault(fid, set()).add((kind, i))
+        return out
+
+    a, b = table(reg), table(other)
+    return sorted(fid for fid in set(a) | set(b) if a.get(fid) != b.get(fid))
 
 
 def feature_entries(inv, stereo, registration, seen, decisions, reasons):

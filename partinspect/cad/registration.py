@@ -7,10 +7,16 @@ with no pose given: pose hypotheses from pairs of features, scored by the
 number of measured features each explains (:mod:`.pose_search`); the best
 distinct ones refined by weighted least squares on the datum features,
 each weighted by its covariance, which also gives the pose covariance
-(:mod:`.pose_refine`). When a second distinct pose explains the data about
-as well (same score, chi-square within ``AMBIGUITY_RATIO``), the datums give
-fewer than six independent constraints, or the refinement does not
-converge, :class:`RegistrationError` is raised.
+(:mod:`.pose_refine`). When other distinct poses explain the data about as
+well (same score, chi-square within ``AMBIGUITY_RATIO``) and the CAD model
+maps onto itself under the turns between them, they give the same
+characteristics and the best is taken (``symmetry``); where it does not,
+the measured features are symmetric but the model is not, and each such
+pose is kept, refined with its own assignment, as a :class:`CompetingPose`
+(``competing``): what depends on which is right cannot be decided, the rest
+can (:mod:`partinspect.tolerances.ambiguity`). When the datums give fewer
+than six independent constraints, or the refinement does not converge,
+:class:`RegistrationError` is raised.
 
 :meth:`Registration.features_in_part_frame` transforms the measured
 features to the part frame to first order, their covariance including the
@@ -47,11 +53,13 @@ from partinspect.cad.pose_search import (
 __all__ = [
     "RegistrationError",
     "Registration",
+    "CompetingPose",
     "PartFeature",
     "register",
     "rig_params",
     "AMBIGUITY_RATIO",
     "model_symmetry",
+    "unmatched_under",
 ]
 
 AMBIGUITY_RATIO = 2.0
@@ -143,6 +151,14 @@ class Registration:
         onto itself under the turns between them (a bolt circle, a square
         plate), which those turns are: any of the poses gives the same
         characteristics, and the best is taken. Empty otherwise.
+    competing : tuple of CompetingPose
+        Other poses that explain the measured features as well, under turns
+        the CAD model does not map onto itself by (the feature that would
+        tell them apart not measured); one per class of poses the model's
+        own symmetry relates. Empty when the pose is unambiguous.
+    ambiguity : str
+        Those poses in words, with the features that would tell; empty
+        when there are none.
     """
 
     part_to_camera: np.ndarray
@@ -157,6 +173,8 @@ class Registration:
     n_hypotheses: int = 0
     outliers: dict = field(default_factory=dict)
     symmetry: str = ""
+    competing: tuple = ()
+    ambiguity: str = ""
     _circles: tuple = field(default=(), repr=False)
     _lines: tuple = field(default=(), repr=False)
     _fit: object = field(default=None, repr=False)
@@ -168,6 +186,11 @@ class Registration:
     @property
     def translation(self):
         return self.part_to_camera[:3, 3]
+
+    @property
+    def poses(self):
+        """``part_to_camera`` of this pose and of each competing one: ndarray, shape (1 + n, 4, 4)."""
+        return np.stack([self.part_to_camera] + [c.registration.part_to_camera for c in self.competing])
 
     @property
     def pose_std(self):
@@ -304,6 +327,33 @@ class Registration:
         return PartFeature(kind, index, cad, datum, p, cov, B, start, end, points, point_covs)
 
 
+@dataclass(frozen=True, eq=False)
+class CompetingPose:
+    """A pose that explains the measured features as well as the chosen one, the CAD model not being symmetric under the turn.
+
+    Attributes
+    ----------
+    registration : Registration
+        The pose refined on its own assignment of the measured features,
+        its covariance and fit statistics.
+    angle : float
+        Degrees: the rotation between it and the chosen pose.
+    shift : float
+        mm: how far the CAD features move between the two poses (the
+        largest), not the part's arbitrary origin.
+    deciding : tuple of str
+        CAD ids of the features the turn between the poses puts where the
+        model has no feature of their kind and size (or brings one there
+        from such a place): measured, any of them would tell the two poses
+        apart.
+    """
+
+    registration: Registration
+    angle: float
+    shift: float
+    deciding: tuple
+
+
 def _skew(v):
     x, y, z = v
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
@@ -368,9 +418,11 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
     datums : sequence of str, optional
         CAD ids of the features the alignment uses; the others are matched
         and measured relative to it. Default: all matched features.
-    pose_hint : ndarray, shape (4, 4), optional
+    pose_hint : ndarray, shape (4, 4) or (n, 4, 4), optional
         A ``part_to_camera`` close enough (within ``MATCH_GATE`` at the
-        features) to skip the hypothesis search.
+        features) to skip the hypothesis search; several (a registration's
+        ``poses``): each is a hypothesis, and ties between them are judged
+        as in the search.
 
     Returns
     -------
@@ -379,23 +431,31 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
     Raises
     ------
     RegistrationError
-        "alignment is ambiguous: ..." when two distinct poses explain the
-        data equally well, the datums give fewer than 6 independent
-        constraints, nothing matches, or the refinement does not converge.
+        "alignment is ambiguous: ..." when the datums give fewer than 6
+        independent constraints or nothing matches; or the refinement does
+        not converge. Distinct poses that explain the data equally well are
+        the Registration's ``competing`` ones, not an error.
     """
     circles, lines = tuple(measured_circles), tuple(measured_lines)
     cad = cad_arrays(inventory)
     meas = measured_arrays(circles, lines)
     datum_set = _datum_set(datums, inventory)
-    hyps = initial_poses(meas, cad, circles, lines, pose_hint)
+    if pose_hint is None:
+        hyps = initial_poses(meas, cad, circles, lines)
+    else:
+        hyps = [h for T in np.asarray(pose_hint, float).reshape(-1, 4, 4)
+                for h in initial_poses(meas, cad, circles, lines, T)]
     results = _refined(distinct_best(meas, cad, hyps), circles, lines, meas, cad, datum_set)
-    symmetry = _check_unambiguous(results, cad)
+    symmetry, rivals = _competing(results, cad)
     r = results[0]
     if datum_set is None:
-        # Only the chosen pose: leaving features out of the competing
+        # The tie was judged before: leaving features out of the competing
         # hypotheses could make a wrong one fit as well as the right one.
         r = solve_pose(r["T"], circles, lines, meas, cad, None, exclude_outliers=True)
-    return _registration(r, cad, circles, lines, len(hyps), symmetry)
+        rivals = [solve_pose(o["T"], circles, lines, meas, cad, None, exclude_outliers=True) for o in rivals]
+    competing = tuple(_competing_pose(_registration(o, cad, circles, lines, len(hyps)), r, cad) for o in rivals)
+    words = _ambiguity_words(r, rivals, competing) if competing else ""
+    return _registration(r, cad, circles, lines, len(hyps), symmetry, competing, words)
 
 
 def _datum_set(datums, inventory):
@@ -427,15 +487,25 @@ def _refined(poses, circles, lines, meas, cad, datum_set):
     return results
 
 
-def _check_unambiguous(results, cad):
-    """Raise when a second distinct pose explains as many features about as well as the best.
+def _competing(results, cad):
+    """The poses that explain as many features about as well as the best, split by the model's symmetry.
 
-    Unless the CAD model maps onto itself under the turn between the two
-    poses (:func:`model_symmetry`): then both give the same characteristics
-    and the best is kept. Returns what was said of such turns ("" if none).
+    A second distinct pose with the best's score and a chi-square within
+    ``AMBIGUITY_RATIO`` (plus a few standard deviations of the chi-square)
+    ties with it. Under a turn the CAD model maps onto itself
+    (:func:`model_symmetry`), both give the same characteristics: the turn
+    is named and the best kept. Otherwise the tie is real and the pose
+    competes, unless it is one already kept moved by a symmetry of the model.
+
+    Returns
+    -------
+    symmetry : str
+        What was said of the model's own turns ("" if none).
+    rivals : list of dict
+        The competing refined poses (:func:`~partinspect.cad.pose_refine.solve_pose`'s results).
     """
     first = results[0]
-    turns = []
+    turns, rivals = [], []
     for other in results[1:]:
         if other["score"] < first["score"]:
             break
@@ -448,20 +518,97 @@ def _check_unambiguous(results, cad):
             if turn not in turns:
                 turns.append(turn)
             continue
-        e = pose_error(other["T"], first["T"])
-        # how far the part's features move between the two poses, not its (arbitrary) origin
-        pts = np.r_[cad.centers, cad.starts]
-        shift = np.linalg.norm((pts @ (other["T"][:3, :3] - first["T"][:3, :3]).T) + other["T"][:3, 3] - first["T"][:3, 3], axis=1).max()
-        raise RegistrationError(
-            f"alignment is ambiguous: two poses {np.rad2deg(np.linalg.norm(e[:3])):.1f} degrees apart "
-            f"(features moved by up to {shift:.1f} mm) explain the "
-            f"{first['score']} matched features equally well (chi-square {first['chi2']:.3g} vs "
-            f"{other['chi2']:.3g}); the part looks symmetric to the measured features"
-        )
+        if any(same_pose(o["T"][:3, :3], o["T"][:3, 3], other["T"][:3, :3], other["T"][:3, 3])
+               or model_symmetry(cad, np.linalg.inv(o["T"]) @ other["T"]) is not None for o in rivals):
+            continue
+        rivals.append(other)
     if not turns:
-        return ""
+        return "", rivals
     return ("the CAD model maps onto itself under " + ", ".join(turns) + ": the poses those turns relate explain "
-            "the features equally well and give the same characteristics; the best fitting one was taken")
+            "the features equally well and give the same characteristics; the best fitting one was taken"), rivals
+
+
+def _competing_pose(reg, best, cad):
+    """A :class:`CompetingPose`: ``reg`` and how it differs from the refined pose ``best``.
+
+    Its deciding features are those the turn between them moves where the
+    model has nothing like them, either way, and which neither pose matched
+    to a measured feature.
+    """
+    T, T_best = reg.part_to_camera, best["T"]
+    e = pose_error(T, T_best)
+    # how far the part's features move between the two poses, not its (arbitrary) origin
+    pts = np.r_[cad.centers, cad.starts]
+    shift = np.linalg.norm(pts @ (T[:3, :3] - T_best[:3, :3]).T + T[:3, 3] - T_best[:3, 3], axis=1).max()
+    S = np.linalg.inv(T_best) @ T
+    ids = set()
+    for M in (S, np.linalg.inv(S)):
+        lone_circles, lone_lines = unmatched_under(cad, M)
+        ids.update(cad.round_ids[k] for k in lone_circles)
+        ids.update(cad.line_ids[k] for k in lone_lines)
+    ids -= {cad.round_ids[k] for k in best["circ"].values()} | {cad.line_ids[k] for k in best["lin"].values()}
+    ids -= set(reg.assignment["circle"].values()) | set(reg.assignment["line"].values())
+    return CompetingPose(reg, float(np.rad2deg(np.linalg.norm(e[:3]))), float(shift), tuple(sorted(ids, key=_natural)))
+
+
+def _natural(fid):
+    kind, _, n = fid.rpartition("-")
+    return (kind, int(n)) if n.isdigit() else (fid, 0)
+
+
+def _ambiguity_words(best, rivals, competing):
+    """The tie in words: the poses, the fits, and what would tell them apart."""
+    angles = ", ".join(f"{c.angle:.1f}" for c in competing)
+    n = len(competing) + 1
+    poses = (f"two poses {angles} degrees apart" if n == 2 else f"{n} poses ({angles} degrees from the best fitting)")
+    shift = max(c.shift for c in competing)
+    chi2 = " vs ".join(f"{r['chi2']:.3g}" for r in [best, *rivals])
+    deciding = sorted({fid for c in competing for fid in c.deciding}, key=_natural)
+    tell = (f": {', '.join(deciding)}, which would tell, {'was' if len(deciding) == 1 else 'were'} not measured"
+            if deciding else "")
+    return (f"{poses} (features moved by up to {shift:.1f} mm) explain the {best['score']} matched features equally "
+            f"well (chi-square {chi2}); the measured features are symmetric, the CAD model is not{tell}. "
+            "Characteristics that depend on which pose is right are inconclusive; the others are judged")
+
+
+def unmatched_under(cad, S, tol=MATCH_GATE):
+    """The CAD edges that the turn ``S`` puts where the model has no edge like them.
+
+    Parameters
+    ----------
+    cad : CadArrays
+    S : ndarray, shape (4, 4)
+        A rigid motion of the part frame onto itself.
+    tol : float
+        mm: how far a moved edge may lie from its counterpart.
+
+    Returns
+    -------
+    circles, lines : list of int
+        Indices into ``cad.round_ids`` and ``cad.line_ids``: a moved circle
+        with no circle of its radius and axis direction within ``tol`` of
+        its centre, a moved line with no line whose ends (either way round)
+        lie within ``tol`` of its ends. Both empty when the model maps onto
+        itself under ``S``.
+    """
+    R, t = S[:3, :3], S[:3, 3]
+    c = cad.centers @ R.T + t
+    n = cad.normals @ R.T
+    circles = []
+    for k in range(len(c)):
+        d = np.linalg.norm(cad.centers - c[k], axis=1)
+        same = (d < tol) & (np.abs(cad.radii - cad.radii[k]) < tol) & (np.abs(np.einsum("ij,j->i", cad.normals, n[k])) > 0.999)
+        if not same.any():
+            circles.append(k)
+    ends = cad.starts + cad.dirs * cad.lengths[:, None]
+    a, b = cad.starts @ R.T + t, ends @ R.T + t
+    lines = []
+    for k in range(len(a)):
+        fwd = np.maximum(np.linalg.norm(cad.starts - a[k], axis=1), np.linalg.norm(ends - b[k], axis=1))
+        back = np.maximum(np.linalg.norm(cad.starts - b[k], axis=1), np.linalg.norm(ends - a[k], axis=1))
+        if not (np.minimum(fwd, back) < tol).any():
+            lines.append(k)
+    return circles, lines
 
 
 def model_symmetry(cad, S, tol=MATCH_GATE):
@@ -482,21 +629,10 @@ def model_symmetry(cad, S, tol=MATCH_GATE):
     str or None
         E.g. "a turn of 60.0 deg about (0.000, 0.000, 1.000) through (45.0, 45.0, 6.0)".
     """
+    lone_circles, lone_lines = unmatched_under(cad, S, tol)
+    if lone_circles or lone_lines:
+        return None
     R, t = S[:3, :3], S[:3, 3]
-    c = cad.centers @ R.T + t
-    n = cad.normals @ R.T
-    for k in range(len(c)):
-        d = np.linalg.norm(cad.centers - c[k], axis=1)
-        same = (d < tol) & (np.abs(cad.radii - cad.radii[k]) < tol) & (np.abs(np.einsum("ij,j->i", cad.normals, n[k])) > 0.999)
-        if not same.any():
-            return None
-    ends = cad.starts + cad.dirs * cad.lengths[:, None]
-    a, b = cad.starts @ R.T + t, ends @ R.T + t
-    for k in range(len(a)):
-        fwd = np.maximum(np.linalg.norm(cad.starts - a[k], axis=1), np.linalg.norm(ends - b[k], axis=1))
-        back = np.maximum(np.linalg.norm(cad.starts - b[k], axis=1), np.linalg.norm(ends - a[k], axis=1))
-        if not (np.minimum(fwd, back) < tol).any():
-            return None
     from scipy.spatial.transform import Rotation
 
     from partinspect.cad.features import canonical_direction
@@ -514,7 +650,7 @@ def model_symmetry(cad, S, tol=MATCH_GATE):
             f"through ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f})")
 
 
-def _registration(r, cad, circles, lines, n_hypotheses, symmetry=""):
+def _registration(r, cad, circles, lines, n_hypotheses, symmetry="", competing=(), ambiguity=""):
     """The :class:`Registration` of a refined pose (:func:`~partinspect.cad.pose_refine.solve_pose`'s result)."""
     return Registration(
         part_to_camera=r["T"],
@@ -529,6 +665,8 @@ def _registration(r, cad, circles, lines, n_hypotheses, symmetry=""):
         n_hypotheses=n_hypotheses,
         outliers=r["outliers"],
         symmetry=symmetry,
+        competing=competing,
+        ambiguity=ambiguity,
         _circles=circles,
         _lines=lines,
         _fit={"JA": r["JA"], "U": r["U"], "rows": r["rows"]},
