@@ -277,13 +277,22 @@ def measure(inputs, progress, calibration=None, first=None):
     from partinspect.vision.posed import merged_stereo
 
     done = {tuple(sorted(DEFAULTS.items())): first} if first is not None else {}
+    # Once a round's pose is ambiguous, later rounds start from its poses, the chosen one first: a CAD id then
+    # names the same measured edge in every round (merge adds features by id), and the search is not repeated.
+    hint = {"poses": inputs.hint}
+
+    def registered(stereo):
+        with inputs.timings.stage("registering"):
+            registration = _register(stereo, inputs, hint["poses"])
+        if registration.competing and hint["poses"] is None:
+            hint["poses"] = registration.poses
+        return registration
 
     def run_round(params):
         stereo = done.pop(tuple(sorted(params.items())), None) or _stereo_round(inputs, params, progress)
         progress(f"registering {len(stereo.features)} measured features to the CAD model")
         try:
-            with inputs.timings.stage("registering"):
-                registration = _register(stereo, inputs, inputs.hint)
+            registration = registered(stereo)
         except InputError as e:
             e.stereo = stereo
             raise
@@ -292,9 +301,7 @@ def measure(inputs, progress, calibration=None, first=None):
     def merge(base, new, ids):
         stereo = merged_stereo(base.stereo, new.stereo, new.registration, ids)
         progress(f"registering {len(stereo.features)} features, {len(ids)} of them from the re-run")
-        with inputs.timings.stage("registering"):
-            registration = _register(stereo, inputs, inputs.hint)
-        return settle(inputs, stereo, registration, progress)
+        return settle(inputs, stereo, registered(stereo), progress)
 
     best, log, advice = measure_adaptively(run_round, progress=progress, merge=merge)
     return Measured(best.stereo, best.registration, best.visibility, {"rounds": log, "advice": advice},
@@ -348,7 +355,8 @@ def with_monte_carlo(inputs, m, draws, progress):
 
     progress(f"Monte Carlo: {draws} draws for each of {len(m.stereo.features)} features")
     stereo, ratios = with_monte_carlo_covariances(m.stereo, inputs.calib, draws)
-    registration = _register(stereo, inputs, inputs.hint)
+    # An ambiguous pose's candidates, the chosen one first, keep the CAD ids the round was settled under.
+    registration = _register(stereo, inputs, m.registration.poses if m.registration.competing else inputs.hint)
     info = {"method": "Monte Carlo (JCGM 101) of the image noise; the calibration's part first order",
             "draws": draws, "seed": 0, "coverage_factor": 2.0,
             "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None,

@@ -446,6 +446,8 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
         hyps = [h for T in np.asarray(pose_hint, float).reshape(-1, 4, 4)
                 for h in initial_poses(meas, cad, circles, lines, T)]
     results = _refined(distinct_best(meas, cad, hyps), circles, lines, meas, cad, datum_set)
+    if len(hyps) > 1 and pose_hint is not None:
+        results = _first_hint_first(results, hyps[0])
     symmetry, rivals = _competing(results, cad)
     r = results[0]
     if datum_set is None:
@@ -487,6 +489,29 @@ def _refined(poses, circles, lines, meas, cad, datum_set):
     return results
 
 
+def _ties(first, other):
+    """Whether refined pose ``other`` explains as many features about as well as ``first`` (``AMBIGUITY_RATIO``)."""
+    return (other["score"] == first["score"]
+            and other["chi2"] <= AMBIGUITY_RATIO * first["chi2"] + 10.0 * max(1, first["dof"]) ** 0.5)
+
+
+def _first_hint_first(results, hint):
+    """``results`` with the pose refined from the first hint in front when it ties with the best.
+
+    Measured again (another round, features added), tied poses swap places
+    on chi-squares that differ by chance; the first hint, the pose chosen
+    before, stays the chosen one, so that a CAD id names the same measured
+    edge from round to round.
+    """
+    R, t = hint
+    for j, r in enumerate(results):
+        if same_pose(R, t, r["T"][:3, :3], r["T"][:3, 3]):
+            if j and _ties(results[0], r):
+                return [r] + results[:j] + results[j + 1:]
+            break
+    return results
+
+
 def _competing(results, cad):
     """The poses that explain as many features about as well as the best, split by the model's symmetry.
 
@@ -511,7 +536,7 @@ def _competing(results, cad):
             break
         if same_pose(first["T"][:3, :3], first["T"][:3, 3], other["T"][:3, :3], other["T"][:3, 3]):
             continue
-        if other["chi2"] > AMBIGUITY_RATIO * first["chi2"] + 10.0 * max(1, first["dof"]) ** 0.5:
+        if not _ties(first, other):
             continue
         turn = model_symmetry(cad, np.linalg.inv(first["T"]) @ other["T"])
         if turn is not None:
