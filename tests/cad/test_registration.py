@@ -10,7 +10,6 @@ from scipy import stats
 from partinspect.cad.features import inventory
 from partinspect.cad.pose_refine import pose_error
 from partinspect.cad.registration import Registration, RegistrationError, register
-from partinspect.errors import InputError
 from partinspect.simulate.measured import facing_feature_ids, measure_features
 from partinspect.poses import default_pose
 from partinspect.simulate.rig import default_rig
