@@ -59,6 +59,8 @@ def test_the_run_goes_on_and_only_what_depends_on_the_pose_is_inconclusive(clock
     assert amb["deciding_features"] == ["circle-17", "circle-18"]
     measured = {f["id"] for f in report["features"] if f["measured"] is not None}
     assert not measured & {"circle-17", "circle-18"}
+    assert all("it would tell which of the poses that fit is right" in f["reason"] for f in report["features"]
+               if f["id"] in ("circle-17", "circle-18"))
     bolts = {f"circle-{k}" for k in (2, 4, 6, 14, 16, 20)}  # the bolt holes' top rims
     central = {"circle-8", "circle-9", "circle-10", "circle-11"}  # disc, hub foot, bore top rim
     for c in amb["competing"]:

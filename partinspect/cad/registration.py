@@ -60,6 +60,7 @@ __all__ = [
     "AMBIGUITY_RATIO",
     "model_symmetry",
     "unmatched_under",
+    "feature_order",
 ]
 
 AMBIGUITY_RATIO = 2.0
@@ -573,10 +574,11 @@ def _competing_pose(reg, best, cad):
         ids.update(cad.line_ids[k] for k in lone_lines)
     ids -= {cad.round_ids[k] for k in best["circ"].values()} | {cad.line_ids[k] for k in best["lin"].values()}
     ids -= set(reg.assignment["circle"].values()) | set(reg.assignment["line"].values())
-    return CompetingPose(reg, float(np.rad2deg(np.linalg.norm(e[:3]))), float(shift), tuple(sorted(ids, key=_natural)))
+    return CompetingPose(reg, float(np.rad2deg(np.linalg.norm(e[:3]))), float(shift), tuple(sorted(ids, key=feature_order)))
 
 
-def _natural(fid):
+def feature_order(fid):
+    """Sort key of a CAD id in its number's order: circle-2 before circle-10."""
     kind, _, n = fid.rpartition("-")
     return (kind, int(n)) if n.isdigit() else (fid, 0)
 
@@ -588,7 +590,7 @@ def _ambiguity_words(best, rivals, competing):
     poses = (f"two poses {angles} degrees apart" if n == 2 else f"{n} poses ({angles} degrees from the best fitting)")
     shift = max(c.shift for c in competing)
     chi2 = " vs ".join(f"{r['chi2']:.3g}" for r in [best, *rivals])
-    deciding = sorted({fid for c in competing for fid in c.deciding}, key=_natural)
+    deciding = sorted({fid for c in competing for fid in c.deciding}, key=feature_order)
     tell = (f": {', '.join(deciding)}, which would tell, {'was' if len(deciding) == 1 else 'were'} not measured"
             if deciding else "")
     return (f"{poses} (features moved by up to {shift:.1f} mm) explain the {best['score']} matched features equally "
