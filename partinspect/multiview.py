@@ -157,7 +157,7 @@ def measure_views(part, views_dir, out, *, tolerances=None, progress=quiet, unce
             if m.registration.competing:
                 # Fusion places each view's features by its one pose: a view whose pose is ambiguous has none.
                 raise InputError(view.folder, "cannot align the CAD model to the images: alignment is ambiguous: "
-                                 + m.registration.ambiguity)
+                                 + m.registration.ambiguity + " (a view is fused under one pose)")
             view.measured = m
         except InputError as e:
             view.problem = e.problem

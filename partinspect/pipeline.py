@@ -55,8 +55,17 @@ class InspectionResult:
             + (f", {counts['not_inspected']} general-tolerance characteristics of edges out of view not inspected; "
                if counts.get("not_inspected") else "; ")
             + self._views_note()
+            + self._ambiguity_note()
             + f"report: {self.out_dir / 'report.html'}"
         )
+
+    def _ambiguity_note(self):
+        amb = (self.report.get("registration") or {}).get("ambiguity")
+        if not amb:
+            return ""
+        n = sum(bool((c.get("details") or {}).get("ambiguity")) for c in self.report["characteristics"])
+        return (f"pose ambiguous: {len(amb['competing']) + 1} poses fit the measured features, {n} characteristics "
+                "depend on which is right; ")
 
     def _views_note(self):
         views = self.report.get("views")

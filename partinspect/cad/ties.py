@@ -169,8 +169,7 @@ def ambiguity_words(best, rivals, competing):
     tell = (f": {', '.join(deciding)}, which would tell, {'was' if len(deciding) == 1 else 'were'} not measured"
             if deciding else "")
     return (f"{poses} (features moved by up to {shift:.1f} mm) explain the {best['score']} matched features equally "
-            f"well (chi-square {chi2}); the measured features are symmetric, the CAD model is not{tell}. "
-            "Characteristics that depend on which pose is right are inconclusive; the others are judged")
+            f"well (chi-square {chi2}); the measured features are symmetric, the CAD model is not{tell}")
 
 
 def unmatched_under(cad, S, tol=MATCH_GATE):
