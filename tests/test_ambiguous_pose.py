@@ -89,3 +89,20 @@ def test_the_run_goes_on_and_only_what_depends_on_the_pose_is_inconclusive(clock
     assert not {cid for cid in judged if set(by_id[cid]["features"]) & bolts}
     # The report's registration section shows it.
     assert "pose ambiguous" in html and "competing pose 5" in html and "circle-17, circle-18" in html
+
+
+def test_a_view_of_a_views_folder_whose_pose_is_ambiguous_is_left_out(tmp_path, capsys):
+    """Fusion places each view's features by one pose: an ambiguous view is left out, saying why
+    (both views here, so the run stops as before, with one line)."""
+    from partinspect.simulate.folder import render_views_to_folder
+    from partinspect.simulate.parts import flange, write_part
+
+    write_part(flange(clocking=(5.0, 5.0)), tmp_path / "part.step")
+    render_views_to_folder(tmp_path / "part.step", tmp_path / "views", [(0, 0, 0), (0, 0, 90)],
+                           image_size=(612, 512), noise=2.0, seed=7)
+    capsys.readouterr()
+    code = main([str(tmp_path / "part.step"), str(tmp_path / "views"), "-o", str(tmp_path / "out"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "view-1: cannot align the CAD model to the images: alignment is ambiguous: 6 poses" in err
+    assert "(a view is fused under one pose)" in err
