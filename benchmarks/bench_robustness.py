@@ -344,7 +344,10 @@ def report_findings(path, truth_path):
         tv = true_value(c, truth)
         row = {"id": c["id"], "type": c["type"], "decision": decision, "true": tv,
                "lower": c.get("lower_limit"), "upper": c.get("upper_limit")}
-        if isinstance(c.get("measured"), (int, float)) and isinstance(c.get("standard_uncertainty"), (int, float)):
+        # A value that depends on which of several poses is right is not claimed for this CAD id: no honesty row.
+        ambiguous = bool((c.get("details") or {}).get("ambiguity"))
+        if (isinstance(c.get("measured"), (int, float)) and isinstance(c.get("standard_uncertainty"), (int, float))
+                and not ambiguous):
             row.update(measured=c["measured"], u=c["standard_uncertainty"], U=c["expanded_uncertainty"])
         rows.append(row)
     unmeasured = {}
@@ -355,7 +358,8 @@ def report_findings(path, truth_path):
             unmeasured[key] = unmeasured.get(key, 0) + 1
     reg = rep.get("registration") or {}
     return {"verdict": rep.get("verdict"), "characteristics": rows, "silent": silent, "unmeasured": unmeasured,
-            "symmetry": bool(reg.get("symmetry")), "features": len(rep.get("features", [])),
+            "symmetry": bool(reg.get("symmetry")), "ambiguity": len((reg.get("ambiguity") or {}).get("competing", [])),
+            "features": len(rep.get("features", [])),
             "measured": sum(f.get("measured") is not None for f in rep.get("features", []))}
 
 
@@ -431,9 +435,11 @@ def summarise(results):
                 dec[c["decision"]] = dec.get(c["decision"], 0) + 1
             rows.append([r["part"], r["kind"], f"exit {r['rc']}", f"{rep['measured']}/{rep['features']}",
                          ", ".join(f"{k} {v}" for k, v in sorted(dec.items())), f"{inside}/{len(chars)}",
-                         "yes" if rep["symmetry"] else "-"])
+                         "yes" if rep["symmetry"] else "-",
+                         f"{rep.get('ambiguity', 0) + 1} poses" if rep.get("ambiguity") else "-"])
         print(f"Rendered and inspected parts (noise {NOISE:g}):")
-        table(["part", "kind", "exit", "feat. meas.", "decisions", "true in +-U", "symmetric model"], rows)
+        table(["part", "kind", "exit", "feat. meas.", "decisions", "true in +-U", "symmetric model", "ambiguous"],
+              rows)
 
         print(f"Honesty per characteristic type (claim {100 * COVERAGE_CLAIM:.2f} % inside measured +- U, "
               "RMS of error/u 1):")

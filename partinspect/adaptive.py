@@ -17,8 +17,9 @@ did (a lower threshold or wider filter finds a faint edge and loses
 another), so only what it adds is taken: its features that the best round
 lacks join the best round's and the pose is fitted again. A candidate is
 better when it aligns the model where the other does not, then when it
-measures more of the CAD edges in view, then when it mends a situation and
-meets no new one (:func:`better`). Ties keep the earlier round: the defaults
+finds one pose where the other finds several that explain its features as
+well, then when it measures more of the CAD edges in view, then when it
+mends a situation and meets no new one (:func:`better`). Ties keep the earlier round: the defaults
 are the parameters the chain's error model is validated at. A smaller
 registration misfit alone does not count, as it moves with which features
 the pose fit leaves out. Each round's covariances describe its own data,
@@ -73,6 +74,10 @@ class State:
         there is no registration).
     registration_dof : int
         Its degrees of freedom (residuals less the pose's 6; 0 without one).
+    ambiguity : str or None
+        Other poses explain the measured features as well and the CAD model
+        is not symmetric under the turns between them
+        (:attr:`~partinspect.cad.registration.Registration.ambiguity`).
     """
 
     params: dict
@@ -83,6 +88,7 @@ class State:
     registration_error: str | None
     weighted_rms: float
     registration_dof: int = 0
+    ambiguity: str | None = None
 
 
 @dataclass(frozen=True)
@@ -119,6 +125,10 @@ class Situation:
 
 def _registration_failed(s):
     return s.registration_error
+
+
+def _pose_ambiguous(s):
+    return s.ambiguity
 
 
 def _features_missing(s):
@@ -172,6 +182,12 @@ SITUATIONS = (
         "(inspect plan proposes a pose); give --pose-hint for a symmetric part",
     ),
     Situation(
+        "pose ambiguous", "registration", _pose_ambiguous,
+        ({"min_points": 8}, {"k_low": 3.0, "k_high": 6.0}),
+        "turn the part so that a feature the registration names as telling its poses apart is seen, or give "
+        "--pose-hint: until then what depends on which pose is right stays inconclusive",
+    ),
+    Situation(
         "expected edges missing", "matching", _features_missing,
         ({"k_low": 3.0, "k_high": 6.0}, {"min_points": 8}, {"sigma": 1.5}),
         "these edges show too little contrast or too few points: change the lighting so their two faces differ, "
@@ -209,9 +225,9 @@ class Round:
     situations: list = field(default_factory=list)
 
     def score(self):
-        """(aligned, minus the CAD edges in view left unmeasured): larger is better."""
+        """(aligned, its pose not ambiguous, minus the CAD edges in view left unmeasured): larger is better."""
         measured = -len(self.state.missing) if self.registration is not None else -10**6
-        return (self.registration is not None, measured)
+        return (self.registration is not None, not self.state.ambiguity, measured)
 
 
 def better(new, best):
@@ -257,8 +273,9 @@ def state_of(params, stereo, registration, visibility, error=None):
         noise = max(float(stereo.left.noise), float(stereo.right.noise))
         missing = tuple(fid for fid, v in visibility.items() if v.shows_edge(noise) and fid not in measured)
         wrms, dof = float(registration.weighted_rms), int(registration.dof)
+    ambiguity = getattr(registration, "ambiguity", "") or None
     return State(dict(params), (float(stereo.left.noise), float(stereo.right.noise)), edge_snr,
-                 float(np.median(ratios)) if ratios else float("nan"), missing, error, wrms, dof)
+                 float(np.median(ratios)) if ratios else float("nan"), missing, error, wrms, dof, ambiguity)
 
 
 def met_situations(state, graph=SITUATIONS):

@@ -217,6 +217,10 @@ def _measure_view(view, uncertainty, draws, say):
         m = pipeline.measure(inputs, say, check, first)
         if uncertainty == "montecarlo":
             m = pipeline.with_monte_carlo(inputs, m, draws, say)
+        if m.registration.competing:
+            # Fusion places each view's features by its one pose: a view whose pose is ambiguous has none.
+            raise InputError(view.folder, "cannot align the CAD model to the images: alignment is ambiguous: "
+                             + m.registration.ambiguity + " (a view is fused under one pose)")
         return m, None, inputs.calib
     except InputError as e:
         say(f"left out: {e.problem}")

@@ -56,6 +56,7 @@ class InspectionResult:
                if counts.get("not_inspected") else "; ")
             + self._views_note()
             + self._refinement_note()
+            + self._ambiguity_note()
             + f"report: {self.out_dir / 'report.html'}"
         )
 
@@ -68,6 +69,14 @@ class InspectionResult:
         return (f"measured with the rig refined from {rr['circles']} circles "
                 f"(turned {rr['rotation_correction_deg']:.5f} deg"
                 f"{', significant' if rr['significant'] else ''}); ")
+
+    def _ambiguity_note(self):
+        amb = (self.report.get("registration") or {}).get("ambiguity")
+        if not amb:
+            return ""
+        n = sum(bool((c.get("details") or {}).get("ambiguity")) for c in self.report["characteristics"])
+        return (f"pose ambiguous: {len(amb['competing']) + 1} poses fit the measured features, {n} characteristics "
+                "depend on which is right; ")
 
     def _views_note(self):
         views = self.report.get("views")
@@ -330,13 +339,22 @@ def measure(inputs, progress, calibration=None, first=None):
     from partinspect.vision.posed import merged_stereo
 
     done = {tuple(sorted(DEFAULTS.items())): first} if first is not None else {}
+    # Once a round's pose is ambiguous, later rounds start from its poses, the chosen one first: a CAD id then
+    # names the same measured edge in every round (merge adds features by id), and the search is not repeated.
+    hint = {"poses": inputs.hint}
+
+    def registered(stereo):
+        with inputs.timings.stage("registering"):
+            registration = _register(stereo, inputs, hint["poses"])
+        if registration.competing and hint["poses"] is None:
+            hint["poses"] = registration.poses
+        return registration
 
     def run_round(params):
         stereo = done.pop(tuple(sorted(params.items())), None) or _stereo_round(inputs, params, progress)
         progress(f"registering {len(stereo.features)} measured features to the CAD model")
         try:
-            with inputs.timings.stage("registering"):
-                registration = _register(stereo, inputs, inputs.hint)
+            registration = registered(stereo)
         except InputError as e:
             e.stereo = stereo
             raise
@@ -345,9 +363,7 @@ def measure(inputs, progress, calibration=None, first=None):
     def merge(base, new, ids):
         stereo = merged_stereo(base.stereo, new.stereo, new.registration, ids)
         progress(f"registering {len(stereo.features)} features, {len(ids)} of them from the re-run")
-        with inputs.timings.stage("registering"):
-            registration = _register(stereo, inputs, inputs.hint)
-        return settle(inputs, stereo, registration, progress)
+        return settle(inputs, stereo, registered(stereo), progress)
 
     best, log, advice = measure_adaptively(run_round, progress=progress, merge=merge)
     return Measured(best.stereo, best.registration, best.visibility, {"rounds": log, "advice": advice},
@@ -389,7 +405,7 @@ def settle(inputs, stereo, registration, progress):
     try:
         # The pose is known: no new search (it is the expensive part).
         with inputs.timings.stage("registering"):
-            again = _register(more, inputs, registration.part_to_camera)
+            again = _register(more, inputs, registration.poses)
     except InputError:
         return stereo, registration, seen
     return more, again, seen_at(again.part_to_camera)
@@ -401,7 +417,8 @@ def with_monte_carlo(inputs, m, draws, progress):
 
     progress(f"Monte Carlo: {draws} draws for each of {len(m.stereo.features)} features")
     stereo, ratios = with_monte_carlo_covariances(m.stereo, inputs.calib, draws)
-    registration = _register(stereo, inputs, inputs.hint)
+    # An ambiguous pose's candidates, the chosen one first, keep the CAD ids the round was settled under.
+    registration = _register(stereo, inputs, m.registration.poses if m.registration.competing else inputs.hint)
     info = {"method": "Monte Carlo (JCGM 101) of the image noise; the calibration's part first order",
             "draws": draws, "seed": 0, "coverage_factor": 2.0,
             "std_ratio_median": round(float(np.median(ratios)), 4) if len(ratios) else None,
@@ -427,6 +444,8 @@ def evaluate(inputs, m, progress):
     progress(f"evaluating {len(inputs.characteristics)} characteristics")
     judged, not_inspected = split_unseen(inputs.characteristics, m.seen, m.registration)
     decisions = decide_all(_evaluate_on_two_cores(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
+    if m.registration.competing:
+        decisions = _judged_across_poses(judged, decisions, m.registration, inputs, progress)
     characteristics = [characteristic_entry(d) for d in decisions]
     why = unmeasured_reasons(inputs.inv, m.stereo, m.registration, m.seen, inputs.calib,
                              (inputs.left, inputs.right, inputs.bit_depth))
@@ -455,6 +474,26 @@ def evaluate(inputs, m, progress):
         skipped_edges=inputs.inv.to_dict().get("skipped", {}),
     )
     return report, features
+
+
+def _judged_across_poses(characteristics, decisions, registration, inputs, progress):
+    """The decisions, inconclusive where a competing pose would decide otherwise (:mod:`partinspect.tolerances.ambiguity`).
+
+    Under each competing pose only the characteristics whose features it
+    assigns alike are evaluated: the others depend on it whatever their values.
+    """
+    from partinspect.tolerances.ambiguity import alike, reconcile
+    from partinspect.tolerances.decision import decide_all
+
+    rivals = []
+    for k, rival in enumerate(registration.competing, 1):
+        same = alike(characteristics, registration, rival.registration)
+        progress(f"evaluating {len(same)} characteristics under competing pose {k} of {len(registration.competing)} "
+                 f"({rival.angle:.1f} degrees away)")
+        evaluated = decide_all(_evaluate_on_two_cores(same, rival.registration, inputs.inv),
+                               inputs.resolved.decision_rule)
+        rivals.append({d.id: d for d in evaluated})
+    return reconcile(decisions, registration, rivals)
 
 
 def _evaluate_on_two_cores(characteristics, registration, inv):

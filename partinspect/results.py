@@ -10,9 +10,10 @@ overlay shows the reconstruction, not just the detected edge.
 
 import numpy as np
 
+from partinspect.cad.registration import feature_order
 from partinspect.reports.assemble import mat, vec
 
-__all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "feature_entries", "curve_3d",
+__all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "ambiguity_entry", "feature_entries", "curve_3d",
            "figure_data", "fused_feature_entries", "view_entry"]
 
 
@@ -55,7 +56,39 @@ def registration_entry(reg):
         "translation_std": vec(std[3:], 9),
         "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
         **({"symmetry": reg.symmetry} if reg.symmetry else {}),
+        **({"ambiguity": ambiguity_entry(reg)} if reg.competing else {}),
     }
+
+
+def ambiguity_entry(reg):
+    """report.json's "registration.ambiguity": the poses that explain the features as well as the chosen one."""
+    return {
+        "summary": reg.ambiguity,
+        "deciding_features": sorted({fid for c in reg.competing for fid in c.deciding}, key=feature_order),
+        "competing": [{
+            "part_to_camera": mat(c.registration.part_to_camera, 12),
+            "angle_deg": round(c.angle, 6),
+            "shift": round(c.shift, 6),
+            "chi2": round(float(c.registration.chi2), 6),
+            "dof": int(c.registration.dof),
+            "weighted_rms": round(float(c.registration.weighted_rms), 6),
+            "deciding_features": list(c.deciding),
+            "assignment_differs": _assignment_differs(reg, c.registration),
+        } for c in reg.competing],
+    }
+
+
+def _assignment_differs(reg, other):
+    """CAD ids that the two registrations assign different measured features to (sorted)."""
+    def table(r):
+        out = {}
+        for kind, pairs in r.assignment.items():
+            for i, fid in pairs.items():
+                out.setdefault(fid, set()).add((kind, i))
+        return out
+
+    a, b = table(reg), table(other)
+    return sorted((fid for fid in set(a) | set(b) if a.get(fid) != b.get(fid)), key=feature_order)
 
 
 def feature_entries(inv, stereo, registration, seen, decisions, reasons):
@@ -68,12 +101,15 @@ def feature_entries(inv, stereo, registration, seen, decisions, reasons):
     parts = {p.cad_id: p for p in registration.features_in_part_frame() if p.cad_id is not None}
     index = {"circle": [f for f in stereo.features if f.kind != "line"], "line": [f for f in stereo.features if f.kind == "line"]}
     worst = _worst_decisions(decisions)
+    deciding = {fid for c in getattr(registration, "competing", ()) for fid in c.deciding}
     out = []
     for f in inv.features:
         entry = _entry_of(f, seen)
         p = parts.get(f.id)
         if p is None:
             entry.update(measured=None, status="not measured", reason=reasons[f.id])
+            if f.id in deciding:
+                entry["reason"] += "; it would tell which of the poses that fit is right, were it measured (see the registration)"
         else:
             f3 = index[p.kind][p.index]
             m = _measured_geometry(p)

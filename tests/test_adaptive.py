@@ -294,3 +294,24 @@ def test_a_rerun_recovers_edges_at_four_times_the_noise_and_keeps_the_rest(tmp_p
     assert len(next(r for r in reversed(rounds) if r["kept"])["missing"]) < len(rounds[0]["missing"])
     # Nothing the nominal pair measures is lost on the way.
     assert _measured(reports["nominal"]) <= _measured(reports["noisy"]), rounds
+
+
+def test_an_ambiguous_pose_is_run_again_and_a_round_with_one_pose_is_kept():
+    """Two poses explaining the features alike is a situation: a re-run may measure the feature
+    that tells them apart, and a round that finds one pose beats one that finds several, even
+    with an edge fewer measured."""
+    vis = {"line-1": SEEN, "line-2": SEEN}
+    calls = []
+
+    def run(params):
+        calls.append(dict(params))
+        one = params["min_points"] == 8
+        reg = _registration(["line-1"] if one else ["line-1", "line-2"])
+        reg.ambiguity = "" if one else "two poses 180.0 degrees apart explain the 2 matched features equally well"
+        return _stereo(), reg, vis
+
+    best, log, advice = measure_adaptively(run)
+    assert [s["name"] for s in log[0]["situations"]] == ["pose ambiguous"]
+    assert calls[1] == {**DEFAULTS, "min_points": 8}
+    assert best.params["min_points"] == 8 and log[1]["kept"] and best.state.missing == ("line-2",)
+    assert "pose ambiguous" not in [a["situation"] for a in advice]

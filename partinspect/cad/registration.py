@@ -7,10 +7,16 @@ with no pose given: pose hypotheses from pairs of features, scored by the
 number of measured features each explains (:mod:`.pose_search`); the best
 distinct ones refined by weighted least squares on the datum features,
 each weighted by its covariance, which also gives the pose covariance
-(:mod:`.pose_refine`). When a second distinct pose explains the data about
-as well (same score, chi-square within ``AMBIGUITY_RATIO``), the datums give
-fewer than six independent constraints, or the refinement does not
-converge, :class:`RegistrationError` is raised.
+(:mod:`.pose_refine`). When other distinct poses explain the data about as
+well (:mod:`.ties`) and the CAD model maps onto itself under the turns
+between them, they give the same characteristics and the best is taken
+(``symmetry``); where it does not, the measured features are symmetric but
+the model is not, and each such pose is kept, refined with its own
+assignment, as a :class:`~partinspect.cad.ties.CompetingPose`
+(``competing``): what depends on which is right cannot be decided, the rest
+can (:mod:`partinspect.tolerances.ambiguity`). When the datums give fewer
+than six independent constraints, or the refinement does not converge,
+:class:`RegistrationError` is raised.
 
 :meth:`Registration.features_in_part_frame` transforms the measured
 features to the part frame to first order, their covariance including the
@@ -30,9 +36,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from partinspect.cad.feature_params import FeatureParams
-from partinspect.cad.pose_refine import calibration_response, pose_error, pose_matrix, solve_pose
+from partinspect.cad.pose_refine import calibration_response, pose_matrix, solve_pose
 from partinspect.cad.pose_search import (
-    MATCH_GATE,
     RegistrationError,
     axis_cov,
     cad_arrays,
@@ -40,23 +45,32 @@ from partinspect.cad.pose_search import (
     initial_poses,
     line_extent,
     measured_arrays,
-    same_pose,
     unit,
+)
+from partinspect.cad.ties import (
+    AMBIGUITY_RATIO,
+    CompetingPose,
+    ambiguity_words,
+    competing_pose,
+    competing_poses,
+    feature_order,
+    first_hint_first,
+    model_symmetry,
+    unmatched_under,
 )
 
 __all__ = [
     "RegistrationError",
     "Registration",
+    "CompetingPose",
     "PartFeature",
     "register",
     "rig_params",
     "AMBIGUITY_RATIO",
     "model_symmetry",
+    "unmatched_under",
+    "feature_order",
 ]
-
-AMBIGUITY_RATIO = 2.0
-"""Two distinct poses whose chi-squares are within this factor (plus a few
-units) explain the data equally well."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,6 +157,14 @@ class Registration:
         onto itself under the turns between them (a bolt circle, a square
         plate), which those turns are: any of the poses gives the same
         characteristics, and the best is taken. Empty otherwise.
+    competing : tuple of CompetingPose
+        Other poses that explain the measured features as well, under turns
+        the CAD model does not map onto itself by (the feature that would
+        tell them apart not measured); one per class of poses the model's
+        own symmetry relates. Empty when the pose is unambiguous.
+    ambiguity : str
+        Those poses in words, with the features that would tell; empty
+        when there are none.
     """
 
     part_to_camera: np.ndarray
@@ -157,6 +179,8 @@ class Registration:
     n_hypotheses: int = 0
     outliers: dict = field(default_factory=dict)
     symmetry: str = ""
+    competing: tuple = ()
+    ambiguity: str = ""
     _circles: tuple = field(default=(), repr=False)
     _lines: tuple = field(default=(), repr=False)
     _fit: object = field(default=None, repr=False)
@@ -168,6 +192,11 @@ class Registration:
     @property
     def translation(self):
         return self.part_to_camera[:3, 3]
+
+    @property
+    def poses(self):
+        """``part_to_camera`` of this pose and of each competing one: ndarray, shape (1 + n, 4, 4)."""
+        return np.stack([self.part_to_camera] + [c.registration.part_to_camera for c in self.competing])
 
     @property
     def pose_std(self):
@@ -386,9 +415,11 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
     datums : sequence of str, optional
         CAD ids of the features the alignment uses; the others are matched
         and measured relative to it. Default: all matched features.
-    pose_hint : ndarray, shape (4, 4), optional
+    pose_hint : ndarray, shape (4, 4) or (n, 4, 4), optional
         A ``part_to_camera`` close enough (within ``MATCH_GATE`` at the
-        features) to skip the hypothesis search.
+        features) to skip the hypothesis search; several (a registration's
+        ``poses``): each is a hypothesis, and ties between them are judged
+        as in the search.
 
     Returns
     -------
@@ -397,23 +428,33 @@ def register(measured_circles, measured_lines, inventory, *, datums=None, pose_h
     Raises
     ------
     RegistrationError
-        "alignment is ambiguous: ..." when two distinct poses explain the
-        data equally well, the datums give fewer than 6 independent
-        constraints, nothing matches, or the refinement does not converge.
+        "alignment is ambiguous: ..." when the datums give fewer than 6
+        independent constraints or nothing matches; or the refinement does
+        not converge. Distinct poses that explain the data equally well are
+        the Registration's ``competing`` ones, not an error.
     """
     circles, lines = tuple(measured_circles), tuple(measured_lines)
     cad = cad_arrays(inventory)
     meas = measured_arrays(circles, lines)
     datum_set = _datum_set(datums, inventory)
-    hyps = initial_poses(meas, cad, circles, lines, pose_hint)
+    if pose_hint is None:
+        hyps = initial_poses(meas, cad, circles, lines)
+    else:
+        hyps = [h for T in np.asarray(pose_hint, float).reshape(-1, 4, 4)
+                for h in initial_poses(meas, cad, circles, lines, T)]
     results = _refined(distinct_best(meas, cad, hyps), circles, lines, meas, cad, datum_set)
-    symmetry = _check_unambiguous(results, cad)
+    if len(hyps) > 1 and pose_hint is not None:
+        results = first_hint_first(results, hyps[0])
+    symmetry, rivals = competing_poses(results, cad)
     r = results[0]
     if datum_set is None:
-        # Only the chosen pose: leaving features out of the competing
+        # The tie was judged before: leaving features out of the competing
         # hypotheses could make a wrong one fit as well as the right one.
         r = solve_pose(r["T"], circles, lines, meas, cad, None, exclude_outliers=True)
-    return _registration(r, cad, circles, lines, len(hyps), symmetry)
+        rivals = [solve_pose(o["T"], circles, lines, meas, cad, None, exclude_outliers=True) for o in rivals]
+    competing = tuple(competing_pose(_registration(o, cad, circles, lines, len(hyps)), r, cad) for o in rivals)
+    words = ambiguity_words(r, rivals, competing) if competing else ""
+    return _registration(r, cad, circles, lines, len(hyps), symmetry, competing, words)
 
 
 def _datum_set(datums, inventory):
@@ -445,94 +486,7 @@ def _refined(poses, circles, lines, meas, cad, datum_set):
     return results
 
 
-def _check_unambiguous(results, cad):
-    """Raise when a second distinct pose explains as many features about as well as the best.
-
-    Unless the CAD model maps onto itself under the turn between the two
-    poses (:func:`model_symmetry`): then both give the same characteristics
-    and the best is kept. Returns what was said of such turns ("" if none).
-    """
-    first = results[0]
-    turns = []
-    for other in results[1:]:
-        if other["score"] < first["score"]:
-            break
-        if same_pose(first["T"][:3, :3], first["T"][:3, 3], other["T"][:3, :3], other["T"][:3, 3]):
-            continue
-        if other["chi2"] > AMBIGUITY_RATIO * first["chi2"] + 10.0 * max(1, first["dof"]) ** 0.5:
-            continue
-        turn = model_symmetry(cad, np.linalg.inv(first["T"]) @ other["T"])
-        if turn is not None:
-            if turn not in turns:
-                turns.append(turn)
-            continue
-        e = pose_error(other["T"], first["T"])
-        # how far the part's features move between the two poses, not its (arbitrary) origin
-        pts = np.r_[cad.centers, cad.starts]
-        shift = np.linalg.norm((pts @ (other["T"][:3, :3] - first["T"][:3, :3]).T) + other["T"][:3, 3] - first["T"][:3, 3], axis=1).max()
-        raise RegistrationError(
-            f"alignment is ambiguous: two poses {np.rad2deg(np.linalg.norm(e[:3])):.1f} degrees apart "
-            f"(features moved by up to {shift:.1f} mm) explain the "
-            f"{first['score']} matched features equally well (chi-square {first['chi2']:.3g} vs "
-            f"{other['chi2']:.3g}); the part looks symmetric to the measured features"
-        )
-    if not turns:
-        return ""
-    return ("the CAD model maps onto itself under " + ", ".join(turns) + ": the poses those turns relate explain "
-            "the features equally well and give the same characteristics; the best fitting one was taken")
-
-
-def model_symmetry(cad, S, tol=MATCH_GATE):
-    """The turn ``S`` (part frame to part frame) as words if it maps every CAD edge onto one, else None.
-
-    Parameters
-    ----------
-    cad : CadArrays
-    S : ndarray, shape (4, 4)
-        ``inv(T_best) @ T_other`` of two registered poses: the part moved by
-        it is seen by the second pose as the part by the first.
-    tol : float
-        mm: how far a moved edge may lie from its counterpart (the two poses
-        are estimates; ``MATCH_GATE`` is what registration itself accepts).
-
-    Returns
-    -------
-    str or None
-        E.g. "a turn of 60.0 deg about (0.000, 0.000, 1.000) through (45.0, 45.0, 6.0)".
-    """
-    R, t = S[:3, :3], S[:3, 3]
-    c = cad.centers @ R.T + t
-    n = cad.normals @ R.T
-    for k in range(len(c)):
-        d = np.linalg.norm(cad.centers - c[k], axis=1)
-        same = (d < tol) & (np.abs(cad.radii - cad.radii[k]) < tol) & (np.abs(np.einsum("ij,j->i", cad.normals, n[k])) > 0.999)
-        if not same.any():
-            return None
-    ends = cad.starts + cad.dirs * cad.lengths[:, None]
-    a, b = cad.starts @ R.T + t, ends @ R.T + t
-    for k in range(len(a)):
-        fwd = np.maximum(np.linalg.norm(cad.starts - a[k], axis=1), np.linalg.norm(ends - b[k], axis=1))
-        back = np.maximum(np.linalg.norm(cad.starts - b[k], axis=1), np.linalg.norm(ends - a[k], axis=1))
-        if not (np.minimum(fwd, back) < tol).any():
-            return None
-    from scipy.spatial.transform import Rotation
-
-    from partinspect.cad.features import canonical_direction
-
-    rv = Rotation.from_matrix(R).as_rotvec()
-    angle = float(np.linalg.norm(rv))
-    # A turn by a about -n is one by -a about n: the axis is named by its sign-free direction.
-    axis = canonical_direction(rv) if angle > 0 else np.array([0.0, 0.0, 1.0])
-    # A point on the axis: the least-squares solution of (I - R) p = t within the plane normal to the axis.
-    p = np.linalg.lstsq(np.eye(3) - R, t, rcond=None)[0]
-    p -= (p @ axis) * axis
-    p = np.where(np.abs(p) < 0.05, 0.0, p)  # no "-0.0" in the words
-    axis = np.where(np.abs(axis) < 5e-4, 0.0, axis)
-    return (f"a turn of {np.degrees(angle):.1f} deg about ({axis[0]:.3f}, {axis[1]:.3f}, {axis[2]:.3f}) "
-            f"through ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f})")
-
-
-def _registration(r, cad, circles, lines, n_hypotheses, symmetry=""):
+def _registration(r, cad, circles, lines, n_hypotheses, symmetry="", competing=(), ambiguity=""):
     """The :class:`Registration` of a refined pose (:func:`~partinspect.cad.pose_refine.solve_pose`'s result)."""
     return Registration(
         part_to_camera=r["T"],
@@ -547,6 +501,8 @@ def _registration(r, cad, circles, lines, n_hypotheses, symmetry=""):
         n_hypotheses=n_hypotheses,
         outliers=r["outliers"],
         symmetry=symmetry,
+        competing=competing,
+        ambiguity=ambiguity,
         _circles=circles,
         _lines=lines,
         _fit={"JA": r["JA"], "U": r["U"], "rows": r["rows"]},

@@ -436,14 +436,17 @@ def _bracket(rng):
 
 
 def flange(diameter=90.0, thickness=12.0, hub_diameter=50.0, hub_height=8.0, bore=24.0, bolts=6,
-           bolt_diameter=9.0, bolt_circle=70.0, counterbore=None, chamfer=0.0):
+           bolt_diameter=9.0, bolt_circle=70.0, counterbore=None, chamfer=0.0, clocking=None):
     """A round flange: a disc, a raised hub with a bore, and a bolt circle of equal holes.
 
     The defaults are the flange of issue 46: a 90 mm disc 12 mm thick, a
     raised 50 mm hub with a 24 mm bore, six 9 mm bolt holes on a 70 mm
     circle. The part maps onto itself under turns of ``360 / bolts``
     degrees about its axis (the z axis), so an alignment to it is ambiguous
-    by those turns, and every one of them is right.
+    by those turns, and every one of them is right. With a ``clocking``
+    hole it does not: the hole sits in the disc's underside, which cameras
+    above the part do not see, so the features they measure are still
+    symmetric and which bolt hole is which cannot be told from them.
 
     Parameters
     ----------
@@ -462,6 +465,9 @@ def flange(diameter=90.0, thickness=12.0, hub_diameter=50.0, hub_height=8.0, bor
         ``(diameter, depth)`` of a counterbore on every bolt hole, mm.
     chamfer : float
         Chamfer on the disc's top outer edge, mm (0: none).
+    clocking : (float, float) or None
+        ``(diameter, depth)`` of a blind hole drilled up into the disc's
+        underside on the bolt circle, half a bolt spacing from +x, mm.
 
     Returns
     -------
@@ -485,6 +491,11 @@ def flange(diameter=90.0, thickness=12.0, hub_diameter=50.0, hub_height=8.0, bor
         if counterbore is not None:
             spec = {"kind": "counterbore", "d": bolt_diameter, "D": counterbore[0], "depth": counterbore[1]}
         placed.append((disc_face, spec, 0.5 * bolt_circle * math.cos(phi), 0.5 * bolt_circle * math.sin(phi)))
+    if clocking is not None:
+        under = _Face((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, -1), 0.0, 0.0, thickness, exits=False)
+        phi = math.pi / bolts
+        placed.append((under, {"kind": "blind", "d": clocking[0], "depth": clocking[1]},
+                       0.5 * bolt_circle * math.cos(phi), 0.5 * bolt_circle * math.sin(phi)))
     shape, features = _apply(body.val(), placed)
     return GeneratedPart("flange", -1, _solid(shape), features)
 

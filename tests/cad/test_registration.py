@@ -10,7 +10,6 @@ from scipy import stats
 from partinspect.cad.features import inventory
 from partinspect.cad.pose_refine import pose_error
 from partinspect.cad.registration import Registration, RegistrationError, register
-from partinspect.errors import InputError
 from partinspect.simulate.measured import facing_feature_ids, measure_features
 from partinspect.poses import default_pose
 from partinspect.simulate.rig import default_rig
@@ -181,10 +180,16 @@ def test_a_symmetric_model_is_registered_and_says_so():
     assert reg.weighted_rms < 2
 
 
-def test_symmetric_measured_features_of_an_unsymmetric_model_are_ambiguous():
+def test_symmetric_measured_features_of_an_unsymmetric_model_keep_the_competing_poses():
     """The same plate with a small clocking hole that is not measured: the model is not
-    symmetric, the measured features are, and only the clocking hole could tell."""
+    symmetric, the measured features are, and only the clocking hole could tell. The
+    registration keeps one pose per class the model's own symmetry relates (its 8 turns
+    that fit the square pattern, the clocking hole's half turn about its own line shared
+    by pairs: 4 classes), each refined on its own assignment, and names the hole."""
     import cadquery as cq
+
+    from partinspect.cad.pose_search import cad_arrays
+    from partinspect.cad.registration import model_symmetry
 
     shape = (cq.Workplane("XY").box(60, 60, 8, centered=(True, True, False)).faces(">Z").workplane()
              .rarray(30, 30, 2, 2).hole(8).faces(">Z").workplane().center(20, 0).hole(2).val())
@@ -193,9 +198,28 @@ def test_symmetric_measured_features_of_an_unsymmetric_model_are_ambiguous():
     clocking = [f.id for f in inv.features if f.kind == "circle" and abs(f.radius - 1.0) < 1e-6]
     ids = [i for i in facing_feature_ids(inv, T) if i not in clocking]
     m = measure_features(inv, T, ids, np.random.default_rng(8), n_points=0)
-    with pytest.raises(RegistrationError, match="alignment is ambiguous") as info:
-        register(m.circles, m.lines, inv)
-    assert isinstance(info.value, InputError)
+    reg = register(m.circles, m.lines, inv)
+    assert len(reg.competing) == 3 and "a turn of 180.0 deg about (1.000, 0.000, 0.000)" in reg.symmetry
+    cad = cad_arrays(inv)
+    poses = reg.poses
+    for a in range(4):
+        for b in range(a + 1, 4):
+            assert model_symmetry(cad, np.linalg.inv(poses[a]) @ poses[b]) is None  # none the same as another
+    for c in reg.competing:
+        assert c.deciding == tuple(clocking) and c.angle in (pytest.approx(90.0, abs=0.1), pytest.approx(180.0, abs=0.1))
+        assert c.registration.assignment != reg.assignment
+        assert c.registration.weighted_rms == pytest.approx(reg.weighted_rms, rel=0.05)
+    # One of them is the true pose, each refined to it as closely as the true one alone would be.
+    errors = [pose_error(P, T) for P in poses]
+    assert min(np.rad2deg(np.linalg.norm(e[:3])) for e in errors) < 0.01
+    assert ", ".join(clocking) + ", which would tell, were not measured" in reg.ambiguity
+    # Registered again from its poses (a later round), the tie stays and the chosen pose stays first.
+    again = register(m.circles, m.lines, inv, pose_hint=poses)
+    assert len(again.competing) == 3 and again.n_hypotheses == 4
+    assert np.allclose(again.part_to_camera, reg.part_to_camera, atol=1e-6)
+    # The first hint is kept in front even where another pose fits marginally better.
+    turned = register(m.circles, m.lines, inv, pose_hint=poses[[2, 0, 1, 3]])
+    assert np.allclose(turned.part_to_camera, poses[2], atol=1e-6)
 
 
 def test_rotationally_symmetric_model_is_ambiguous_whatever_is_measured():
