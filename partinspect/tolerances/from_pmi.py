@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from partinspect.tolerances.geometry import feature_distance, line_angle, lines_parallel
+from partinspect.tolerances.geometry import feature_distance, line_angle, line_gap, lines_parallel
 from partinspect.tolerances.material import MODIFIERS
 
 __all__ = ["NotEvaluated", "PmiSpec", "load_pmi_spec", "merge_pmi", "spec_from_pmi"]
@@ -78,6 +78,8 @@ _NOMINAL_SHARE = 0.5
 _MIN_MATCH = {"mm": 1e-3, "rad": 1e-4}
 # Within this angle a line runs along a direction, rad.
 _ALONG = 1e-6
+# Below this part of their length apart two lines meet.
+_MEET = 1e-6
 
 
 @dataclass(frozen=True)
@@ -292,7 +294,11 @@ class _Mapper:
                 except ValueError:
                     continue
                 if abs(cad - item.value) <= tol:
-                    score = min(fa.length, fb.length)
+                    # Of edge pairs at the angle, one that meets at a corner
+                    # first: the drawing's angle, seen in one view.
+                    meets = section == "angles" and line_gap(fa.start, fa.end, fb.start, fb.end) <= _MEET * max(
+                        1.0, fa.length, fb.length)
+                    score = (meets, min(fa.length, fb.length))
                     if best is None or score > best[0]:
                         best = (score, fa, fb)
         if best is None:

@@ -24,6 +24,7 @@ import numpy as np
 
 __all__ = [
     "line_angle",
+    "line_gap",
     "line_tilt",
     "angle_shorter_leg",
     "feature_distance",
@@ -66,11 +67,31 @@ def _closest_points(a0, da, b0, db):
 def line_angle(a_start, a_end, b_start, b_end):
     """The angle between two line segments, in (0, pi) radians.
 
-    The vertex is where the two infinite lines meet (for skew lines, the
-    midpoint of their common perpendicular); each leg is the ray from the
-    vertex towards the segment's endpoint farther from it. Two edges
-    meeting at a corner so give the corner's angle (a 120 degree corner is
-    120 degrees, not 60), whichever way the edges are oriented.
+    The angle between the lines' directions, each turned to point along
+    its segment away from where the two lines come closest: for lines in
+    one plane, the vertex where they meet; for skew lines, the feet of
+    their common perpendicular. Each leg runs from its foot towards the
+    segment's endpoint farther from it. Two edges meeting at a corner so
+    give the corner's angle (a 120 degree corner is 120 degrees, not 60),
+    whichever way the edges are oriented.
+
+    The legs are the lines' directions, not rays from one vertex to the
+    far endpoints: for skew lines such rays would lean by the common
+    perpendicular's length over the segment's, an angle neither line
+    makes, and would change with where a measured segment ends. Two
+    edges of perpendicular planes, each across their line of
+    intersection, so give the dihedral angle however far apart the edges
+    lie.
+
+    Parameters
+    ----------
+    a_start, a_end, b_start, b_end : array_like, shape (3,)
+        Endpoints of the two segments, one frame, mm.
+
+    Returns
+    -------
+    float
+        Radians.
 
     Raises
     ------
@@ -83,11 +104,30 @@ def line_angle(a_start, a_end, b_start, b_end):
     if np.linalg.norm(np.cross(da, db)) < _PARALLEL_SIN:
         raise ValueError("the lines are parallel")
     pa, pb = _closest_points(a0, da, b0, db)
-    vertex = 0.5 * (pa + pb)
-    ra = max((a0, a1), key=lambda q: float(np.linalg.norm(q - vertex))) - vertex
-    rb = max((b0, b1), key=lambda q: float(np.linalg.norm(q - vertex))) - vertex
-    cosang = float(ra @ rb) / (np.linalg.norm(ra) * np.linalg.norm(rb))
-    return math.acos(max(-1.0, min(1.0, cosang)))
+    ua, ub = _leg(a0, a1, da, pa), _leg(b0, b1, db, pb)
+    return math.acos(max(-1.0, min(1.0, float(ua @ ub))))
+
+
+def _leg(p0, p1, d, foot):
+    """Unit direction ``+-d`` from ``foot`` (on the line) towards the segment's farther endpoint."""
+    s0, s1 = float((p0 - foot) @ d), float((p1 - foot) @ d)
+    return d if (s1 if abs(s1) >= abs(s0) else s0) >= 0 else -d
+
+
+def line_gap(a_start, a_end, b_start, b_end):
+    """Length of the common perpendicular of two lines that are not parallel, mm (0 where they meet).
+
+    Raises
+    ------
+    ValueError
+        If the lines are parallel.
+    """
+    a0, b0 = _vec(a_start), _vec(b_start)
+    n = np.cross(_unit(_vec(a_end) - a0), _unit(_vec(b_end) - b0))
+    sin = float(np.linalg.norm(n))
+    if sin < _PARALLEL_SIN:
+        raise ValueError("the lines are parallel")
+    return abs(float((b0 - a0) @ n)) / sin
 
 
 def line_tilt(a_start, a_end, b_start, b_end, towards=None):

@@ -11,7 +11,7 @@ from partinspect.tolerances.evaluate import evaluate, monte_carlo, propagate, tr
 from partinspect.tolerances.form import circularity, straightness
 from partinspect.tolerances.geometry import feature_distance, line_angle
 from partinspect.tolerances.resolve import Characteristic, characteristics_for
-from partinspect.tolerances.spec import load_spec
+from partinspect.tolerances.spec import load_spec, parse_spec
 
 from tests.cad.conftest import EXAMPLES
 
@@ -50,6 +50,23 @@ def test_pose_invariant_characteristics_are_consistent(plate):
     assert abs(line_angle(inv["line-5"].start, inv["line-5"].end, inv["line-1"].start, inv["line-1"].end) - math.pi / 2) < 1e-12
     rms, _ = _z_rms(chars, truths, plate)
     assert np.all((rms > 0.65) & (rms < 1.4)), rms
+
+
+def test_angle_between_skew_edges_does_not_depend_on_their_seen_extent(plate):
+    # line-3 (top of the left face, along y) and line-6 (bottom of the front face, along x): perpendicular
+    # planes, edges 10 mm apart. Seen over 90 % or 40 % of their length, the angle is 90 degrees.
+    inv, T, ids = plate
+    (c,) = [x for x in characteristics_for(parse_spec("angles:\n  - {between: [line-3, line-6], upper: 0.5, "
+                                                      "lower: -0.5}\n"), inv) if x.type == "angle"]
+    assert c.id == "angle(line-3,line-6)" and c.nominal == pytest.approx(math.pi / 2, abs=1e-12)
+    rng = np.random.default_rng(5)
+    for inset in (0.05, 0.3):
+        z = []
+        for draw in range(20):
+            m = measure_features(inv, T, ids, rng, n_points=0, inset=inset)
+            (e,) = evaluate([c], register(m.circles, m.lines, inv, pose_hint=T), inv, seed=draw)
+            z.append((e.measured - math.pi / 2) / e.standard_uncertainty)
+        assert 0.5 < np.sqrt(np.mean(np.square(z))) < 1.5, (inset, z)
 
 
 def test_position_of_moved_hole_and_profile_of_moved_edge(plate):

@@ -225,3 +225,30 @@ def test_parallelism_to_a_datum_plane_becomes_a_tilt_over_the_edge_length():
     chars = {c.id: c for c in resolve_spec(parse_spec(dump_spec(ps.spec())), inv).characteristics}
     c = chars["angle(line-33,line-2)"]  # gtol-3: 0.762 mm over the 152.4 mm edge
     assert c.type == "parallelism" and c.upper_limit == pytest.approx(math.atan(0.762 / 152.4))
+
+
+def test_perpendicularity_nominal_is_the_right_angle_between_planes(ctc01):
+    # ctc_01 gtol-5 and ftc_10 gtol-8 pair an edge of the face with a datum-plane edge that does not
+    # meet it (50 and 72 mm apart); the angle they bound is the planes', 90 degrees (was 90.68 and 103.49).
+    for (pmi, inv, ps), gid, pair in ((ctc01, "gtol-5", ["line-214", "line-106"]),
+                                      (_load("nist_ftc_10_asme1_ap242-e2.stp"), "gtol-8", ["line-204", "line-85"])):
+        (k,) = [k for k, v in ps.sources.items() if v == gid]
+        entry = ps.data["angles"][k[1]]
+        assert entry["between"] == pair
+        face = {f.id: f for f in inv.faces}[pmi[gid].faces[0]]
+        datum = {f.id: f for f in inv.faces}[pmi["datum-A"].faces[0]]
+        assert abs(face.normal @ datum.normal) < 1e-12  # the CAD planes are perpendicular
+        chars = {c.id: c for c in resolve_spec(parse_spec(dump_spec(ps.spec())), inv).characteristics}
+        c = chars[f"angle({pair[0]},{pair[1]})"]
+        assert c.type == "angle" and c.nominal == pytest.approx(math.pi / 2, abs=1e-12)
+        half = math.atan(pmi[gid].value / inv[pair[0]].length)
+        assert (c.lower_limit, c.upper_limit) == pytest.approx((math.pi / 2 - half, math.pi / 2 + half))
+
+
+def test_angle_dimension_takes_edges_that_meet(ctc01):
+    # dim-3, 60 degrees between the two walls of a vee: their top edges meet (where the walls'
+    # planes would), as do their bottom ones; a top edge with a bottom one is 60 degrees too, 50 mm apart.
+    pmi, inv, ps = ctc01
+    (k,) = [k for k, v in ps.sources.items() if v == "dim-3"]
+    a, b = (inv[x] for x in ps.data["angles"][k[1]]["between"])
+    assert a.start[2] == b.start[2] == 0.0 and a.end[2] == b.end[2] == 0.0

@@ -9,7 +9,7 @@ import pytest
 from partinspect.cad.features import Feature, Inventory
 from partinspect.frames import reference_direction
 from partinspect.errors import InputError
-from partinspect.tolerances.geometry import feature_distance, line_angle
+from partinspect.tolerances.geometry import feature_distance, line_angle, line_gap
 from partinspect.tolerances.resolve import (
     Characteristic,
     ResolvedSpec,
@@ -171,6 +171,26 @@ def test_line_angle_ignores_edge_orientation():
     assert math.degrees(line_angle((2, 0, 0), (10, 0, 0), (-1, math.sqrt(3), 0), (-3, 3 * math.sqrt(3), 0))) == pytest.approx(120.0)
     with pytest.raises(ValueError, match="parallel"):
         line_angle((0, 0, 0), (1, 0, 0), (0, 1, 0), (3, 1, 0))
+
+
+def test_line_angle_of_skew_lines_is_between_their_directions():
+    # ftc_10's perpendicularity gtol-8: an edge of the toleranced face across z, one of datum A across z,
+    # 72 mm apart. Rays from the common perpendicular's midpoint to the far ends made 103.49 degrees.
+    face, datum = ((55, 0, 34.5), (55, 23, 34.5)), ((-70, 0, -37.5), (70, 0, -37.5))
+    assert math.degrees(line_angle(*face, *datum)) == pytest.approx(90.0, abs=1e-12)
+    assert line_gap(*face, *datum) == pytest.approx(72.0)
+    # where a measured segment ends does not change it
+    assert math.degrees(line_angle(*face, (-40, 0, -37.5), (60, 0, -37.5))) == pytest.approx(90.0, abs=1e-12)
+    # a 120 degree corner lifted 30 mm off its partner's plane stays 120, the leg towards each far end
+    a = ((0, 0, 0), (10, 0, 0))
+    b = ((0, 0, 30), (-5, 5 * math.sqrt(3), 30))
+    for a0, a1 in (a, a[::-1]):
+        for b0, b1 in (b, b[::-1]):
+            assert math.degrees(line_angle(a0, a1, b0, b1)) == pytest.approx(120.0)
+    assert math.degrees(line_angle((0, 0, 0), (10, 0, 0), (-5, 5 * math.sqrt(3), 30), (-2, 2 * math.sqrt(3), 30))) \
+        == pytest.approx(120.0)
+    with pytest.raises(ValueError, match="parallel"):
+        line_gap((0, 0, 0), (1, 0, 0), (0, 1, 0), (3, 1, 0))
 
 
 def test_feature_distance_refuses_crossing_lines(inv):
