@@ -28,7 +28,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
+# As the inspect command sets it (cli.py), before NumPy and OpenCV load their BLAS.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))

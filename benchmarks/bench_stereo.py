@@ -27,7 +27,10 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
+# As the inspect command sets it (cli.py), before NumPy and OpenCV load their BLAS.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

@@ -21,6 +21,13 @@ _START = time.perf_counter()
 from partinspect import __version__
 from partinspect.errors import InputError
 
+# One BLAS thread per process, set before NumPy loads its OpenBLAS: the
+# chain's dense products are small and gain nothing from a second thread,
+# and an OpenBLAS worker left spinning after a two-thread product takes the
+# CPU the chain's second process needs (vision.forked); a user's own
+# setting is kept.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 EXIT_PASS, EXIT_FAIL, EXIT_ERROR, EXIT_INCONCLUSIVE = 0, 1, 2, 3
 
 SUBCOMMANDS = ("features", "render", "calibrate", "plan", "spec", "batch", "spc")
