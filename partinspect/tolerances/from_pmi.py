@@ -369,15 +369,21 @@ class _Mapper:
         else:
             self.skip(item.id, t, f"{t.replace('_', ' ')} is not checked from edges")
 
-    def orientation(self, item, faces):
+    def _planes(self, item, faces, how):
+        """The toleranced planes and the datum's planes of an orientation tolerance, or None (skipped, with why)."""
         planes = [f for f in faces if f.surface == "plane"]
         if not planes or len(planes) != len(faces):
             self.skip(item.id, item.type, "an axis's orientation is not an edge characteristic (only a plane's is, "
-                      "as an angle between edges)")
-            return
+                      f"as {how} between edges)")
+            return None
         dplanes = self._datum_planes(item)
-        if dplanes is None:
+        return None if dplanes is None else (planes, dplanes)
+
+    def orientation(self, item, faces):
+        found = self._planes(item, faces, "an angle")
+        if found is None:
             return
+        planes, dplanes = found
         # Both edges must run across the planes' line of intersection: the
         # angle between them is then the dihedral angle the tolerance bounds.
         n_face, n_datum = np.asarray(planes[0].normal, float), np.asarray(dplanes[0].normal, float)
@@ -401,16 +407,11 @@ class _Mapper:
             return
         self.tilt_entry(item, *best)
 
-
     def parallelism(self, item, faces):
-        planes = [f for f in faces if f.surface == "plane"]
-        if not planes or len(planes) != len(faces):
-            self.skip(item.id, item.type, "an axis's orientation is not an edge characteristic (only a plane's is, "
-                      "as the tilt between edges)")
+        found = self._planes(item, faces, "the tilt")
+        if found is None:
             return
-        dplanes = self._datum_planes(item)
-        if dplanes is None:
-            return
+        planes, dplanes = found
         n = np.asarray(dplanes[0].normal, float)
         if np.linalg.norm(np.cross(np.asarray(planes[0].normal, float), n)) > _ALONG:
             self.skip(item.id, item.type, "the face is not parallel to its datum plane in the model")
