@@ -100,6 +100,8 @@ def summarise(cid, rows, confidence=CONFIDENCE):
         "U_parts": [None if r["expanded_uncertainty"] is None else r["expanded_uncertainty"] for r in measured],
         "subgroup_size": s.get("subgroup_size"), "range_out": None,
     }
+    if s["chart"] != "xbar-r" and len(x) > 1:
+        out.update(moving_ranges=np.abs(np.diff(x)).tolist(), mr_mean=lim.get("mr_mean"), mr_ucl=lim.get("mr_ucl"))
     if s["chart"] == "xbar-r":
         out.update(
             subgroups=len(s["subgroup_index"]), subgroups_left_out=s["subgroups_left_out"],

@@ -4,8 +4,9 @@ One self-contained, offline page: a table of every characteristic's
 capability figures, then per characteristic an interactive run chart
 (plotly.js, inlined once per page) of the measured values with each part's
 +-U, the specification limits, the individuals chart's centre line and
-control limits, and the points that complete a test for special causes.
-A characteristic measured in rational subgroups gets, under its run chart
+control limits, and the points that complete a test for special causes,
+above its moving-range chart (ranges of consecutive parts, their mean and
+D4 limit). A characteristic measured in rational subgroups gets, under its run chart
 (values and limits only), its X-bar chart (subgroup means, centre line,
 control limits, tests for special causes) above its R chart (ranges,
 R-bar, D3 and D4 limits).
@@ -67,7 +68,36 @@ def run_chart(c):
                         **({"tickvals": x, "ticktext": c["serials"], "tickangle": -45} if len(x) <= 30 else {})},
               "yaxis": {"title": {"text": f"{c['type']} [{c['unit']}]"}, "zeroline": False, "exponentformat": "none"},
               "plot_bgcolor": "#fff", "paper_bgcolor": "#fff"}
+    if c.get("moving_ranges"):
+        data, layout = _with_moving_ranges(c, x, data, layout)
     return {"data": data + lines, "layout": layout}
+
+
+def _with_moving_ranges(c, x, data, layout):
+    """The individuals chart's moving-range (MR) chart under it (ISO 7870-2): |x_i - x_(i-1)|, its mean, D4 x mean.
+
+    The moving range of part i is plotted at part i; ranges beyond the upper
+    limit are marked, as the individuals' tests are.
+    """
+    u = c["unit"]
+    mr, xs = c["moving_ranges"], x[1:]
+    data = data + [{"type": "scatter", "mode": "lines+markers", "name": "moving range", "x": xs, "y": mr, "yaxis": "y2",
+                    "text": [f"{a} to {b}<br>MR {r:.4f} {u}" for a, b, r in zip(c["serials"], c["serials"][1:], mr)],
+                    "hoverinfo": "text", "line": {"color": "#44516b", "width": 1}, "marker": {"size": 4}}]
+    out = [i for i, r in enumerate(mr) if _finite(c.get("mr_ucl")) and r > c["mr_ucl"]]
+    if out:
+        data.append({"type": "scatter", "mode": "markers", "name": "moving range beyond its limit", "yaxis": "y2",
+                     "x": [xs[i] for i in out], "y": [mr[i] for i in out], "hoverinfo": "text",
+                     "text": [f"{c['serials'][i + 1]}" for i in out],
+                     "marker": {"symbol": "circle-open", "size": 13, "color": _RULE_MARK, "line": {"width": 2}}})
+    data += _rules([(c.get("mr_mean"), "MR̄", "#1b7a3a", "dot"), (c.get("mr_ucl"), "MR UCL", "#9a6700", "dash")],
+                   len(x), yaxis="y2")
+    layout = {**layout, "height": 380, "legend": {**layout["legend"], "y": -0.18},
+              "xaxis": {**layout["xaxis"], "anchor": "y2"},
+              "yaxis": {**layout["yaxis"], "domain": [0.40, 1.0]},
+              "yaxis2": {"title": {"text": f"moving range [{u}]"}, "domain": [0.0, 0.30], "zeroline": False,
+                         "exponentformat": "none", "anchor": "x"}}
+    return data, layout
 
 
 def _rules(rules, count, yaxis=None):

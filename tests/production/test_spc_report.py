@@ -201,3 +201,24 @@ def test_a_subgroup_s_wide_range_is_named_on_the_page():
     html = render_spc_html(data)
     notice = html[html.index('id="special-causes"'):]
     assert "1 subgroup range(s) beyond the R chart's limits" in notice[:notice.index("</p>")]
+
+
+def test_individuals_get_their_moving_range_chart_and_a_jump_is_marked():
+    from partinspect.production.spc_report import spc_data
+    from partinspect.reports.spc_page import run_chart
+
+    x = 12.0 + 0.001 * np.random.default_rng(2).standard_normal(30)
+    x[20:] += 0.01                                            # a step: one moving range far beyond D4 x its mean
+    rows = [{"serial": f"S{i:02d}", "measured_at": datetime(2026, 1, 1, 0, i), "characteristic": "circle-1.diameter",
+             "type": "diameter", "unit": "mm", "measured": v, "standard_uncertainty": 0.001,
+             "expanded_uncertainty": 0.002, "lower_limit": 11.9, "upper_limit": 12.1, "decision": "pass",
+             "step_sha256": "a", "step_file": "p.step"} for i, v in enumerate(x)]
+    c = spc_data(rows, title="t", source="s")["characteristics"][0]
+    mr = np.abs(np.diff(x))
+    assert c["chart"] != "xbar-r" and np.allclose(c["moving_ranges"], mr)
+    assert c["mr_mean"] == pytest.approx(mr.mean()) and c["mr_ucl"] == pytest.approx(3.267 * mr.mean())
+    traces = {t["name"]: t for t in run_chart(c)["data"]}
+    assert traces["moving range"]["yaxis"] == "y2" and traces["moving range"]["x"][0] == 2
+    jump = traces["moving range beyond its limit"]
+    assert jump["x"] == [21] and jump["text"] == ["S20"]  # the range from part 20 to 21, plotted at the later part
+    assert any(n.startswith("MR UCL") for n in traces)
