@@ -23,6 +23,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from partinspect.frames import orthonormal_frame
 from partinspect.tolerances.evaluate import (
     COVERAGE_FACTOR,
     N_MC,
@@ -69,6 +70,48 @@ class _FusedView:
         return self._record
 
 
+FORM_COVERAGE = 0.9
+"""A form value is read in a view that sees at least this share of the
+edge's extent the best-covering view sees: a view of part of an edge would
+judge the form of that part only."""
+
+
+def _coverage(part, rec):
+    """How much of its edge a view measured: a line's length, mm; a circle's share of the 36 ten-degree sectors."""
+    if part.kind == "line":
+        return 0.0 if part.start is None else float(np.linalg.norm(part.end - part.start))
+    pts = getattr(rec, "points", None)
+    if pts is None or len(pts) == 0:
+        return 0.0
+    # Points are in the rig frame (the record's), as the circle's own parameters.
+    v = np.asarray(pts, float) - np.asarray(rec.center, float)
+    e1, e2 = orthonormal_frame(np.asarray(rec.normal, float))[:2]
+    sectors = np.floor((np.arctan2(v @ e2, v @ e1) + np.pi) / (2 * np.pi) * 36).astype(int) % 36
+    return len(set(sectors.tolist())) / 36.0
+
+
+def _form_evaluation(c, fused, parts, registrations, inventory, **options):
+    """A form characteristic evaluated in the view that judges it best: (view, Evaluation).
+
+    Among the combined views that cover about as much of the edge as any
+    (``FORM_COVERAGE``), the one whose form value has the smallest standard
+    uncertainty, as the plan counts a characteristic decided by the view
+    that decides it; the uncertainty comes from each view's error model,
+    not from its residuals, so the choice does not favour a lucky value.
+    """
+    recs = {v: registrations[v].measured_feature(p.kind, p.index) for v, p, _, _ in fused.contributions}
+    cover = {v: _coverage(p, recs[v]) for v, p, _, _ in fused.contributions}
+    best = max(cover.values())
+    out = []
+    for v in sorted(cover):
+        if cover[v] >= FORM_COVERAGE * best:
+            ev = evaluate_characteristic(c, parts[v], registrations[v], inventory, **options)
+            u = ev.standard_uncertainty if ev.measured is not None else np.inf
+            out.append((u, v, ev))
+    _, v, ev = min(out, key=lambda t: (t[0], t[1]))
+    return v, ev
+
+
 def _form_view(fused, registrations):
     """The combined view whose record of the feature has the most edge points."""
     def n_points(item):
@@ -89,8 +132,8 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
     distance or angle between two features from their joint covariance in
     the part frame (:func:`fused_cross_covariance`: correlated through a
     view that measured both, independent otherwise, so each view's pose
-    uncertainty is carried); a form value on the edge points of the view
-    with the most.
+    uncertainty is carried); a form value in the view that judges it best
+    (:func:`_form_evaluation`).
 
     Parameters
     ----------
@@ -121,9 +164,11 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
             continue
         views = sorted({v for f in fs for v in f.views})
         one = len(views) == 1
-        if c.type in ("straightness", "circularity"):
-            v = _form_view(fs[0], registrations)
-            one, views = True, [v]
+        if c.type in ("straightness", "circularity") and not one:
+            v, ev = _form_evaluation(c, fs[0], parts, registrations, inventory, k=k, seed=seed, n_mc=n_mc)
+            evaluations.append(ev)
+            used.append((v,))
+            continue
         if one:
             v = views[0]
             evaluations.append(evaluate_characteristic(c, parts[v], registrations[v], inventory, k=k, seed=seed,

@@ -225,3 +225,24 @@ def test_fused_position_at_mmc_and_parallelism(plate):
     assert pos.measured == pytest.approx(pos.details["position"] - pos.details["bonus"], abs=1e-12)
     assert par.characteristic.type == "parallelism" and "combined" in par.method
     assert abs(par.measured) < 4 * par.standard_uncertainty and 0 < par.standard_uncertainty < 1e-3
+
+
+def test_a_form_is_judged_in_the_view_that_judges_it_best(plate):
+    """Both views see the whole edge; the second's points are four times less noisy: its straightness is the
+    one reported (the first view, which the most points would have chosen on a tie, judges it far worse)."""
+    from partinspect.tolerances.evaluate import evaluate_characteristic
+
+    inv, T, ids = plate
+    rng = np.random.default_rng(11)
+    regs = []
+    for turn, sd in [((0, 0, 0), 0.02), ((0, 0, 25), 0.005)]:
+        P = turned_pose(T, turn, BOUNDS)
+        m = measure_features(inv, P, ids, rng, n_points=60, point_lateral=sd / 4, point_depth=sd)
+        regs.append(register(m.circles, m.lines, inv, pose_hint=P))
+    fused = fuse([r.features_in_part_frame() for r in regs], inv)
+    c = C("s", "straightness", ["line-5"], 0.0, None, 0.05)
+    assert fused["line-5"].views == (0, 1)
+    (ev,), (used,) = evaluate_fused([c], fused, regs, inv, n_mc=200)
+    single = [evaluate_characteristic(c, r.features_in_part_frame(), r, inv, n_mc=200) for r in regs]
+    assert used == (1,) and single[1].standard_uncertainty < 0.5 * single[0].standard_uncertainty
+    assert ev.standard_uncertainty == pytest.approx(single[1].standard_uncertainty)
