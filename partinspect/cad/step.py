@@ -12,6 +12,7 @@ References
 
 import contextlib
 import os
+from datetime import datetime
 from pathlib import Path
 
 from partinspect.errors import InputError
@@ -30,8 +31,9 @@ _TAIL_BYTES = 4096
 # this a file is refused before it is read, not after minutes of swapping.
 MAX_STEP_BYTES = 500 * 2**20
 
-# Fixed so that saving the same shape twice gives the same bytes.
-_TIMESTAMP = "2000-01-01T00:00:00"
+# The STEP header's time stamp, fixed so that saving the same shape twice
+# gives the same bytes (a constant, not a record of when anything was made).
+_TIMESTAMP = datetime(2000, 1, 1).isoformat()
 
 
 def load_step(path):

@@ -98,15 +98,15 @@ def plan_to_dict(result):
 def _views_dict(result):
     """plan.json's ``views``: the chosen views, what each decides, what none decides, and every candidate."""
     from partinspect.planning.search import pose_text
-    from partinspect.planning.views import view_turns
+    from partinspect.planning.views import turns_text, view_turns
 
     vp = result.views
-    turns = view_turns(vp.views).split(";") if vp.views else []
+    turns = view_turns(vp.views)
     return {
         "complete": vp.complete,
         "pose": pose_text(result.start.part_to_camera, result.center),
-        "render_views": ";".join(turns),
-        "chosen": [{"label": v.label, "fixture": list(v.angles), "turn_deg": [float(a) for a in t.split(",")],
+        "render_views": turns_text(turns),
+        "chosen": [{"label": v.label, "fixture": list(v.angles), "turn_deg": [float(a) for a in t],
                     "decides": [cid for cid, by in vp.decided_by.items() if k in by]}
                    for k, (v, t) in enumerate(zip(vp.views, turns))],
         "undecided": [{"id": c.id, "reason": c.reason, "causes": why, "best_ratio": _finite(c.ratio)}
@@ -120,7 +120,7 @@ def _views_dict(result):
 def _views_lines(result):
     """The terminal lines of a views plan."""
     from partinspect.planning.search import pose_text
-    from partinspect.planning.views import view_turns
+    from partinspect.planning.views import turns_text, view_turns
 
     vp, n = result.views, len(result.characteristics)
     lines = ["", f"views: {len(vp.views)} of {len(vp.candidates)} candidates decide {len(vp.decided_by)} of {n}"
@@ -131,7 +131,7 @@ def _views_lines(result):
                      + (f", alone: {', '.join(own)}" if own else ""))
     if vp.views:
         lines.append(f"  render them: inspect render PART OUT --pose {pose_text(result.start.part_to_camera, result.center)} "
-                     f"--views \"{view_turns(vp.views)}\"")
+                     f"--views \"{turns_text(view_turns(vp.views))}\"")
     if vp.out_of_view:
         lines.append(f"  out of view in every candidate (general tolerances, not inspected): {', '.join(vp.out_of_view)}")
     if vp.undecided:

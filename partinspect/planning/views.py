@@ -42,10 +42,11 @@ import math
 from collections import Counter
 from dataclasses import dataclass
 
+import numpy as np
 
 from partinspect.planning.search import FixturePose, cause_of, fixture_pose, rank_key
 
-__all__ = ["FLIP_TILT", "view_candidates", "ViewPlan", "fewest_views", "plan_views", "view_turns"]
+__all__ = ["FLIP_TILT", "view_candidates", "ViewPlan", "fewest_views", "plan_views", "view_turns", "turns_text"]
 
 FLIP_TILT = 180.0
 """Degrees about the fixture's X axis: the part re-placed upside down."""
@@ -96,16 +97,14 @@ class ViewPlan:
     out_of_view: list
 
 
-def _masks(candidates, ids):
-    """Per candidate, a bit mask of the characteristics it decides (bit k: ``ids[k]``)."""
-    out = []
-    for p in candidates:
-        mask = 0
-        for k, c in enumerate(p.characteristics):
-            if c.decidable and p.registration_error is None:
-                mask |= 1 << k
-        out.append(mask)
-    return out
+def _decides(p, k):
+    """Whether candidate ``p`` decides its ``k``-th characteristic alone (the part registers in it)."""
+    return p.characteristics[k].decidable and p.registration_error is None
+
+
+def _masks(candidates):
+    """Per candidate, a bit mask of the characteristics it decides (bit k: the k-th)."""
+    return [sum(1 << k for k in range(len(p.characteristics)) if _decides(p, k)) for p in candidates]
 
 
 def fewest_views(candidates, max_views):
@@ -126,8 +125,7 @@ def fewest_views(candidates, max_views):
         Whether ``chosen`` decides everything the union of all candidates
         decides.
     """
-    ids = [c.id for c in candidates[0].characteristics]
-    masks = _masks(candidates, ids)
+    masks = _masks(candidates)
     target = 0
     for m in masks:
         target |= m
@@ -198,7 +196,7 @@ def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, progr
     views = [candidates[i] for i in chosen]
     decided_by, undecided, out_of_view = {}, [], []
     for k, cid in enumerate(c.id for c in candidates[0].characteristics):
-        by = [v for v, p in enumerate(views) if p.characteristics[k].decidable and p.registration_error is None]
+        by = [v for v, p in enumerate(views) if _decides(p, k)]
         if by:
             decided_by[cid] = by
             continue
@@ -206,14 +204,14 @@ def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, progr
         if not any(c.inspected for c in cps) and cps[0].characteristic.source != "spec":
             out_of_view.append(cid)
             continue
-        covering = sum(c.decidable and p.registration_error is None for c, p in zip(cps, candidates))
+        covering = sum(_decides(p, k) for p in candidates)
         best = min(cps, key=lambda c: c.ratio if not math.isnan(c.ratio) else math.inf)
         undecided.append((best, _why_undecided(cps, cid, covering)))
     return ViewPlan(views, decided_by, undecided, candidates, complete, out_of_view)
 
 
 def view_turns(views):
-    """The chosen views as ``inspect render --views`` text: each view's turn of the part in its own frame.
+    """Each chosen view's turn of the part in its own frame, as ``inspect render --views`` reads it.
 
     ``inspect render --views`` turns the part by extrinsic rotations about
     the part frame's X, then Y, then Z (:func:`partinspect.poses.turned_pose`);
@@ -227,8 +225,8 @@ def view_turns(views):
 
     Returns
     -------
-    str
-        E.g. ``"0.000,0.000,0.000;0.000,0.000,120.000"``.
+    list of ndarray, shape (3,)
+        Degrees, rounded to 0.001 (tiny values to 0).
     """
     from scipy.spatial.transform import Rotation
 
@@ -237,6 +235,11 @@ def view_turns(views):
         rotation, tilt_x, tilt_y = p.angles
         R = (Rotation.from_euler("x", tilt_x, degrees=True) * Rotation.from_euler("y", tilt_y, degrees=True)
              * Rotation.from_euler("z", rotation, degrees=True))
-        angles = R.as_euler("xyz", degrees=True)
-        out.append(",".join(f"{0.0 if abs(a) < 5e-4 else a:.3f}" for a in angles))
-    return ";".join(out)
+        angles = np.round(R.as_euler("xyz", degrees=True), 3)
+        out.append(np.where(np.abs(angles) < 5e-4, 0.0, angles))
+    return out
+
+
+def turns_text(turns):
+    """:func:`view_turns` as ``--views`` text, e.g. ``"0.000,0.000,0.000;0.000,0.000,120.000"``."""
+    return ";".join(",".join(f"{a:.3f}" for a in t) for t in turns)
