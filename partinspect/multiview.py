@@ -36,27 +36,6 @@ def view_folders(path):
     return sorted(subs, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
 
 
-def same_calibration(a, b):
-    """Whether two StereoCalibrations are the same rig as stated: every parameter and uncertainty equal.
-
-    Views measured with the same one share its error; a rig recalibrated, or
-    corrected for drift by one view's check, between views does not.
-    """
-    from dataclasses import fields
-
-    import numpy as np
-
-    def same(x, y):
-        if isinstance(x, dict) or isinstance(y, dict):
-            return isinstance(x, dict) and isinstance(y, dict) and x.keys() == y.keys() and all(
-                same(x[k], y[k]) for k in x)
-        if x is None or y is None:
-            return x is None and y is None
-        return np.array_equal(np.asarray(x), np.asarray(y))
-
-    return all(same(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
-
-
 def is_views_folder(path):
     """True for a folder without a pair of its own whose sub-folders hold pairs."""
     path = Path(path)
@@ -230,18 +209,54 @@ def _measure_view(view, uncertainty, draws, say):
 def evaluate_views(views, progress):
     """Fuse the measured views' features, evaluate and decide every characteristic, assemble report.json.
 
+    A view whose features as a whole disagree with the others' is left out
+    first (its ``problem`` says why); the rest are fused feature by feature.
+
     Returns
     -------
     report : dict
     features : list of dict
     """
-    from partinspect.diagnosis import split_unseen, unmeasured_reasons
-    from partinspect.reports.assemble import assemble_report, input_entries
-    from partinspect.results import characteristic_entry, fused_feature_entries, registration_entry, view_entry
-    from partinspect.tolerances.decision import decide_all, verdict
+    from partinspect.diagnosis import split_unseen
+    from partinspect.results import characteristic_entry, fused_feature_entries
+    from partinspect.tolerances.decision import decide_all
     from partinspect.tolerances.evaluate_fused import evaluate_fused
-    from partinspect.tolerances.fusion import SIGNIFICANCE, consistent_view_set, fuse
-    from partinspect.vision.images import IMAGE_NAMES
+    from partinspect.tolerances.fusion import fuse
+
+    used = _consistent_views(views, progress)
+    names = [v.name for v in used]
+    inputs = used[0].inputs
+    inv = inputs.inv
+    regs = [v.measured.registration for v in used]
+    progress(f"fusing the features of {len(used)} views")
+    one_rig = all(v.inputs.calib.same_rig(inputs.calib) for v in used)
+    fused = fuse([r.features_in_part_frame() for r in regs], inv, rank={i: r.weighted_rms for i, r in enumerate(regs)},
+                 registrations=regs if one_rig else None)
+    seen = {f.id: _SeenInViews([v.measured.seen[f.id] for v in used], names) for f in inv.features}
+    judged, not_inspected = split_unseen(inputs.characteristics, seen, None, measured=set(fused))
+    progress(f"evaluating {len(inputs.characteristics)} characteristics")
+    evaluations, sources = evaluate_fused(judged, fused, regs, inv)
+    decisions = decide_all(evaluations, inputs.resolved.decision_rule)
+    why = _why_unmeasured(used, inv, fused)
+    characteristics = []
+    for d, src in zip(decisions, sources):
+        entry = characteristic_entry(d)
+        entry["views"] = [names[i] for i in src]
+        if entry["measured"] is None:
+            entry["reason"] = "not measured: " + "; ".join(f"{fid}: {why[fid]}" for fid in entry["features"]
+                                                           if fid in why)
+        characteristics.append(entry)
+    features = fused_feature_entries(inv, fused, [v.measured for v in used], names, seen, decisions, why)
+    report = _views_report(views, used, decisions, features, characteristics, not_inspected)
+    index = {v.name: i for i, v in enumerate(used)}
+    report["views"] = [_view_entry_of(v, fused, index.get(v.name)) for v in views]
+    report["fusion"] = _fusion_entry(fused, names)
+    return report, features
+
+
+def _consistent_views(views, progress):
+    """The measured views less those the view-level consistency test leaves out (their ``problem`` set)."""
+    from partinspect.tolerances.fusion import consistent_view_set
 
     used = [v for v in views if v.measured is not None]
     regs = [v.measured.registration for v in used]
@@ -251,65 +266,70 @@ def evaluate_views(views, progress):
         view = used[d["view"]]
         view.measured, view.problem = None, d["reason"]
         progress(f"{view.name} left out: {d['reason']}")
-    used = [v for v in views if v.measured is not None]
-    names = [v.name for v in used]
-    inputs = used[0].inputs
-    inv = inputs.inv
-    regs = [v.measured.registration for v in used]
-    progress(f"fusing the features of {len(used)} views")
-    one_rig = all(same_calibration(v.inputs.calib, inputs.calib) for v in used)
-    fused = fuse([r.features_in_part_frame() for r in regs], inv, rank={i: r.weighted_rms for i, r in enumerate(regs)},
-                 registrations=regs if one_rig else None)
-    seen = {f.id: _SeenInViews([v.measured.seen[f.id] for v in used], names) for f in inv.features}
-    judged, not_inspected = split_unseen(inputs.characteristics, seen, None, measured=set(fused))
-    progress(f"evaluating {len(inputs.characteristics)} characteristics")
-    evaluations, sources = evaluate_fused(judged, fused, regs, inv)
-    decisions = decide_all(evaluations, inputs.resolved.decision_rule)
-    characteristics = []
-    for d, src in zip(decisions, sources):
-        entry = characteristic_entry(d)
-        entry["views"] = [names[i] for i in src]
-        characteristics.append(entry)
+    return [v for v in views if v.measured is not None]
+
+
+def _why_unmeasured(used, inv, fused):
+    """Feature id -> why no view measured it ("view-1: ...; view-2: ..."), for features not fused."""
+    from partinspect.diagnosis import unmeasured_reasons
+
     why = {}
     for v in used:
         m = v.measured
         images = (v.inputs.left, v.inputs.right, v.inputs.bit_depth)
         for fid, reason in unmeasured_reasons(inv, m.stereo, m.registration, m.seen, v.inputs.calib, images).items():
             why.setdefault(fid, []).append(f"{v.name}: {reason}")
-    why = {fid: "; ".join(r) for fid, r in why.items() if fid not in fused}
-    features = fused_feature_entries(inv, fused, [v.measured for v in used], names, seen, decisions, why)
-    for c in characteristics:
-        if c["measured"] is None:
-            c["reason"] = "not measured: " + "; ".join(f"{fid}: {why[fid]}" for fid in c["features"] if fid in why)
+    return {fid: "; ".join(r) for fid, r in why.items() if fid not in fused}
+
+
+def _views_report(views, used, decisions, features, characteristics, not_inspected):
+    """report.json's keys shared with a single pair's, from the first view used and every view's inputs."""
+    from partinspect.reports.assemble import assemble_report, input_entries
+    from partinspect.results import registration_entry
+    from partinspect.tolerances.decision import verdict
+    from partinspect.vision.images import IMAGE_NAMES
+
+    inputs, first = used[0].inputs, used[0].measured
     inputs_list = []
     for v in views:
         entries = input_entries(inputs.part, v.folder / IMAGE_NAMES[0], v.folder / IMAGE_NAMES[1],
                                 v.inputs.calib_file, inputs.tol_path)
         inputs_list.extend({**e, "view": v.name} for e in entries if e["role"] not in ("part", "tolerances")
                            or v is views[0])
-    report = assemble_report(
+    return assemble_report(
         part=inputs.part.name,
         verdict=verdict(decisions),
         inputs=inputs_list,
-        calibration=None if used[0].measured.calibration is None else used[0].measured.calibration.to_dict(),
+        calibration=None if first.calibration is None else first.calibration.to_dict(),
         image={"width": inputs.left.shape[1], "height": inputs.left.shape[0], "bit_depth": inputs.bit_depth},
         tolerances={"file": None if inputs.tol_path is None else str(inputs.tol_path),
                     "general": inputs.resolved.general, "decision_rule": inputs.resolved.decision_rule,
                     "not_evaluated": [n.to_dict() for n in inputs.resolved.not_evaluated]},
-        uncertainty={**used[0].measured.uncertainty,
+        uncertainty={**first.uncertainty,
                      "views": "each view's features in the part frame with its pose covariance, tested for "
                               "consistency across views and combined by generalised least squares"},
-        adaptive=used[0].measured.adaptive,
-        registration=registration_entry(regs[0]),
+        adaptive=first.adaptive,
+        registration=registration_entry(first.registration),
         features=features,
         characteristics=characteristics,
         not_inspected=not_inspected,
-        skipped_edges=inv.to_dict().get("skipped", {}),
+        skipped_edges=inputs.inv.to_dict().get("skipped", {}),
     )
-    index = {v.name: i for i, v in enumerate(used)}
-    report["views"] = [view_entry(v.name, v.folder, None if v.measured is None else v.measured.registration,
-                                  fused, index.get(v.name), v.problem) for v in views]
-    report["fusion"] = {
+
+
+def _view_entry_of(view, fused, index):
+    """report.json's entry for one view (``index`` its place among the fused views, None if left out)."""
+    from partinspect.results import view_entry
+
+    return view_entry(view.name, view.folder, None if view.measured is None else view.measured.registration,
+                      fused, index, view.problem)
+
+
+def _fusion_entry(fused, names):
+    """report.json's ``fusion``: the consistency test and every view it left out of a feature."""
+    from partinspect.tolerances.fusion import SIGNIFICANCE
+
+    return {
         "significance": SIGNIFICANCE,
         "test": "each view's feature against the combination of the other views': chi-square of the difference "
                 "against the sum of their covariances (minimal parameters: circle 6, line 4)",
@@ -318,4 +338,3 @@ def evaluate_views(views, progress):
                       "threshold": round(r["threshold"], 3), "reason": r["reason"]}
                      for fid, f in fused.items() for r in f.rejected],
     }
-    return report, features

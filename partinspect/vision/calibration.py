@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +110,23 @@ class StereoCalibration:
     def baseline(self):
         """Distance between the two projection centres, mm."""
         return float(np.linalg.norm(self.T))
+
+    def same_rig(self, other):
+        """Whether ``other`` states the same rig: every parameter and uncertainty equal.
+
+        Views measured with the same calibration share its error; a rig
+        recalibrated between views, or corrected for drift by one view's
+        check, does not.
+        """
+        def same(x, y):
+            if isinstance(x, dict) or isinstance(y, dict):
+                return isinstance(x, dict) and isinstance(y, dict) and x.keys() == y.keys() and all(
+                    same(x[k], y[k]) for k in x)
+            if x is None or y is None:
+                return x is None and y is None
+            return np.array_equal(np.asarray(x), np.asarray(y))
+
+        return all(same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
 
 
 # ---------------------------------------------------------------- the model
