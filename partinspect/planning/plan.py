@@ -239,7 +239,7 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     if views:
         from partinspect.planning.views import plan_views
 
-        view_plan = plan_views(predict, start, center, views, step=step, progress=say)
+        view_plan = plan_views(predict, start, center, views, step=step, inventory=inv, progress=say)
         start_pred, result = view_plan.candidates[0], None
     elif search:
         result = search_poses(predict, start, center, rotation=rotation, max_tilt=max_tilt, step=step, progress=say)

@@ -109,6 +109,8 @@ def _views_dict(result):
         "chosen": [{"label": v.label, "fixture": list(v.angles), "turn_deg": [float(a) for a in t],
                     "decides": [cid for cid, by in vp.decided_by.items() if k in by]}
                    for k, (v, t) in enumerate(zip(vp.views, turns))],
+        "together": [{"id": cid, "views": [f"view-{k + 1}" for k in vp.decided_by[cid]],
+                      "expanded_uncertainty": _finite(U)} for cid, U in vp.together.items()],
         "undecided": [{"id": c.id, "reason": c.reason, "causes": why, "best_ratio": _finite(c.ratio)}
                       for c, why in vp.undecided],
         "out_of_view": list(vp.out_of_view),
@@ -129,6 +131,9 @@ def _views_lines(result):
         own = [cid for cid, by in vp.decided_by.items() if by == [k]]
         lines.append(f"  view-{k + 1}: {v.label}: decides {v.n_decidable}"
                      + (f", alone: {', '.join(own)}" if own else ""))
+    for cid, U in vp.together.items():
+        lines.append(f"  {cid}: decided by views {', '.join(str(k + 1) for k in vp.decided_by[cid])} together "
+                     f"(U = {U:.4f})")
     if vp.views:
         lines.append(f"  render them: inspect render PART OUT --pose {pose_text(result.start.part_to_camera, result.center)} "
                      f"--views \"{turns_text(view_turns(vp.views))}\"")

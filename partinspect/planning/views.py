@@ -18,12 +18,13 @@ prediction (:func:`partinspect.planning.predict.predict_pose`):
    set that small covers them all, the set of ``max_views`` that decides
    the most, ties broken by the summed ranking of its views.
 
-A characteristic counts as decided by a set of views only where one view
-decides it alone. Fusing the views (:mod:`partinspect.tolerances.fusion`)
-can only lower a characteristic's U, so the plan's count is a lower bound;
-a characteristic whose features no single view sees together (a distance
-from a top rim to a bottom edge) is not predicted, and is named with that
-reason.
+The choice counts what each view decides alone. The chosen views are then
+predicted together as the run combines them (:func:`decided_together`:
+the predicted features of every view fused by their covariances, each
+view's pose included, :mod:`partinspect.tolerances.fusion`): a
+characteristic between features no single view sees together (a distance
+from a top rim to a bottom edge), or one that only the combination makes
+precise enough, counts as decided by the views that contribute to it.
 
 References
 ----------
@@ -40,13 +41,14 @@ from __future__ import annotations
 import itertools
 import math
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from partinspect.planning.search import FixturePose, cause_of, fixture_pose, rank_key
 
-__all__ = ["FLIP_TILT", "view_candidates", "ViewPlan", "fewest_views", "plan_views", "view_turns", "turns_text"]
+__all__ = ["FLIP_TILT", "view_candidates", "ViewPlan", "fewest_views", "decided_together", "plan_views",
+           "view_turns", "turns_text"]
 
 FLIP_TILT = 180.0
 """Degrees about the fixture's X axis: the part re-placed upside down."""
@@ -76,7 +78,10 @@ class ViewPlan:
         The chosen views, in the order of the candidates.
     decided_by : dict
         Characteristic id -> indices into ``views`` of the views that
-        decide it alone.
+        decide it alone, or else of the views that decide it together.
+    together : dict
+        Characteristic id -> its predicted expanded uncertainty U (k = 2)
+        from the views combined, for those no chosen view decides alone.
     undecided : list of (CharacteristicPrediction, str)
         Characteristics no chosen view decides, each as predicted in the
         candidate where its ratio U / tolerance was lowest, with why.
@@ -95,6 +100,7 @@ class ViewPlan:
     candidates: list
     complete: bool
     out_of_view: list
+    together: dict = field(default_factory=dict)
 
 
 def _decides(p, k):
@@ -158,12 +164,61 @@ def _why_undecided(cps, cid, covering):
     counts = Counter(cause_of(c) for c in cps)
     summary = ", ".join(f"{name} in {n} of {len(cps)} views" for name, n in counts.most_common())
     if all(not c.inspected for c in cps):
-        summary += ("; its features are not seen together in any one view (the plan does not predict a "
-                    "characteristic between views)")
+        summary += "; its features are not seen together in any one view, nor decided by the chosen views together"
     return summary
 
 
-def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, progress=None):
+def decided_together(views, inventory):
+    """What the views decide together that none decides alone, predicted as the run fuses them.
+
+    Each view's predicted features (its predicted registration's, in the
+    part frame, with the pose covariance) are combined over the views by
+    :func:`partinspect.tolerances.fusion.fuse` and the characteristics
+    evaluated on the combination by
+    :func:`partinspect.tolerances.evaluate_fused.evaluate_fused`, the
+    functions ``inspect PART VIEWS/`` uses, with one rig's calibration error
+    shared between the views. A predicted feature has no noise drawn, so the
+    consistency test between views keeps every view.
+
+    Parameters
+    ----------
+    views : list of PosePrediction
+        The chosen views, predicted for the same characteristics.
+    inventory : Inventory
+
+    Returns
+    -------
+    dict
+        Index of a characteristic (in the predictions' order) -> ``(U,
+        by)``: its predicted expanded uncertainty (k = 2) and the indices
+        into ``views`` of the views it combines, for every characteristic
+        that no view decides alone, that draws on two or more views, and
+        whose U is within the views' ratio of its tolerance.
+    """
+    from partinspect.planning.predict import tolerance_width
+    from partinspect.tolerances.evaluate_fused import evaluate_fused
+    from partinspect.tolerances.fusion import fuse
+
+    placed = [i for i, p in enumerate(views) if p.registration is not None and p.registration_error is None]
+    if len(placed) < 2:
+        return {}
+    regs = [views[i].registration for i in placed]
+    chars = [c.characteristic for c in views[0].characteristics]
+    todo = [k for k in range(len(chars)) if not any(_decides(p, k) for p in views)]
+    fused = fuse([r.features_in_part_frame() for r in regs], inventory, registrations=regs)
+    evaluations, sources = evaluate_fused([chars[k] for k in todo], fused, regs, inventory)
+    out = {}
+    for k, ev, src in zip(todo, evaluations, sources):
+        T = tolerance_width(chars[k])
+        if len(src) < 2 or ev.expanded_uncertainty is None or T is None:
+            continue
+        U = float(ev.expanded_uncertainty)
+        if math.isfinite(U) and U <= views[0].max_ratio * T:
+            out[k] = (U, [placed[v] for v in src])
+    return out
+
+
+def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, inventory=None, progress=None):
     """Predict the candidate views and choose the fewest that decide the characteristics.
 
     Parameters
@@ -180,6 +235,9 @@ def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, progr
         Turn between candidate views, degrees.
     flip : bool
         Also the part upside down.
+    inventory : Inventory, optional
+        The part's features: the chosen views are then also predicted
+        together (:func:`decided_together`).
     progress : callable, optional
 
     Returns
@@ -194,9 +252,14 @@ def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, progr
         candidates.append(predict(fixture_pose(start, center, fp), fp))
     chosen, complete = fewest_views(candidates, max_views)
     views = [candidates[i] for i in chosen]
-    decided_by, undecided, out_of_view = {}, [], []
+    if inventory is not None and len(views) > 1 and progress:
+        progress(f"predicting the {len(views)} views together")
+    combined = decided_together(views, inventory) if inventory is not None else {}
+    decided_by, undecided, out_of_view, together = {}, [], [], {}
     for k, cid in enumerate(c.id for c in candidates[0].characteristics):
         by = [v for v, p in enumerate(views) if _decides(p, k)]
+        if not by and k in combined:
+            together[cid], by = combined[k]
         if by:
             decided_by[cid] = by
             continue
@@ -207,7 +270,7 @@ def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, progr
         covering = sum(_decides(p, k) for p in candidates)
         best = min(cps, key=lambda c: c.ratio if not math.isnan(c.ratio) else math.inf)
         undecided.append((best, _why_undecided(cps, cid, covering)))
-    return ViewPlan(views, decided_by, undecided, candidates, complete, out_of_view)
+    return ViewPlan(views, decided_by, undecided, candidates, complete, out_of_view, together)
 
 
 def view_turns(views):

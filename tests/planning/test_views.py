@@ -52,11 +52,16 @@ def rig_file(tmp_path_factory):
 
 def test_plate_views_decide_what_one_pose_leaves_out_of_view(rig_file, tmp_path, capsys):
     """The plate's bottom rims, out of view from above, are decided by the view with the part upside down;
-    the printed --views text renders each chosen view in the pose the plan predicted."""
+    a distance from a bottom rim to a top rim, which no view sees whole, by the views together; the
+    printed --views text renders each chosen view in the pose the plan predicted."""
     from partinspect.poses import parse_views, parse_pose, turned_pose
 
+    spec = tmp_path / "part.tol.yaml"
+    spec.write_text((PLATE.parent / "part.tol.yaml").read_text()
+                    + "  - {between: [circle-1, circle-4], upper: 0.1, lower: -0.1}   # bottom rim to top rim\n")
     out = tmp_path / "plan"
-    code = main(["plan", str(PLATE), "--rig", str(rig_file), "--views", "3", "--step", "180", "-o", str(out), "-q"])
+    code = main(["plan", str(PLATE), "--rig", str(rig_file), "--views", "3", "--step", "180", "-o", str(out), "-q",
+                 "--tolerances", str(spec)])
     data = json.loads((out / "plan.json").read_text())
     views = data["views"]
     assert len(views["candidates"]) == 4 and 1 <= len(views["chosen"]) <= 3
@@ -68,6 +73,13 @@ def test_plate_views_decide_what_one_pose_leaves_out_of_view(rig_file, tmp_path,
     assert any(v["fixture"][1] == 180.0 for v in views["chosen"])
     assert len(decided & set(hidden)) >= len(hidden) // 2
     assert code == (0 if not views["undecided"] else 3)
+    # No candidate sees both rims, so no view decides the distance alone; the chosen views combined do.
+    cross = "distance(circle-1,circle-4)"
+    assert not start[cross]["inspected"] or not start[cross]["decidable"]
+    together = {t["id"]: t for t in views["together"]}
+    assert cross in together and len(together[cross]["views"]) >= 2
+    assert 0 < together[cross]["expanded_uncertainty"] <= 0.25 * 0.2
+    assert sum(cross in v["decides"] for v in views["chosen"]) >= 2
     # The render's convention (turns about X, then Y, then Z) reproduces each chosen fixture pose.
     from partinspect.cad.step import load_step
     from partinspect.planning.search import FixturePose, fixture_pose
