@@ -227,6 +227,16 @@ def _parse_drift(text):
     return kind, value
 
 
+def _parse_tilts(text):
+    try:
+        tilts = tuple(float(v) for v in text.split(","))
+        if not all(-180.0 <= t <= 180.0 for t in tilts):
+            raise ValueError
+    except ValueError:
+        raise InputError(None, f"--tilts: expected degrees from -180 to 180 separated by commas, got {text!r}") from None
+    return tilts
+
+
 def _calibrate_parser():
     p = _Parser(
         prog="inspect calibrate",
@@ -290,6 +300,9 @@ def _plan_parser():
                    help="instead of one pose, the fewest views (up to N, at most 8) that together decide every "
                    "characteristic: the part turned at --step degrees, upright and upside down; prints the "
                    "inspect render --views text of them")
+    p.add_argument("--tilts", metavar="DEG,...", default="0,180",
+                   help="with --views: tilts about the fixture's X axis to take views at (default 0,180: upright and "
+                   "upside down; 0,90,180,-90 adds the part laid on a side)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no table")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -401,7 +414,7 @@ def _run_plan(args):
     result = run_plan(args.part, args.rig, tolerances=args.tolerances, pose=args.pose, max_ratio=args.ratio,
                       model=model, search=not args.no_search, rotation=args.rotation, max_tilt=args.max_tilt,
                       step=args.step, check=args.check, seed=args.seed, renderer=renderer, views=args.views,
-                      progress=_progress(args.quiet))
+                      tilts=_parse_tilts(args.tilts), progress=_progress(args.quiet))
     out = write_plan(args.output, result)
     if not args.quiet:
         _say_pmi_problems(os.path.basename(str(args.part)), result.not_evaluated, "plan.json")

@@ -132,7 +132,8 @@ def _check_inputs(part, rig, tolerances, max_ratio, model, check=0):
 
 
 def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, model=None, search=True,
-             rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, renderer=None, views=0, progress=None):
+             rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, renderer=None, views=0, tilts=(0.0, 180.0),
+             progress=None):
     """Predict the uncertainty of every characteristic and search the fixture poses.
 
     Parameters
@@ -168,6 +169,10 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         Choose up to this many views (turns of the part at ``step``
         degrees, upright and upside down) instead of one pose
         (:mod:`.views`); 0: one pose.
+    tilts : sequence of float
+        With ``views``: the tilts about the fixture's X axis the candidate
+        views are taken at, degrees (0 upright, 180 upside down, 90 or -90
+        on a side).
     progress : callable, optional
 
     Returns
@@ -191,6 +196,8 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
         raise InputError(None, f"--step must be between 0 and 180 degrees, got {step!r}")
     if not (isinstance(views, int) and 0 <= views <= 8):
         raise InputError(None, f"--views must be a number of views from 1 to 8, got {views!r}")
+    if views and not (tilts and all(math.isfinite(t) and -180.0 <= t <= 180.0 for t in tilts)):
+        raise InputError(None, f"--tilts must be angles from -180 to 180 degrees, got {tilts!r}")
     if views and check:
         raise InputError(None, "--check renders one pose; it cannot be combined with --views")
 
@@ -239,7 +246,8 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     if views:
         from partinspect.planning.views import plan_views
 
-        view_plan = plan_views(predict, start, center, views, step=step, inventory=inv, progress=say)
+        view_plan = plan_views(predict, start, center, views, step=step, tilts=tuple(tilts), inventory=inv,
+                               progress=say)
         start_pred, result = view_plan.candidates[0], None
     elif search:
         result = search_poses(predict, start, center, rotation=rotation, max_tilt=max_tilt, step=step, progress=say)

@@ -8,8 +8,9 @@ prediction (:func:`partinspect.planning.predict.predict_pose`):
 
 1. candidate views: the part turned about the fixture axis at ``step``
    degrees over a full turn, and the same turns with the part re-placed
-   upside down (turned 180 degrees about the fixture's X axis), each
-   predicted as ``inspect plan`` predicts a single pose;
+   upside down (turned 180 degrees about the fixture's X axis) or, when
+   asked, laid on a side (90 degrees), each predicted as ``inspect plan``
+   predicts a single pose;
 2. each candidate decides a set of characteristics (U <= ratio x
    tolerance, and the part registers in that view);
 3. the smallest set of candidates whose union decides every
@@ -54,8 +55,17 @@ FLIP_TILT = 180.0
 """Degrees about the fixture's X axis: the part re-placed upside down."""
 
 
-def view_candidates(step=30.0, flip=True):
-    """Fixture poses to choose views from: a full turn at ``step`` degrees, upright and (``flip``) upside down.
+def view_candidates(step=30.0, tilts=(0.0, FLIP_TILT)):
+    """Fixture poses to choose views from: a full turn at ``step`` degrees at each tilt about the fixture's X.
+
+    Parameters
+    ----------
+    step : float
+        Turn between candidates about the fixture axis, degrees.
+    tilts : sequence of float
+        Tilts about the fixture's X axis, degrees: 0 upright,
+        :data:`FLIP_TILT` upside down, 90 and -90 the part laid on a side
+        (its side faces, turned up in turn by the full turn, show their holes).
 
     Returns
     -------
@@ -64,8 +74,7 @@ def view_candidates(step=30.0, flip=True):
     n = max(1, int(round(360.0 / step))) if step > 0 else 1
     turns = [k * 360.0 / n for k in range(n)]
     turns = [t - 360.0 if t > 180.0 + 1e-9 else t for t in turns]
-    tilts = (0.0, FLIP_TILT) if flip else (0.0,)
-    return [FixturePose(t, tx, 0.0) for tx in tilts for t in turns]
+    return [FixturePose(t, float(tx), 0.0) for tx in tilts for t in turns]
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,7 +227,8 @@ def decided_together(views, inventory):
     return out
 
 
-def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, inventory=None, progress=None):
+def plan_views(predict, start, center, max_views, *, step=30.0, tilts=(0.0, FLIP_TILT), inventory=None,
+               progress=None):
     """Predict the candidate views and choose the fewest that decide the characteristics.
 
     Parameters
@@ -233,8 +243,8 @@ def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, inven
     max_views : int
     step : float
         Turn between candidate views, degrees.
-    flip : bool
-        Also the part upside down.
+    tilts : sequence of float
+        Tilts about the fixture's X axis, degrees (:func:`view_candidates`).
     inventory : Inventory, optional
         The part's features: the chosen views are then also predicted
         together (:func:`decided_together`).
@@ -244,7 +254,7 @@ def plan_views(predict, start, center, max_views, *, step=30.0, flip=True, inven
     -------
     ViewPlan
     """
-    poses = view_candidates(step, flip)
+    poses = view_candidates(step, tilts)
     candidates = []
     for k, fp in enumerate(poses, 1):
         if progress:

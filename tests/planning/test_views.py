@@ -96,3 +96,21 @@ def test_plate_views_decide_what_one_pose_leaves_out_of_view(rig_file, tmp_path,
     html = (out / "plan.html").read_text()
     assert 'id="views"' in html and views["render_views"] in html
 
+
+
+def test_a_part_laid_on_its_side_renders_in_the_pose_the_plan_predicted():
+    """--tilts 90: each candidate on its side, written as --views text, is the fixture pose itself."""
+    from partinspect.planning.search import fixture_pose
+    from partinspect.planning.views import turns_text, view_turns
+    from partinspect.poses import parse_views, turned_pose
+
+    c = view_candidates(90.0, tilts=(90.0, -90.0))
+    assert len(c) == 8 and {p.tilt_x for p in c} == {90.0, -90.0}
+    bounds = np.array([[0.0, 0.0, 0.0], [80.0, 60.0, 10.0]])
+    center = bounds.mean(axis=0)
+    start = np.eye(4)
+    start[:3, 3] = [0.0, 0.0, 400.0]
+    preds = [SimpleNamespace(angles=(p.rotation, p.tilt_x, p.tilt_y)) for p in c]
+    for turn, p in zip(parse_views(turns_text(view_turns(preds))), c):
+        assert np.allclose(turned_pose(start, turn, bounds), fixture_pose(start, center, p), atol=1e-6)
+    assert main(["plan", str(PLATE), "--rig", "nowhere.yaml", "--views", "2", "--tilts", "0,ninety"]) == 2
