@@ -95,7 +95,9 @@ segmentation's test of the whole of a closed contour and of two arcs
 together (:mod:`partinspect.vision.contours`)."""
 # Where :func:`neighbour_steps` looks for a second step across an edge point,
 # in step widths W from the point: inside 2 W two steps merge into one
-# profile (whose width the point's own reading sees), and a step beyond 4 W
+# profile (whose width the point's own reading sees) and the point's own
+# profile departs from a Gaussian by as much (a disc PSF, the concave side
+# of a small rim), and a step beyond 4 W
 # moves the point by under 4 exp(-8) W, 0.1 % of W per unit contrast ratio.
 NEIGHBOUR_RANGE = (2.0, 4.0)
 # px between the samples of the profile read by neighbour_steps.
@@ -473,8 +475,7 @@ def neighbour_steps(gx, gy, xy, normal, strength, width, grad_noise=0.0):
     widths on both sides, the point's own step subtracted and each side's
     level at its outer end (a shading ramp, which ``background_shift``
     carries, is no step); every local peak
-    of what is left (the inner end counts when it rises towards the point:
-    a step closer than the range) gives its delta from its height and
+    of what is left inside the range gives its delta from its height and
     position (a peak counts when it exceeds ``STEP_THRESHOLD`` times the
     gradient noise, its height taken less twice the noise in quadrature),
     and the largest over both sides is returned. The delta is that of the
@@ -533,11 +534,14 @@ def neighbour_steps(gx, gy, xy, normal, strength, width, grad_noise=0.0):
         far[:, lo:hi] = np.minimum(bell(np.abs(t[hi - 3:hi]).mean() - np.abs(t[lo:hi])), 0.5)[None, :]
     noise = np.broadcast_to(np.asarray(grad_noise, float), (n,))[:, None]
     height = np.sqrt(np.maximum(r * r - 4.0 * noise * noise, 0.0)) / (1.0 - far)
+    # A step is a peak inside the range: at its inner end the profile left
+    # may rise towards the point from the point's own step alone (a PSF that
+    # is not Gaussian, the concave side of a small rim), which no second
+    # step need be, and a step that close merges with the point's own.
     peak = np.zeros_like(height, bool)
     for lo, hi in ((0, k), (k, 2 * k)):
-        idx = np.arange(lo, hi)
-        prev, nxt = np.maximum(idx - 1, lo), np.minimum(idx + 1, hi - 1)
-        peak[:, lo:hi] = (height[:, idx] >= height[:, prev]) & (height[:, idx] >= height[:, nxt]) \
+        idx = np.arange(lo + 1, hi - 1)
+        peak[:, idx] = (height[:, idx] >= height[:, idx - 1]) & (height[:, idx] > height[:, idx + 1]) \
             & (np.abs(r[:, idx]) > STEP_THRESHOLD * noise)
     # The detector's three samples lie s = |n . e| px apart along the normal
     # (e the pixel axis it reads along); to first order a second step's
