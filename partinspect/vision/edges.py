@@ -94,11 +94,11 @@ averaged along the edge) and, with the bound as read at each point, in the
 segmentation's test of the whole of a closed contour and of two arcs
 together (:mod:`partinspect.vision.contours`)."""
 # Where :func:`neighbour_steps` looks for a second step across an edge point,
-# in step widths W from the point: inside 2 W two steps merge into one
-# profile (whose width the point's own reading sees) and the point's own
+# in step widths W from the point. Inside 2 W two steps merge into one
+# profile (whose width the point's own reading sees), and the point's own
 # profile departs from a Gaussian by as much (a disc PSF, the concave side
-# of a small rim), and a step beyond 4 W
-# moves the point by under 4 exp(-8) W, 0.1 % of W per unit contrast ratio.
+# of a small rim); a step beyond 4 W moves the point by under 4 exp(-8) W,
+# 0.1 % of W per unit contrast ratio.
 NEIGHBOUR_RANGE = (2.0, 4.0)
 # px between the samples of the profile read by neighbour_steps.
 NEIGHBOUR_STEP = 0.25
