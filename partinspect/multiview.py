@@ -238,6 +238,7 @@ def evaluate_views(views, progress):
     from partinspect.diagnosis import split_unseen, unmeasured_reasons
     from partinspect.reports.assemble import assemble_report, input_entries
     from partinspect.results import characteristic_entry, fused_feature_entries, registration_entry, view_entry
+    from partinspect.tolerances.from_pmi import datum_entry
     from partinspect.tolerances.decision import decide_all, verdict
     from partinspect.tolerances.evaluate_fused import evaluate_fused
     from partinspect.tolerances.fusion import SIGNIFICANCE, consistent_view_set, fuse
@@ -300,7 +301,7 @@ def evaluate_views(views, progress):
                      "views": "each view's features in the part frame with its pose covariance, tested for "
                               "consistency across views and combined by generalised least squares"},
         adaptive=used[0].measured.adaptive,
-        registration=registration_entry(regs[0]),
+        registration=registration_entry(regs[0], datum_entry(inputs.resolved, regs[0].datums)),
         features=features,
         characteristics=characteristics,
         not_inspected=not_inspected,
