@@ -287,6 +287,7 @@ def _views_report(views, used, decisions, features, characteristics, not_inspect
     from partinspect.reports.assemble import assemble_report, input_entries
     from partinspect.results import registration_entry
     from partinspect.tolerances.decision import verdict
+    from partinspect.tolerances.from_pmi import datum_entry
     from partinspect.vision.images import IMAGE_NAMES
 
     inputs, first = used[0].inputs, used[0].measured
@@ -309,7 +310,7 @@ def _views_report(views, used, decisions, features, characteristics, not_inspect
                      "views": "each view's features in the part frame with its pose covariance, tested for "
                               "consistency across views and combined by generalised least squares"},
         adaptive=first.adaptive,
-        registration=registration_entry(first.registration),
+        registration=registration_entry(first.registration, datum_entry(inputs.resolved, first.registration.datums)),
         features=features,
         characteristics=characteristics,
         not_inspected=not_inspected,

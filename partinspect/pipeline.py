@@ -439,6 +439,7 @@ def evaluate(inputs, m, progress):
     from partinspect.reports.assemble import assemble_report, input_entries
     from partinspect.results import characteristic_entry, feature_entries, registration_entry
     from partinspect.tolerances.decision import decide_all, verdict
+    from partinspect.tolerances.from_pmi import datum_entry
     from partinspect.vision.images import IMAGE_NAMES
 
     progress(f"evaluating {len(inputs.characteristics)} characteristics")
@@ -467,7 +468,7 @@ def evaluate(inputs, m, progress):
                     "not_evaluated": [n.to_dict() for n in inputs.resolved.not_evaluated]},
         uncertainty=m.uncertainty,
         adaptive=m.adaptive,
-        registration=registration_entry(m.registration),
+        registration=registration_entry(m.registration, datum_entry(inputs.resolved, m.registration.datums)),
         features=features,
         characteristics=characteristics,
         not_inspected=not_inspected,
@@ -540,8 +541,16 @@ def _register(stereo, inputs, pose_hint=None):
     circles = [f for f in stereo.features if f.kind != "line"]
     lines = [f for f in stereo.features if f.kind == "line"]
     resolved = inputs.resolved
-    datums = None if resolved.spec.datums is None else list(resolved.datums)
+    datums = resolved.alignment_datums
     try:
-        return register(circles, lines, inputs.inv, datums=datums, pose_hint=pose_hint)
+        try:
+            return register(circles, lines, inputs.inv, datums=datums, pose_hint=pose_hint)
+        except RegistrationError:
+            # The PMI's datums were not asked for by the user: when their
+            # edges, as seen, leave the pose free, align on every feature
+            # (the report says so, tolerances.from_pmi.datum_entry).
+            if not resolved.datum_frame:
+                raise
+            return register(circles, lines, inputs.inv, datums=None, pose_hint=pose_hint)
     except RegistrationError as e:
         raise InputError(inputs.images, f"cannot align the CAD model to the images: {e.problem}") from None

@@ -39,8 +39,12 @@ def characteristic_entry(decision):
     return d
 
 
-def registration_entry(reg):
-    """report.json's "registration": the pose, its uncertainty and fit statistics."""
+def registration_entry(reg, datum_reference=None):
+    """report.json's "registration": the pose, its uncertainty and fit statistics.
+
+    ``datum_reference``, where the datums come from
+    (`partinspect.tolerances.from_pmi.datum_entry`), is added when given.
+    """
     std = reg.pose_std
     return {
         "part_to_camera": mat(reg.part_to_camera, 12),
@@ -57,6 +61,7 @@ def registration_entry(reg):
         "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
         **({"symmetry": reg.symmetry} if reg.symmetry else {}),
         **({"ambiguity": ambiguity_entry(reg)} if reg.competing else {}),
+        **({"datum_reference": datum_reference} if datum_reference else {}),
     }
 
 

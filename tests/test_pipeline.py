@@ -414,3 +414,32 @@ def test_refine_rig_leaves_an_oversize_hole_oversize(deviated, tmp_path):
     c = next(c for c in report["characteristics"] if c["id"] == "circle-4.diameter")
     assert c["decision"] == "fail" and abs(c["measured"] - 12.1) < 3 * c["standard_uncertainty"] + 0.005
     assert c["measured"] - 12.0 > 10 * c["standard_uncertainty"]
+
+
+def test_pmi_datums_that_leave_the_pose_free_fall_back_to_every_feature(monkeypatch):
+    # The PMI's datums were not asked for: where their edges, as seen, do
+    # not fix the pose, the run aligns on every feature (report.json says
+    # so); datums a spec file names still stop the run.
+    from types import SimpleNamespace
+
+    from partinspect import pipeline
+    from partinspect.cad import registration
+    from partinspect.errors import InputError
+
+    calls = []
+
+    def register(circles, lines, inv, datums=None, pose_hint=None):
+        calls.append(datums)
+        if datums is not None:
+            raise registration.RegistrationError("alignment is ambiguous: the datum features give 4 constraints")
+        return "every-feature pose"
+
+    monkeypatch.setattr(registration, "register", register)
+    stereo = SimpleNamespace(features=[])
+    pmi = SimpleNamespace(alignment_datums=("line-1", "line-2"), datum_frame=(("A", ("line-1", "line-2")),))
+    inputs = SimpleNamespace(resolved=pmi, inv=None, images="images")
+    assert pipeline._register(stereo, inputs) == "every-feature pose"
+    assert calls == [("line-1", "line-2"), None]
+    spec = SimpleNamespace(alignment_datums=("line-1", "line-2"), datum_frame=())
+    with pytest.raises(InputError, match="4 constraints"):
+        pipeline._register(stereo, SimpleNamespace(resolved=spec, inv=None, images="images"))

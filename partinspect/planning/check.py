@@ -9,6 +9,11 @@ Each characteristic's spread over the draws is set beside its predicted
 deviation, except for position, a norm: there ``2 sqrt(tr Cov(d))`` of the
 centre's in-plane offset d, what ``true_position`` states at the true
 position (the render's small systematic offset is no part of the spread).
+A position at MMC or LMC is decided on ``position - bonus(d)``: its spread
+takes in the measured size's spread over the draws by the law
+:func:`partinspect.tolerances.material.position_with_bonus` applies in
+each evaluation, at the true position (where the position and the centre's
+error are uncorrelated).
 
 :func:`check_pose` is ``inspect plan --check``. The draws show only the
 image-noise part of u (one scene, its Type B displacements fixed), so they
@@ -77,6 +82,9 @@ class RenderedCheck:
         Draws whose chain run completed.
     failed : list of str
         Why the other draws failed.
+    bonus : dict of str to (MaterialCondition, ndarray shape (n,))
+        Positions at MMC or LMC: the modifier and the measured diameter its
+        bonus came from in each draw, mm (NaN where not measured).
     """
 
     ids: tuple
@@ -86,15 +94,20 @@ class RenderedCheck:
     offsets: dict
     draws: int
     failed: list
+    bonus: dict = None
 
     def spread(self, cid):
         """Measured standard uncertainty of one characteristic (module notes), NaN with < 3 values."""
         if self.types[cid] == "position":
             d = self.offsets[cid]
-            d = d[np.isfinite(d).all(axis=1)]
-            if len(d) < 3:
+            ok = np.isfinite(d).all(axis=1)
+            material = (self.bonus or {}).get(cid)
+            if material is not None:
+                ok &= np.isfinite(material[1])
+            if ok.sum() < 3:
                 return float("nan")
-            return 2.0 * float(np.sqrt(np.trace(np.cov(d, rowvar=False))))
+            u_position = 2.0 * float(np.sqrt(np.trace(np.cov(d[ok], rowvar=False))))
+            return u_position if material is None else _with_bonus(u_position, material[1][ok], material[0])
         return spread(self.values[cid])
 
     def rms_error(self, cid, true_value):
@@ -113,6 +126,22 @@ class RenderedCheck:
 
     def measured_fraction(self, cid):
         return float(np.mean(np.isfinite(self.values[cid]))) if self.draws else 0.0
+
+
+def _with_bonus(u_position, sizes, material):
+    """The spread of ``position - bonus(d)`` over the draws, from the position's and the size's.
+
+    As each evaluation does (:func:`partinspect.tolerances.material.position_with_bonus`):
+    ``u(q)^2 = u(position)^2 + u(d)^2 - 2 s grad . Cov(centre, d)``, with
+    the gradient at the true position, as the position's spread is taken:
+    zero there (the render's systematic offset is no part of it), so the
+    size's variance adds to the position's.
+    """
+    from partinspect.tolerances.material import position_with_bonus
+
+    _, u_q, _, _, _ = position_with_bonus(0.0, u_position, np.zeros(3), 0.0, float(np.std(sizes, ddof=1)), np.zeros(3),
+                                          material.modifier, material.internal, 0.0)
+    return u_q
 
 
 def spread(values):
@@ -211,6 +240,8 @@ def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, 
     values = {i: [] for i in ids}
     us = {i: [] for i in ids}
     offs = {c.id: [] for c in characteristics if c.type == "position"}
+    material = {c.id: c for c in characteristics if c.type == "position" and c.material is not None}
+    sizes = {cid: [] for cid in material}
     failed = []
     for k in range(draws):
         rng = np.random.default_rng([seed, k])
@@ -226,6 +257,9 @@ def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, 
             us[ev.id].append(np.nan if ev.standard_uncertainty is None else ev.standard_uncertainty)
         for cid, d in offsets.items():
             offs[cid].append(d)
+        for ev in evs:
+            if ev.id in sizes:
+                sizes[ev.id].append(float(ev.details.get("measured_size", np.nan)) if ev.measured is not None else np.nan)
         if progress:
             progress(f"draw {k + 1}/{draws}")
     n = draws - len(failed)
@@ -237,6 +271,7 @@ def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, 
         {i: np.array(v, float).reshape(-1, 3) for i, v in offs.items()},
         n,
         failed,
+        {cid: (c.material, np.array(sizes[cid], float)) for cid, c in material.items()},
     )
 
 
@@ -493,12 +528,16 @@ class PoseCheck:
 def _excess_kurtosis(chk, cid):
     """The sample excess kurtosis of a characteristic's values over the draws (0 with fewer than 4).
 
-    Position: that of the offsets' components, the largest (its spread is a norm of them).
+    Position: that of the offsets' components, the largest (its spread is a norm of them), and of the
+    measured size at MMC or LMC.
     """
     from scipy import stats
 
     if chk.types[cid] == "position":
         d = chk.offsets[cid]
+        material = (chk.bonus or {}).get(cid)
+        if material is not None:
+            d = np.column_stack([d, material[1]])
         d = d[np.isfinite(d).all(axis=1)]
         cols = [d[:, k] for k in range(d.shape[1])] if len(d) >= 4 else []
     else:

@@ -223,7 +223,7 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
 
     # As `inspect` does: the STEP file's PMI for what the spec leaves out.
     resolved, chars = load_characteristics(inv, tol_path, part=part)
-    datums = tuple(resolved.datums) if resolved.spec.datums is not None else None
+    datums = resolved.alignment_datums
 
     bounds = bounds_of(shape)
     start = parse_pose(pose, bounds, calib) if pose is not None else default_pose(bounds, calib)
@@ -239,7 +239,8 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     scene = build_scene(tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=inv))
 
     def predict(P, fp):
-        return predict_pose(inv, scene, calib, P, chars, model=model, datums=datums, max_ratio=max_ratio,
+        return predict_pose(inv, scene, calib, P, chars, model=model, datums=datums,
+                            datums_fallback=bool(resolved.datum_frame), max_ratio=max_ratio,
                             label=fp.label, angles=(fp.rotation, fp.tilt_x, fp.tilt_y))
 
     view_plan = None

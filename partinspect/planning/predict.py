@@ -779,7 +779,7 @@ def _characteristic_prediction(c, ev, features, max_ratio, registration_error):
 
 
 def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, model=None, datums=None,
-                 max_ratio=DEFAULT_RATIO, shading=None, n_mc=None, seed=0, label="", angles=()):
+                 datums_fallback=False, max_ratio=DEFAULT_RATIO, shading=None, n_mc=None, seed=0, label="", angles=()):
     """Predicted U of every characteristic with the part in one pose.
 
     Parameters
@@ -794,6 +794,9 @@ def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, mo
     model : DetectorModel, optional
     datums : sequence of str, optional
         CAD ids the registration aligns on (default all matched features).
+    datums_fallback : bool
+        Align on every matched feature when the datums leave the pose free,
+        as `inspect` does with the PMI's datums; else that is no registration.
     max_ratio : float
         Decidable when ``U <= max_ratio * tolerance``.
     shading : Shading, optional
@@ -827,11 +830,16 @@ def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, mo
     lines = [fp for fp in measured if fp.kind == "line"]
     reg, reg_error = None, None
     used_datums = None if not datums else [d for d in datums if d in features and features[d].measured]
+    records = ([fp.record for fp in circles], [fp.record for fp in lines])
     try:
-        if datums and not used_datums:
-            raise RegistrationError("none of the datum features is measurable")
-        reg = register([fp.record for fp in circles], [fp.record for fp in lines], inventory,
-                       datums=used_datums, pose_hint=P)
+        try:
+            if datums and not used_datums:
+                raise RegistrationError("none of the datum features is measurable")
+            reg = register(*records, inventory, datums=used_datums, pose_hint=P)
+        except RegistrationError:
+            if not datums_fallback:
+                raise
+            reg = register(*records, inventory, datums=None, pose_hint=P)
     except RegistrationError as exc:
         reg_error = f"no registration: {exc.problem}"
     preds = []

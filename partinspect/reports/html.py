@@ -196,6 +196,16 @@ def _vec3(v):
     return out if all(math.isfinite(x) for x in out) else None
 
 
+def _datum_reference(ref):
+    """Display values of registration["datum_reference"]: its source, each datum's fitted features."""
+    if not isinstance(ref, dict):
+        return None
+    frame = [f"{d.get('datum')}: {', '.join(d.get('fitted') or []) or 'none measured'}"
+             f" (of {len(d.get('features') or [])})" for d in ref.get("frame") or [] if isinstance(d, dict)]
+    return {"source": ref.get("source"), "applied": bool(ref.get("applied")), "reason": ref.get("reason"),
+            "frame": frame}
+
+
 def registration_summary(reg):
     """Display values of report["registration"] (None stays None)."""
     if not reg:
@@ -204,7 +214,8 @@ def registration_summary(reg):
            "dof": reg.get("dof"), "datums": list(reg.get("datums") or []),
            "outliers": [o for o in reg.get("outliers") or [] if isinstance(o, dict)], "translation": None,
            "rotation_deg": None, "axis": None, "translation_std": _vec3(reg.get("translation_std")),
-           "rotation_std_deg": _vec3(reg.get("rotation_std_deg"))}
+           "rotation_std_deg": _vec3(reg.get("rotation_std_deg")),
+           "datum_reference": _datum_reference(reg.get("datum_reference"))}
     T = reg.get("part_to_camera")
     try:
         R = [[float(T[i][j]) for j in range(3)] for i in range(3)]

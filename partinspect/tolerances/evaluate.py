@@ -71,6 +71,7 @@ __all__ = [
     "circle_profile",
     "measured_distance",
     "measured_angle",
+    "nominal_legs",
     "measured_tilt",
     "PAIR_VALUES",
     "pick_feature",
@@ -412,9 +413,33 @@ def measured_distance(fa, fb):
     return geometry.feature_distance(fa, fb)
 
 
-def measured_angle(fa, fb):
-    """Angle between two measured lines, as the nominal is defined (rad)."""
-    return geometry.line_angle(fa.start, fa.end, fb.start, fb.end)
+def measured_angle(fa, fb, legs=None):
+    """Angle between two measured lines, as the nominal is defined (rad).
+
+    ``legs``: the nominal edges' legs (:func:`nominal_legs`) in the
+    measured features' frame; each measured direction is turned to agree
+    with its own, so that segments that cross read the nominal's angle,
+    not its supplement (:func:`geometry.line_angle`).
+    """
+    return geometry.line_angle(fa.start, fa.end, fb.start, fb.end, legs=legs)
+
+
+def nominal_legs(c, inventory, rotation=None):
+    """The legs of an angle characteristic's CAD edges, shape (3,) each, part frame or turned by ``rotation``.
+
+    Parameters
+    ----------
+    c : Characteristic
+        Of type "angle", two line features.
+    inventory : Inventory
+    rotation : ndarray, shape (3, 3), optional
+        Part to measurement frame (the registration's rotation for rig-frame
+        features); the estimated pose is good to far less than the right
+        angle that would turn a leg's side.
+    """
+    a, b = (inventory[fid] for fid in c.features)
+    legs = geometry.line_legs(a.start, a.end, b.start, b.end)
+    return legs if rotation is None else tuple(np.asarray(rotation, float) @ u for u in legs)
 
 
 def measured_tilt(fa, fb, towards=None):
@@ -669,6 +694,8 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
             # error of the pose turns both lines alike, and their tilt not.
             towards = np.asarray(registration.rotation, float) @ np.asarray(c.towards, float)
             g = functools.partial(measured_tilt, towards=towards)
+        elif t == "angle":
+            g = functools.partial(measured_angle, legs=nominal_legs(c, inventory, registration.rotation))
         try:
             value, u = propagate(_pair_function(g, info, sizes), x, cov)
         except ValueError as e:

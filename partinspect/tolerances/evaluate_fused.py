@@ -30,6 +30,7 @@ from partinspect.tolerances.evaluate import (
     evaluate_characteristic,
     PAIR_VALUES,
     measured_result,
+    nominal_legs,
     propagate,
     unmeasured_result,
 )
@@ -174,7 +175,7 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
             evaluations.append(evaluate_characteristic(c, parts[v], registrations[v], inventory, k=k, seed=seed,
                                                        n_mc=n_mc))
         elif c.type in PAIR_VALUES:
-            evaluations.append(pair_value(c, fs, registrations, k))
+            evaluations.append(pair_value(c, fs, registrations, k, inventory=inventory))
         else:
             view = _FusedView(fs[0], registrations, _form_view(fs[0], registrations))
             ev = evaluate_characteristic(c, fs, view, inventory, k=k, seed=seed, n_mc=n_mc)
@@ -185,7 +186,7 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
     return evaluations, used
 
 
-def pair_value(c, fs, registrations, k=COVERAGE_FACTOR):
+def pair_value(c, fs, registrations, k=COVERAGE_FACTOR, inventory=None):
     """A distance or angle between two combined features, from their joint part-frame covariance.
 
     Parameters
@@ -196,6 +197,10 @@ def pair_value(c, fs, registrations, k=COVERAGE_FACTOR):
     registrations : sequence of Registration
         Per view (for the cross-covariance through a view that measured both).
     k : float
+    inventory : Inventory, optional
+        The CAD edges, whose legs orient an angle's measured directions
+        (:func:`partinspect.tolerances.evaluate.nominal_legs`); without it
+        the legs are found from the measured segments.
 
     Returns
     -------
@@ -209,6 +214,8 @@ def pair_value(c, fs, registrations, k=COVERAGE_FACTOR):
     g = PAIR_VALUES[c.type]
     if c.type == "parallelism" and c.towards is not None:
         g = functools.partial(g, towards=np.asarray(c.towards, float))  # the part frame's, as these features
+    elif c.type == "angle" and inventory is not None:
+        g = functools.partial(g, legs=nominal_legs(c, inventory))  # part frame, as these features
 
     def f(z):
         return g(_rebuilt(a.kind, z[:na], ea), _rebuilt(b.kind, z[na:], eb))

@@ -69,7 +69,7 @@ import numpy as np
 from partinspect.tolerances.geometry import feature_distance, line_angle, line_gap, lines_parallel
 from partinspect.tolerances.material import MODIFIERS
 
-__all__ = ["NotEvaluated", "PmiSpec", "load_pmi_spec", "merge_pmi", "spec_from_pmi"]
+__all__ = ["NotEvaluated", "PmiSpec", "datum_entry", "load_pmi_spec", "merge_pmi", "spec_from_pmi"]
 
 # A CAD distance or angle is the one a PMI dimension names when it agrees
 # with the nominal within this part of the tolerance width (and 1e-3 mm or
@@ -109,12 +109,17 @@ class PmiSpec:
     applies_to : dict
         PMI item id to the feature ids it was carried to.
     not_evaluated : list of NotEvaluated
+    datums : dict
+        Datum letter to the feature ids of its faces (``data["datums"]`` is
+        their union), in letter order: the PMI's datum reference frame as
+        the alignment sees it.
     """
 
     data: dict = field(default_factory=dict)
     sources: dict = field(default_factory=dict)
     applies_to: dict = field(default_factory=dict)
     not_evaluated: list = field(default_factory=list)
+    datums: dict = field(default_factory=dict)
 
     def spec(self):
         """The data as a validated ToleranceSpec."""
@@ -192,8 +197,8 @@ class _Mapper:
 
     def result(self):
         data = self.out.data
-        order = sorted(self.datums)
-        ids = list(dict.fromkeys(fid for letter in order for fid in self.datums[letter]))
+        self.out.datums = {letter: list(self.datums[letter]) for letter in sorted(self.datums)}
+        ids = list(dict.fromkeys(fid for fids in self.out.datums.values() for fid in fids))
         if ids:
             data["datums"] = ids
         for key in ("features", "distances", "angles"):
@@ -486,10 +491,12 @@ def merge_pmi(resolved, inventory, part, pmi=None):
 
     Item by item, the spec (file) wins: a PMI characteristic is dropped when
     the spec tolerances the same size, form or location of the same edge,
-    or the same pair of edges. The registration's datums stay the spec's
-    (every feature when it names none): a PMI datum is often a face the
-    cameras cannot see, such as the part's base; `inspect spec` writes the
-    PMI's datums into the spec for the user to keep or drop.
+    or the same pair of edges. Without a spec file, the PMI's datums are
+    the alignment's, the features `inspect spec` writes as the spec's
+    ``datums`` (ASME Y14.5 and ISO 5459 measure every tolerance from the
+    datum reference frame); a spec file keeps its own datums, every
+    feature when it names none, so deleting the key of the spec `inspect
+    spec` wrote aligns on every feature.
 
     Parameters
     ----------
@@ -542,8 +549,44 @@ def merge_pmi(resolved, inventory, part, pmi=None):
     taken = {_slot(c) for c in resolved.characteristics}
     added = tuple(replace(c, source="PMI", rule=rules.get(c.id, f"{name} PMI"))
                   for c in pmi_resolved.characteristics if _slot(c) not in taken)
-    return replace(resolved, characteristics=resolved.characteristics + added,
-                   not_evaluated=resolved.not_evaluated + tuple(ps.not_evaluated))
+    merged = replace(resolved, characteristics=resolved.characteristics + added,
+                     not_evaluated=resolved.not_evaluated + tuple(ps.not_evaluated))
+    if resolved.path is None and ps.datums:
+        merged = replace(merged, datums=pmi_resolved.datums, datum_frame=tuple((k, tuple(v)) for k, v in ps.datums.items()),
+                         datum_source=f"{name} PMI datums {'|'.join(ps.datums)}")
+    return merged
+
+
+def datum_entry(resolved, used):
+    """report.json's ``registration.datum_reference``: where the alignment's datums come from.
+
+    Parameters
+    ----------
+    resolved : partinspect.tolerances.resolve.ResolvedSpec
+    used : sequence of str
+        The CAD ids the registration was fitted on (``Registration.datums``).
+
+    Returns
+    -------
+    dict or None
+        ``source`` (the spec line or the PMI datums), ``frame`` (each PMI
+        datum letter with its features, and which of them were measured and
+        fitted), ``applied``: False when the registration had to use every
+        matched feature instead (the named datums, as measured, leave the
+        pose free), with ``reason``. None when no datums are named.
+    """
+    if resolved.datum_source is None:
+        return None
+    used = set(used)
+    applied = used <= set(resolved.datums)
+    entry = {"source": resolved.datum_source, "applied": applied}
+    if resolved.datum_frame:
+        entry["frame"] = [{"datum": letter, "features": list(ids), "fitted": [f for f in ids if f in used and applied]}
+                          for letter, ids in resolved.datum_frame]
+    if not applied:
+        entry["reason"] = ("the datums' edges, as measured, leave the pose free in some direction; "
+                           "aligned on every matched feature")
+    return entry
 
 
 def _slot(c):

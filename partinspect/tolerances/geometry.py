@@ -24,6 +24,7 @@ import numpy as np
 
 __all__ = [
     "line_angle",
+    "line_legs",
     "line_gap",
     "line_tilt",
     "angle_shorter_leg",
@@ -64,7 +65,7 @@ def _closest_points(a0, da, b0, db):
     return a0 + s * da, b0 + t * db
 
 
-def line_angle(a_start, a_end, b_start, b_end):
+def line_angle(a_start, a_end, b_start, b_end, legs=None):
     """The angle between two line segments, in (0, pi) radians.
 
     The angle between the lines' directions, each turned to point along
@@ -83,10 +84,22 @@ def line_angle(a_start, a_end, b_start, b_end):
     intersection, so give the dihedral angle however far apart the edges
     lie.
 
+    Which way a leg points is decided by where the segment lies: where
+    the segments cross, the foot lies inside them and the farther end can
+    swap sides with where a measured edge is seen to end, turning the
+    angle into its supplement (pi - angle). A measured angle is therefore
+    taken with ``legs``: each measured direction turned to agree with the
+    nominal (CAD) edges' legs, :func:`line_legs` of the nominal segments in
+    the measured features' frame, so it is the angle the nominal names.
+
     Parameters
     ----------
     a_start, a_end, b_start, b_end : array_like, shape (3,)
         Endpoints of the two segments, one frame, mm.
+    legs : (array_like, array_like), optional
+        Reference directions, shape (3,) each, same frame: each segment's
+        direction is turned to the side of its reference. Default: the
+        legs found from the segments themselves (:func:`line_legs`).
 
     Returns
     -------
@@ -100,12 +113,34 @@ def line_angle(a_start, a_end, b_start, b_end):
         parallelism tolerance instead).
     """
     a0, a1, b0, b1 = _vec(a_start), _vec(a_end), _vec(b_start), _vec(b_end)
+    if legs is None:
+        ua, ub = line_legs(a0, a1, b0, b1)
+    else:
+        ua, ub = _unit(a1 - a0), _unit(b1 - b0)
+        if np.linalg.norm(np.cross(ua, ub)) < _PARALLEL_SIN:
+            raise ValueError("the lines are parallel")
+        ua, ub = (u if u @ _vec(ref) >= 0 else -u for u, ref in zip((ua, ub), legs))
+    return math.acos(max(-1.0, min(1.0, float(ua @ ub))))
+
+
+def line_legs(a_start, a_end, b_start, b_end):
+    """The legs of the angle between two segments: unit directions, shape (3,) each.
+
+    Each line's direction turned to point from the foot of the common
+    perpendicular (the vertex of lines that meet) towards the segment's
+    endpoint farther from it (:func:`line_angle`).
+
+    Raises
+    ------
+    ValueError
+        If the lines are parallel.
+    """
+    a0, a1, b0, b1 = _vec(a_start), _vec(a_end), _vec(b_start), _vec(b_end)
     da, db = _unit(a1 - a0), _unit(b1 - b0)
     if np.linalg.norm(np.cross(da, db)) < _PARALLEL_SIN:
         raise ValueError("the lines are parallel")
     pa, pb = _closest_points(a0, da, b0, db)
-    ua, ub = _leg(a0, a1, da, pa), _leg(b0, b1, db, pb)
-    return math.acos(max(-1.0, min(1.0, float(ua @ ub))))
+    return _leg(a0, a1, da, pa), _leg(b0, b1, db, pb)
 
 
 def _leg(p0, p1, d, foot):

@@ -172,6 +172,13 @@ class ResolvedSpec:
     not_evaluated : tuple
         Tolerances the part's PMI holds that no edge characteristic checks
         (``partinspect.tolerances.from_pmi.NotEvaluated``), for the report.
+    datum_source : str or None
+        Where the named datums come from (``"part.tol.yaml line 4"``,
+        ``"part.stp PMI datums A|B|C"``); None when the alignment uses
+        every feature.
+    datum_frame : tuple of (str, tuple of str)
+        The PMI's datum letters with their features, in letter order, when
+        the datums come from the PMI; else empty.
     """
 
     spec: ToleranceSpec
@@ -180,6 +187,13 @@ class ResolvedSpec:
     characteristics: tuple[Characteristic, ...]
     path: str | None = None
     not_evaluated: tuple = ()
+    datum_source: str | None = None
+    datum_frame: tuple = ()
+
+    @property
+    def alignment_datums(self):
+        """The CAD ids the alignment is fitted on, or None for every matched feature."""
+        return None if self.datum_source is None else self.datums
 
     @property
     def general(self):
@@ -282,7 +296,8 @@ def resolve_spec(spec, inventory, path=None):
     chars += _pair_characteristics(check, names)
     if check.errors:
         raise InputError(path, join_errors(check.errors))
-    return ResolvedSpec(spec, MappingProxyType(dict(names)), datums, tuple(chars), path)
+    source = None if spec.datums is None else check.rule(("datums",))
+    return ResolvedSpec(spec, MappingProxyType(dict(names)), datums, tuple(chars), path, datum_source=source)
 
 
 class _Check:

@@ -62,3 +62,29 @@ def test_a_form_value_is_judged_by_the_spreads_of_its_scenes():
     assert checked_uncertainty(0.01, 0.004, 1.4 * 0.004, 20)[1] == "prediction low"
     assert checked_uncertainty(0.01, 0.004, 1.4 * 0.004, 20, interval=(lo, hi)) == (0.01, "agrees")
     assert checked_uncertainty(0.01, 0.004, 1.6 * 0.004, 20, interval=(lo, hi))[1] == "prediction low"
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.05])
+def test_a_position_at_mmc_spreads_with_its_bonus(offset):
+    # The chain decides position - bonus(d) (material.position_with_bonus):
+    # over the draws its spread holds the size's spread too, taken at the
+    # true position as the position's own spread is (a render's systematic
+    # offset, here 0.05 mm, enters neither).
+    from partinspect.planning.check import RenderedCheck
+    from partinspect.tolerances.material import MaterialCondition
+
+    rng = np.random.default_rng(4)
+    n, u_c, u_own = 4000, 0.004, 0.006
+    e = rng.standard_normal((n, 2)) * u_c
+    d = np.column_stack([offset + e[:, 0], e[:, 1], np.zeros(n)])  # in-plane offsets, normal z
+    sizes = 12.04 + 0.5 * e[:, 0] + u_own * rng.standard_normal(n)  # the fit ties the size to the centre
+    sizes[7] = np.nan  # a draw without the size leaves the position's pair out too
+    hole = MaterialCondition("MMC", internal=True)
+    chk = RenderedCheck(("p",), {"p": "position"}, {"p": np.zeros(n)}, {"p": np.zeros(n)}, {"p": d}, n, [],
+                        {"p": (hole, sizes)})
+    plain = RenderedCheck(("p",), {"p": "position"}, {"p": np.zeros(n)}, {"p": np.zeros(n)}, {"p": d}, n, [])
+    u_position = plain.spread("p")
+    assert u_position == pytest.approx(2 * np.sqrt(2) * u_c, rel=0.05)
+    u_size = np.hypot(0.5 * u_c, u_own)
+    assert chk.spread("p") == pytest.approx(np.hypot(u_position, u_size), rel=0.02)
+    assert chk.spread("p") > u_position * 1.1

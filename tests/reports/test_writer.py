@@ -296,3 +296,23 @@ def test_features_left_out_of_the_alignment_are_named_escaped_and_valid():
     report["registration"]["outliers"] = [{"feature": "line-4", "chi2": -1.0, "residuals": 4}]
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(report, SCHEMA)
+
+
+def test_registration_names_the_pmi_datums_it_used():
+    report = synthetic.make_report()
+    report["registration"]["datum_reference"] = {
+        "source": "part.stp PMI datums A|B", "applied": True,
+        "frame": [{"datum": "A", "features": ["line-1", "line-2", "line-9"], "fitted": ["line-1", "line-2"]},
+                  {"datum": "B", "features": ["circle-3"], "fitted": ["circle-3"]}]}
+    jsonschema.validate(report, SCHEMA)
+    html = render_html(report)
+    assert "datums from part.stp PMI datums A|B</span>" in html
+    assert "A: line-1, line-2 (of 3); B: circle-3 (of 1)" in html
+    report["registration"]["datum_reference"].update(applied=False, reason="they leave the pose free")
+    for d in report["registration"]["datum_reference"]["frame"]:
+        d["fitted"] = []
+    html = render_html(report)
+    assert "not applied: they leave the pose free" in html and "A: none measured (of 3)" in html
+    report["registration"]["datum_reference"].pop("applied")
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(report, SCHEMA)

@@ -222,3 +222,66 @@ def test_distances_and_positions_under_a_calibration_error_all_features_share(pl
     # A position's value over its u: 1.05-1.11 with image noise alone on these draws (the value is a
     # length, never negative); the shared error must leave it there, not at a tenth of it.
     assert np.all((rms[2:] > 0.8) & (rms[2:] < 1.45)), rms
+
+
+def test_angle_of_segments_that_cross_is_the_nominal_angle_not_its_supplement():
+    # A leg's side is set by the segment's farther end from the vertex: where
+    # a segment runs across the vertex, that end is as likely on one side as
+    # the other. The measured directions are turned to the CAD legs instead.
+    from partinspect.tolerances.geometry import line_legs
+
+    c60, s60 = math.cos(math.pi / 3), math.sin(math.pi / 3)
+    a0, a1 = np.array([-10.0, 0, 0]), np.array([10.0, 0, 0])  # a tie: the end is the leg
+    b0, b1 = np.array([-8 * c60, -8 * s60, 0]), np.array([12 * c60, 12 * s60, 0])
+    assert math.degrees(line_angle(a0, a1, b0, b1)) == pytest.approx(60)
+    legs = line_legs(a0, a1, b0, b1)
+    seen = (a0 + [-0.5, 0, 0], a1 + [-0.5, 0, 0], b0, b1)  # a seen 0.5 mm short at its end
+    assert math.degrees(line_angle(*seen)) == pytest.approx(120)  # the old reading
+    assert math.degrees(line_angle(*seen, legs=legs)) == pytest.approx(60)
+    # Legs in another frame: turned with it.
+    R = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    turned = [R @ p for p in seen]
+    assert math.degrees(line_angle(*turned, legs=[R @ u for u in legs])) == pytest.approx(60)
+
+
+def test_measured_angle_follows_the_cad_legs_when_a_segment_runs_past_the_vertex():
+    # NIST CTC 01's 60 degree pair (PMI dim-3): line-129 measured across the
+    # vertex of the two lines, its longer part beyond it.
+    from dataclasses import replace
+
+    from partinspect.cad.features import inventory
+    from partinspect.cad.step import load_step
+
+    from tests.cad.conftest import STEP_DIR
+
+    inv = inventory(load_step(STEP_DIR / "nist_ctc_01_asme1_ap242-e1.stp"))
+    (c,) = [x for x in characteristics_for(parse_spec("angles:\n  - {between: [line-138, line-129], upper: 0.5, "
+                                                      "lower: -0.5}\n"), inv) if x.type == "angle"]
+    assert c.nominal == pytest.approx(math.pi / 3)
+    ids = [f.id for f in inv.features if not f.smooth]
+    T = np.eye(4)
+    T[:3, :3] = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # looking down at the part
+    T[:3, 3] = [-100.0, -100.0, 600.0]
+    m = measure_features(inv, T, ids, np.random.default_rng(7), n_points=0)
+    reg = register(m.circles, m.lines, inv, pose_hint=T)
+    (e,) = evaluate([c], reg, inv)
+    assert math.degrees(e.measured) == pytest.approx(60, abs=0.05)
+    # The registration keeps the measured records; line-129's is now seen
+    # from 30 mm beyond the vertex to 10 mm along its CAD leg.
+    from partinspect.tolerances.geometry import line_legs
+
+    j = m.line_ids.index("line-129")
+    ln = m.lines[j]
+    a, b = inv["line-138"], inv["line-129"]
+    leg = T[:3, :3] @ line_legs(a.start, a.end, b.start, b.end)[1]
+    vertex = T[:3, :3] @ np.array([110.0, -75.0, 0.0]) + T[:3, 3]  # where the two lines meet
+    d = ln.direction / np.linalg.norm(ln.direction)
+    v = ln.point + ((vertex - ln.point) @ d) * d
+    d = d if d @ leg > 0 else -d
+    lines = list(reg._lines)
+    k = next(i for i, cid in reg.assignment["line"].items() if cid == "line-129")
+    assert lines[k] is ln
+    lines[k] = replace(ln, start=v - 30 * d, end=v + 10 * d)
+    (e2,) = evaluate([c], replace(reg, _lines=tuple(lines)), inv)
+    assert math.degrees(e2.measured) == pytest.approx(60, abs=0.05)
+    assert e2.standard_uncertainty == pytest.approx(e.standard_uncertainty, rel=0.5)

@@ -252,3 +252,49 @@ def test_angle_dimension_takes_edges_that_meet(ctc01):
     (k,) = [k for k, v in ps.sources.items() if v == "dim-3"]
     a, b = (inv[x] for x in ps.data["angles"][k[1]]["between"])
     assert a.start[2] == b.start[2] == 0.0 and a.end[2] == b.end[2] == 0.0
+
+
+def test_pmi_datums_drive_the_alignment_without_a_spec_file(ctc01, tmp_path):
+    # `inspect part.step images/` aligns on the features `inspect spec`
+    # writes as datums; a spec file keeps its own (every feature without any).
+    from partinspect.tolerances.loading import load_characteristics
+    from partinspect.tolerances.pmi_text import spec_yaml
+
+    pmi, inv, ps = ctc01
+    part = STEP_DIR / "nist_ctc_01_asme1_ap242-e1.stp"
+    resolved, _ = load_characteristics(inv, None, part=part)
+    assert resolved.alignment_datums == tuple(ps.data["datums"])
+    assert resolved.datum_source == "nist_ctc_01_asme1_ap242-e1.stp PMI datums A"
+    (letter, ids), = resolved.datum_frame
+    assert letter == "A" and set(ids) == set(ps.data["datums"])
+    # Datum A is a plane: the straight edges that bound its faces.
+    (datum_a,) = [i for i in pmi.items if i.kind == "datum" and i.name == "A"]
+    assert set(ids) == set().union(*(_non_smooth_lines(inv, face) for face in datum_a.faces))
+
+    written = tmp_path / "written.tol.yaml"
+    written.write_text(spec_yaml(ps, pmi, part.name))
+    from_file, _ = load_characteristics(inv, written, part=part)
+    assert from_file.alignment_datums == resolved.alignment_datums
+    assert from_file.datum_source.startswith("written.tol.yaml line ") and from_file.datum_frame == ()
+
+    plain = tmp_path / "plain.tol.yaml"
+    plain.write_text("general: ISO2768-mK\n")
+    assert load_characteristics(inv, plain, part=part)[0].alignment_datums is None
+
+
+def test_datum_entry_says_which_datum_features_were_fitted(ctc01):
+    from partinspect.tolerances.from_pmi import datum_entry
+    from partinspect.tolerances.loading import load_characteristics
+
+    _, inv, ps = ctc01
+    resolved, _ = load_characteristics(inv, None, part=STEP_DIR / "nist_ctc_01_asme1_ap242-e1.stp")
+    a = ps.datums["A"]
+    entry = datum_entry(resolved, a[:3])
+    assert entry["applied"] and entry["source"].endswith("PMI datums A")
+    assert entry["frame"] == [{"datum": "A", "features": a, "fitted": a[:3]}]
+    # A pose that had to use other features too: the datums were not applied.
+    other = next(f.id for f in inv.features if f.id not in a)
+    fell_back = datum_entry(resolved, a[:3] + [other])
+    assert not fell_back["applied"] and "every matched feature" in fell_back["reason"]
+    assert fell_back["frame"][0]["fitted"] == []
+    assert datum_entry(load_characteristics(inv, None)[0], a) is None
