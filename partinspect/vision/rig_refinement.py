@@ -23,8 +23,11 @@ Three rules keep it metrology rather than curve fitting.
   bring its standard uncertainty below ``DETERMINED`` of the prior's; near
   the image centre a principal point trades almost one for one with a turn
   of its camera, and the convergence angle is seen only through the
-  circles' roundness. Otherwise it is held at its stated value, its
-  uncertainty carried, and that is said.
+  circles' roundness. Otherwise it is held at its stated value (after a
+  drift, as the check corrected it: the check's turn about the baseline
+  moves the rotation's x component, which trades with ``T``'s vertical
+  direction, so resetting it would pull that back), its uncertainty
+  carried, and that is said.
 
 When the run's calibration check found the rig drifted
 (:mod:`partinspect.vision.epipolar_drift`), the stated rig is known to be
@@ -231,6 +234,7 @@ def refine_rig(calib, observations, start=None, drifted=False):
     free = [k for k in range(9) if k < 5 or stated_var[k] > 0]
     fixed = {_NAMES[k]: "the calibration states no uncertainty for it" for k in range(5, 9) if k not in free}
     s0, s, length = rig_vector(calib, basis), rig_vector(start, basis), float(np.linalg.norm(calib.T))
+    s_start = s.copy()
     thetas = [np.r_[o.fit.center, 0.0, 0.0, o.fit.radius] for o in observations]
     setting = (observations, start, s0, basis, length, C, Cp, np.linalg.inv(Z))
     while True:
@@ -245,13 +249,14 @@ def refine_rig(calib, observations, start=None, drifted=False):
             k = free[c]
             fixed[_NAMES[k]] = (f"not determined by the images better than by the calibration (standard "
                                 f"uncertainty {post_std[c] / prior_std[c]:.2f} of the "
-                                f"{'widened' if widened[k] else 'stated'} one); held at its stated value, "
-                                f"its uncertainty carried")
+                                f"{'widened' if widened[k] else 'stated'} one); held at its "
+                                f"{'corrected' if drifted else 'stated'} value, its uncertainty carried")
         if len(weak) == p:
             raise RefinementError("the images determine none of the rig's parameters better than the stated "
                                   "calibration does (to half its standard uncertainty)")
         held = [free[c] for c in weak]
-        s[held] = s0[held]
+        # At the start's value: after a drift, the check's correction of it, which the widened prior carries.
+        s[held] = s_start[held]
         free = [k for k in free if k not in held]
     n_res = sum(len(b[0]) for b in blocks)
     z, chi2, dof = _significance(s[free] - s0[free], K[:p] + np.eye(p, len(fc)), C[np.ix_(fc, fc)], noise[:p, :p])
