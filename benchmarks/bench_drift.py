@@ -3,8 +3,9 @@
 The bundled pairs (``examples/*/images``, rendered with the exact rig of
 their ``calibration.yaml``), or a NIST part rendered once the way
 ``bench_stress.py`` renders it (framed on one of its holes, noise 2,
-``NIST_VIEW``), are inspected with that calibration moved as a rig drifts
-after calibrating:
+``NIST_VIEW``, or the part's own view in ``NIST_FRAMING``; ``--size``),
+are inspected with that calibration moved as a rig drifts after
+calibrating:
 
 - ``shift``: the right camera's principal point moved down by ``d`` px,
   which moves every epipolar line across itself by about ``d`` px (the
@@ -30,6 +31,7 @@ Usage::
     python3 benchmarks/bench_drift.py                         # plate and bracket, both kinds, 0-2 px
     python3 benchmarks/bench_drift.py --parts plate --kinds shift --levels 0,0.5,2
     python3 benchmarks/bench_drift.py --parts plate --kinds roll --levels 1 --draws 1 --refine-rig
+    python3 benchmarks/bench_drift.py --parts ftc_09 --kinds roll --levels 0,0.5,1,2 --draws 1
 """
 
 from __future__ import annotations
@@ -88,17 +90,23 @@ def true_residual(true_calib, stated, truth):
 NIST_VIEW = {"elevation": 45.0, "azimuth": 30.0, "roll": 10.0, "offset": [0.0, 0.0, 0.0], "noise": 2.0,
              "distortion": False, "seed": 1, "deviate": 0.0, "pick": 0.0}
 """How a NIST part is rendered (bench_stress's settings for one render)."""
+NIST_FRAMING = {"ftc_09": {"elevation": 30.0, "azimuth": 90.0, "pick": 42.5 / 62}}
+"""A NIST part's own view where NIST_VIEW shows too little: ftc_09 is a 3 mm
+plate whose face is its XZ plane, seen at 45 degrees elevation nearly edge
+on (two lines); from 30 degrees over +Y its face turns 30 degrees from the
+cameras, framed (bench_stress's ``pick``, a share of its circles) on
+circle-43 (x 38, z 57 mm), the hole rows at z 57 and 91 mm around it."""
 
 
-def part_inputs(part, tmp):
+def part_inputs(part, tmp, size=(2448, 2048)):
     """(STEP file, images folder, truth, tolerances file or None) of a bundled example or a NIST part."""
     if part in ("plate", "bracket"):
         ex = ROOT / "examples" / part
         return ex / "part.step", ex / "images", json.loads((ex / "truth.json").read_text()), None
     step, framing = PARTS[part]
     folder = Path(tmp) / f"render-{part}"
-    run = render_one({"index": 0, "part": part, "step": str(step), "framing": framing, **NIST_VIEW}, folder,
-                     (2448, 2048))
+    view = {**NIST_VIEW, **NIST_FRAMING.get(part, {})}
+    run = render_one({"index": 0, "part": part, "step": str(step), "framing": framing, **view}, folder, size)
     return step, folder / "images", json.loads((folder / "truth.json").read_text()), run["tolerances"]
 
 
@@ -173,15 +181,18 @@ def main():
     ap.add_argument("--levels", default="0,0.25,0.5,1,2")
     ap.add_argument("--draws", type=int, default=3, help="calibrations drawn as a board session states them")
     ap.add_argument("--refine-rig", action="store_true", help="inspect with --refine-rig")
+    ap.add_argument("--size", default="2448x2048", help="a NIST part's render size (the sample parts' pairs are bundled)")
+    ap.add_argument("--dir", help="keep a NIST part's render here (reused when there)")
     args = ap.parse_args()
     from partinspect.simulate.calibration import simulated_calibration
     from partinspect.vision.calibration import read_calibration
 
     levels = [float(v) for v in args.levels.split(",")]
     pooled = defaultdict(lambda: defaultdict(list))
+    size = tuple(int(v) for v in args.size.split("x"))
     with tempfile.TemporaryDirectory() as tmp:
         for part in args.parts.split(","):
-            step, images, truth, tolerances = part_inputs(part, tmp)
+            step, images, truth, tolerances = part_inputs(part, args.dir or tmp, size)
             calib = read_calibration(images)
             stated0 = [("exact", calib)] + [
                 (f"draw {k}", simulated_calibration(calib, np.random.default_rng(k))) for k in range(args.draws)]

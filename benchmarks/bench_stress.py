@@ -224,7 +224,14 @@ def true_value(c, truth):
     if t in ("straightness", "circularity"):
         return 0.0
     if t == "position":
-        return None if deviated and f["rendered"]["center"] != f["nominal"]["center"] else 0.0
+        if deviated and f["rendered"]["center"] != f["nominal"]["center"]:
+            return None
+        m = c.get("material")
+        if m:
+            # At MMC/LMC the value is position - bonus (tolerances/material.py): the bonus of the rendered size.
+            s = 1.0 if (m["modifier"] == "MMC") == (m["feature"] == "hole") else -1.0
+            return -s * (2.0 * f["rendered"]["radius"] - m["reference_size"])
+        return 0.0
     if t in ("distance", "angle"):
         return None if deviated else c["nominal"]
     if t == "profile":

@@ -56,6 +56,7 @@ other commands:
                                           predict each characteristic's U before measuring,
                                           and search the fixture pose where all are decidable
   inspect batch MANIFEST -o OUT [--db URL] [--resume] [--workers N] [--scheduler tcp://HOST:PORT]
+                [--refine-rig]
                                           inspect many parts (CSV/YAML manifest or SERIAL/images/
                                           folders), record them in a results database, write an SPC page
   inspect spc DB [-o OUT] [--export FILE.csv|FILE.parquet]
@@ -333,6 +334,9 @@ def _batch_parser():
     p.add_argument("--subgroup-size", metavar="N", type=int, help="SPC page: X-bar/R charts of consecutive parts "
                    "in subgroups of N (2 to 10); 1: individuals charts (default: the manifest's subgroup column "
                    "where it has one)")
+    p.add_argument("--refine-rig", action="store_true", help="refine each part's rig from its own circles, as "
+                   "inspect --refine-rig does (one image pair per part); the database's rig_refined column says "
+                   "whether each part was measured with it")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr, no summary")
     p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return p
@@ -369,7 +373,7 @@ def _run_batch(args):
     progress = _progress(args.quiet)
     result = run_batch(args.manifest, args.output, db=args.db, step=args.step, resume=args.resume,
                        workers=args.workers, scheduler=args.scheduler, progress=progress,
-                       subgroup_size=args.subgroup_size,
+                       subgroup_size=args.subgroup_size, refine_rig=args.refine_rig,
                        on_problem=lambda line: print(f"inspect batch: {line}", file=sys.stderr, flush=True))
     if not args.quiet:
         try:
@@ -527,7 +531,9 @@ def _run_inspect(args):
         raise InputError(None, f"--draws {args.draws}: a Monte Carlo needs at least 10 draws")
     views = is_views_folder(args.images)
     if views and args.refine_rig:
-        raise InputError(args.images, "--refine-rig refines the rig from one image pair; this is a views folder")
+        from partinspect.production.worker import VIEWS_NOT_REFINED
+
+        raise InputError(args.images, VIEWS_NOT_REFINED)
     more = {} if views else {"refine_rig": args.refine_rig}
     result = (run_views if views else run_inspection)(
         args.part, args.images, args.output, tolerances=args.tolerances, progress=_progress(args.quiet),

@@ -59,10 +59,12 @@ class BatchResult:
     def summary_line(self):
         n = {k: sum(r["verdict"] == k for r in self.records) for k in ("pass", "fail", "inconclusive")}
         failed = sum(r["status"] == "failed" for r in self.records)
+        asked = [r["rig_refined"] for r in self.records if r.get("rig_refined") is not None]
         return (f"BATCH {('PASS', 'FAIL', 'ERROR', 'INCONCLUSIVE')[self.exit_code]}: {len(self.records)} part(s) "
                 f"inspected: {n['pass']} pass, {n['fail']} fail, {n['inconclusive']} inconclusive, {failed} could not "
                 f"be run" + (f"; {len(self.skipped)} already done" if self.skipped else "")
                 + (f"; {len(self.problems)} manifest line(s) left out" if self.problems else "")
+                + (f"; rig refined from the part in {sum(asked)} of {len(asked)}" if asked else "")
                 + f"; database: {self.url}" + (f"; SPC: {self.spc_page}" if self.spc_page else ""))
 
 
@@ -82,7 +84,7 @@ def batch_exit_code(codes, problems=0):
 
 
 def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, scheduler=None, progress=quiet,
-              on_problem=None, spc=True, subgroup_size=None):
+              on_problem=None, spc=True, subgroup_size=None, refine_rig=False):
     """Inspect every part of ``manifest`` into ``out/SERIAL/`` and record them in the results database.
 
     Parameters
@@ -112,6 +114,10 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
         Write ``out/spc.html`` over the batch's parts when done.
     subgroup_size : int, optional
         The SPC page's subgroups (:func:`partinspect.production.spc_report.with_subgroups`).
+    refine_rig : bool
+        Every part's rig refined from its own circles, as a single run's
+        (:func:`partinspect.production.worker.inspect_part`); each part's
+        ``rig_refined`` row and the summary line say where it was.
 
     Returns
     -------
@@ -141,7 +147,7 @@ def run_batch(manifest, out, *, db=None, step=None, resume=False, workers=None, 
     progress(f"{len(todo)} part(s) to inspect" + (f", {len(result.skipped)} already done" if result.skipped else "")
              + (f" on the Dask cluster at {scheduler}" if scheduler else ""))
     run = _run_on_dask if scheduler else _run_locally
-    for i, rec in enumerate(run(todo, out.resolve(), scheduler or workers), 1):
+    for i, rec in enumerate(run(todo, out.resolve(), scheduler or workers, refine_rig), 1):
         record_part(engine, batch_id, rec["part"], rec["characteristics"])
         p = rec["part"]
         result.records.append(p)
@@ -167,7 +173,7 @@ PRELOAD = ("partinspect.pipeline", "partinspect.production.worker", "partinspect
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _run_locally(jobs, out, workers):
+def _run_locally(jobs, out, workers, refine_rig=False):
     """Each finished part's record, from a pool of worker processes that live through the batch.
 
     The workers share the CPUs: each computes on ``CPUs // workers`` of
@@ -185,7 +191,7 @@ def _run_locally(jobs, out, workers):
     if workers == 1:
         # One worker: this process is it (warm across parts all the same), with every CPU.
         for job in jobs:
-            yield inspect_part(job, out)
+            yield inspect_part(job, out, refine_rig)
         return
     import concurrent.futures as cf
     import multiprocessing
@@ -200,7 +206,7 @@ def _run_locally(jobs, out, workers):
     with _environment({v: str(threads) for v in THREAD_VARIABLES}), \
             cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=share_cpus,
                                    initargs=(threads,)) as pool:
-        futures = {pool.submit(inspect_part, job, out): job for job in jobs}
+        futures = {pool.submit(inspect_part, job, out, refine_rig): job for job in jobs}
         try:
             for f in cf.as_completed(futures):
                 try:
@@ -228,7 +234,7 @@ def _environment(values):
                 os.environ.pop(k, None)
 
 
-def _run_on_dask(jobs, out, scheduler):
+def _run_on_dask(jobs, out, scheduler, refine_rig=False):
     """Each finished part's record, from the workers of the Dask cluster at ``scheduler``."""
     try:
         from distributed import Client, as_completed
@@ -242,7 +248,7 @@ def _run_on_dask(jobs, out, scheduler):
         raise InputError(None, f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
     try:
         # pure=False: the same part inspected twice is two runs, not one cached result.
-        futures = client.map(inspect_part, jobs, out=out, pure=False)
+        futures = client.map(inspect_part, jobs, out=out, refine_rig=refine_rig, pure=False)
         job_of = {f.key: job for f, job in zip(futures, jobs)}
         for f in as_completed(futures):
             try:
@@ -262,6 +268,6 @@ def _lost(job, exc):
                      "measured_at": job.time or datetime.now(timezone.utc).replace(tzinfo=None, microsecond=0),
                      "software_version": __version__, "status": "failed", "exit_code": EXIT_ERROR, "verdict": None,
                      "error": f"its worker was lost: {type(exc).__name__}: {' '.join(str(exc).split())}",
-                     "seconds": 0.0, "subgroup": job.subgroup},
+                     "seconds": 0.0, "subgroup": job.subgroup, "rig_refined": None},
             "characteristics": []}
 

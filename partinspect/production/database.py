@@ -63,6 +63,8 @@ def _tables(version):
         parts.append(sa.Column("worker", sa.String(200)))
     if version >= 3:
         parts.append(sa.Column("subgroup", sa.String(200)))
+    if version >= 4:
+        parts.append(sa.Column("rig_refined", sa.Boolean))
     sa.Table("parts", md, *parts)
     sa.Table(
         "characteristics", md,
@@ -107,8 +109,15 @@ def _add_subgroup(conn):
     conn.execute(sa.text("ALTER TABLE parts ADD COLUMN subgroup VARCHAR(200)"))
 
 
+def _add_rig_refined(conn):
+    # Whether the part was measured with the rig refined from its own circles
+    # (``inspect batch --refine-rig``): NULL when not asked, false when asked
+    # but the circles could not determine it (report.json says why).
+    conn.execute(sa.text("ALTER TABLE parts ADD COLUMN rig_refined BOOLEAN"))
+
+
 #: Ordered steps; step i (1-based) takes the schema from version i - 1 to i.
-MIGRATIONS = (_create_v1, _add_worker_and_index, _add_subgroup)
+MIGRATIONS = (_create_v1, _add_worker_and_index, _add_subgroup, _add_rig_refined)
 SCHEMA_VERSION = len(MIGRATIONS)
 TABLES = _tables(SCHEMA_VERSION).tables
 

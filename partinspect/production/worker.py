@@ -23,6 +23,8 @@ from partinspect.atomic import remove_stale_temporaries
 from partinspect.digest import sha256_file
 from partinspect.errors import InputError
 
+VIEWS_NOT_REFINED = "--refine-rig refines the rig from one image pair; this is a views folder"
+
 # Models kept per worker; a line runs a few part numbers at a time.
 CACHE_SIZE = 8
 _MODELS = OrderedDict()
@@ -71,7 +73,7 @@ def share_cpus(threads):
         forked.ENABLED = False
 
 
-def inspect_part(job, out):
+def inspect_part(job, out, refine_rig=False):
     """Inspect one part of a batch into ``out/SERIAL``; never raises for the part's own failure.
 
     Parameters
@@ -79,12 +81,18 @@ def inspect_part(job, out):
     job : partinspect.production.manifest.Job
     out : str or Path
         The batch's output folder.
+    refine_rig : bool
+        Refine the rig from the part's circles as ``inspect --refine-rig``
+        does (:func:`partinspect.pipeline.refined_rig`); a views folder
+        cannot be, and is a part that could not be run, as at the command line.
 
     Returns
     -------
     dict
         ``part``: the ``parts`` row (status "done" or "failed", exit code,
-        verdict, inputs' sha256, timing, worker); ``characteristics``:
+        verdict, inputs' sha256, timing, worker, ``rig_refined``: None
+        when not asked, else whether the run measured with the refined
+        rig); ``characteristics``:
         report.json's characteristics (empty when the run could not be made).
     """
     from partinspect.multiview import is_views_folder, run_views
@@ -96,8 +104,12 @@ def inspect_part(job, out):
     # An earlier try of this part, killed while writing, may have left temporaries.
     remove_stale_temporaries(report_dir)
     try:
-        run = run_views if is_views_folder(job.images) else run_inspection
-        result = run(job.step, job.images, report_dir, tolerances=job.spec, load_cad=cached_model)
+        views = is_views_folder(job.images)
+        if views and refine_rig:
+            raise InputError(job.images, VIEWS_NOT_REFINED)
+        more = {} if views else {"refine_rig": refine_rig}
+        result = (run_views if views else run_inspection)(job.step, job.images, report_dir, tolerances=job.spec,
+                                                          load_cad=cached_model, **more)
         report = result.report
         status, code, verdict = "done", result.exit_code, result.verdict
     except InputError as exc:
@@ -116,7 +128,7 @@ def inspect_part(job, out):
         "software_version": __version__, "status": status, "exit_code": code, "verdict": verdict, "error": error,
         "report_dir": str(report_dir) if report is not None else None,
         "seconds": round(time.perf_counter() - t0, 3), "worker": f"{socket.gethostname()}:{os.getpid()}",
-        "subgroup": job.subgroup,
+        "subgroup": job.subgroup, "rig_refined": _rig_refined(report) if refine_rig else None,
     }
     chars = [] if report is None else [{k: c.get(k) for k in CHARACTERISTIC_KEYS} for c in report["characteristics"]]
     return {"part": part, "characteristics": chars}
@@ -152,6 +164,11 @@ def images_digest(images, names):
     folders = [(".", images)] + [(f.name, f) for f in view_folders(images)]
     lines = [f"{name}:{d}" for name, f in folders if (d := own(f)) is not None]
     return hashlib.sha256("\n".join(lines).encode()).hexdigest() if lines else None
+
+
+def _rig_refined(report):
+    """Whether the run measured with the rig refined from the part (report.json's ``rig_refinement``)."""
+    return None if report is None else bool(report.get("rig_refinement", {}).get("refined", False))
 
 
 def _spec_used(report):

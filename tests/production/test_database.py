@@ -25,8 +25,8 @@ def _char(cid, measured, decision="pass"):
 def test_a_new_database_has_the_current_schema(tmp_path):
     engine = db.open_database(f"sqlite:///{tmp_path / 'r.sqlite'}")
     with engine.connect() as conn:
-        assert db.schema_version(conn) == db.SCHEMA_VERSION == 3
-        assert {"worker", "subgroup"} <= {c["name"] for c in sa.inspect(conn).get_columns("parts")}
+        assert db.schema_version(conn) == db.SCHEMA_VERSION == 4
+        assert {"worker", "subgroup", "rig_refined"} <= {c["name"] for c in sa.inspect(conn).get_columns("parts")}
 
 
 def test_an_older_database_is_upgraded_and_keeps_its_rows(tmp_path):
@@ -44,10 +44,10 @@ def test_an_older_database_is_upgraded_and_keeps_its_rows(tmp_path):
     assert db.measurements(old) == []  # the SPC query answers on the old schema (no subgroup column)
     engine = db.open_database(url)
     with engine.connect() as conn:
-        assert db.schema_version(conn) == 3
-        assert {"worker", "subgroup"} <= {c["name"] for c in sa.inspect(conn).get_columns("parts")}
+        assert db.schema_version(conn) == 4
+        assert {"worker", "subgroup", "rig_refined"} <= {c["name"] for c in sa.inspect(conn).get_columns("parts")}
         assert conn.execute(sa.text("SELECT software_version FROM batches")).scalar_one() == "0.0.9"
-    assert db.upgrade(engine) == (3, 3)  # nothing left to do
+    assert db.upgrade(engine) == (4, 4)  # nothing left to do
 
 
 def test_a_newer_database_is_refused(tmp_path):

@@ -128,3 +128,20 @@ def test_an_oversize_part_is_not_pulled_towards_nominal(plate):
 def test_too_few_circles_is_said():
     with pytest.raises(RefinementError, match="needs 3"):
         refine_rig(read_calibration(IMAGES), [])
+
+
+def test_a_held_parameter_keeps_the_checks_correction(plate, board):
+    """Rolled 1 px after a board session: the check turns the right camera about the baseline and its axis;
+    the refinement holds rx (the images do not determine it) at the check's value, not the stated one, so
+    T's vertical direction (tb2), which trades with rx, is not pulled back: it lands within a fifth of the
+    roll's turn of T from the true rig (0.010 of 0.087 mm; reset to the stated rx, it missed 0.035)."""
+    true, left, right = plate
+    stated = replace(drifted_rig(board, "roll", 1.0), std=board.std, cov=board.cov)
+    check, ref, _ = _refined(stated, left, right)
+    assert check.verdict == "drifted" and "rx" in ref.fixed and "tb2" in ref.names
+    _, basis = rig_coordinates(stated)
+    turn = basis[1] @ (np.ravel(true.T) - np.ravel(stated.T))  # the roll's turn of T across, mm
+    miss = _rig_errors(ref.calib, true, ["tb2"])[0]
+    assert abs(turn) > 0.05 and abs(miss) < 0.2 * abs(turn), (miss, turn)
+    rx = cv2.Rodrigues(ref.calib.R)[0].ravel()[0]
+    assert rx == pytest.approx(cv2.Rodrigues(check.calib.R)[0].ravel()[0], abs=1e-12)
