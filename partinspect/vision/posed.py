@@ -5,9 +5,10 @@ registered, every CAD edge's image is known (as polylines in distorted
 pixels, :func:`partinspect.cad.projection.edge_polylines`), and three
 things the blind pass cannot do become possible:
 
-- a registered line's end points near another edge's image are left out
-  and the line refitted (a faint edge displaces a neighbour's points
-  without giving points of its own);
+- a registered line's or arc's end points near another edge's image are
+  left out and the feature refitted (a faint edge displaces a neighbour's
+  points without giving points of its own; a rim running into the edge
+  that hides it is pushed off by it);
 - a registered line all of whose points in one image lie on another edge's
   image, and that disagrees with the pose, is taken out with the reason;
 - collinear CAD edges, one straight line in each image, are measured on
@@ -72,11 +73,13 @@ def posed_stereo(stereo, registration, seen, inv, calib, polylines):
 
 
 def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
-    """``stereo`` with its registered lines fitted again clear of the other edges' images at their ends.
+    """``stereo`` with its registered lines and arcs fitted again clear of the other edges' images at their ends.
 
     Under the registered pose every CAD edge's image is known, faint ones
     too, whose grey step displaces a line's end points without giving edge
-    points of its own (:func:`partinspect.vision.guided.clear_line_ends`).
+    points of its own (:func:`partinspect.vision.guided.clear_line_ends`),
+    and the occluding edge a rim runs into where it passes out of sight
+    (:func:`partinspect.vision.guided.clear_arc_ends`).
     ``seen``: the visibility of each CAD feature, to take in each image
     only the edges it sees; None to take every edge (more points left out
     near hidden edges' images, never fewer). ``polylines``: every CAD
@@ -101,18 +104,22 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     """
     from dataclasses import replace
 
-    from partinspect.vision.guided import clear_line_ends
+    from partinspect.vision.guided import clear_arc_ends, clear_line_ends
 
     at = [k for k, f in enumerate(stereo.features) if f.kind == "line"]
     lines = {at[i]: cid for i, cid in registration.assignment["line"].items()}
-    if not lines:
+    at = [k for k, f in enumerate(stereo.features) if f.kind != "line"]
+    arcs = {at[i]: cid for i, cid in registration.assignment["circle"].items()}
+    if not lines and not arcs:
         return stereo, {}, {}
     images = {}
     for f in inv.features:
         shown = (1.0, 1.0) if seen is None else seen[f.id].seen
         if max(shown) > 0:
             images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(polylines[f.id], shown))
+    stereo, arc_cleared = clear_arc_ends(stereo, calib, arcs, images)
     stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)
+    cleared = {**arc_cleared, **cleared}
     withdrawn = {}
     for cid, (side, other) in covered.items():
         if cid in registration.outliers and other is not None:
