@@ -411,7 +411,10 @@ def clear_arc_ends(stereo, calib, arcs, images, *, min_points=12):
         it was registered as.
     images : dict of str to (ndarray (M, 2), ndarray (M, 2))
         As :func:`clear_line_ends`'s: per edge that shows in the images, its
-        image in the left and the right image (distorted px).
+        whole image in the left and the right image (distorted px), hidden
+        stretches included: where a rim passes behind a face, the face's
+        outline (no CAD edge) continues it in the image, and the hidden
+        stretch's image stands for it.
     min_points : int
         Points each image must keep; an arc that would keep fewer stays as
         it was.
