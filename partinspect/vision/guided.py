@@ -139,13 +139,13 @@ class _Crowd:
         pts = np.concatenate(polys + [np.zeros((0, 2))])
         self.tree = cKDTree(pts) if len(pts) else None
 
-    def clear_of_others(self, uv, cid, reach):
-        """Mask of the points ``uv`` farther than ``reach`` px from every edge's image but ``cid``'s."""
+    def clear_of_others(self, uv, cid, reach, ignore=()):
+        """Mask of the points ``uv`` farther than ``reach`` px from every edge's image but ``cid``'s (and ``ignore``'s)."""
         if self.tree is None or len(uv) == 0:
             return np.ones(len(uv), bool)
-        k = self.ids.index(cid)
+        own = [self.ids.index(i) for i in (cid, *ignore) if i in self.ids]
         near = self.tree.query_ball_point(uv, reach)
-        return np.array([not np.any(self.owner[n] != k) for n in near], bool)
+        return np.array([np.isin(self.owner[n], own).all() for n in near], bool)
 
     def nearest_other(self, uv, cid):
         """The edge other than ``cid`` whose image lies nearest to most of the points ``uv`` (None: no other)."""
@@ -380,7 +380,7 @@ def arc_stretch(feature, keep, corr_length):
 _ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
 
 
-def clear_arc_ends(stereo, calib, arcs, images, *, min_points=12):
+def clear_arc_ends(stereo, calib, arcs, images, *, meets=None, min_points=12):
     """Measured arcs fitted again without their end points that lie near another edge's image.
 
     Where a rim passes out of sight behind a face of the part, the edge
@@ -415,6 +415,11 @@ def clear_arc_ends(stereo, calib, arcs, images, *, min_points=12):
         stretches included: where a rim passes behind a face, the face's
         outline (no CAD edge) continues it in the image, and the hidden
         stretch's image stands for it.
+    meets : dict of str to set of str, optional
+        Per arc, the edges that meet it at its ends: they do not crowd it
+        (where a slot's side runs tangentially into its round end, the
+        side continues the same grey step; the segmentation ends the arc
+        at the junction).
     min_points : int
         Points each image must keep; an arc that would keep fewer stays as
         it was.
@@ -451,7 +456,7 @@ def clear_arc_ends(stereo, calib, arcs, images, *, min_points=12):
         kept, lost = [], []
         for side, res in enumerate((L, R)):
             f = res.features[f3.left if side == 0 else f3.right]
-            bad = ~crowds[side].clear_of_others(f.uv, cid, reach[side])
+            bad = ~crowds[side].clear_of_others(f.uv, cid, reach[side], (meets or {}).get(cid, ()))
             kept.append(np.flatnonzero(~bad))
             lost.append(int(bad.sum()))
         if not any(lost) or min(len(x) for x in kept) < min_points:

@@ -18,7 +18,7 @@ The inventory and registration are taken as arguments (objects with the
 attributes used here); this module imports nothing of :mod:`partinspect.cad`.
 """
 
-__all__ = ["merged_stereo", "image_owners", "posed_stereo", "cleared_stereo", "guided_stereo"]
+__all__ = ["merged_stereo", "image_owners", "posed_stereo", "cleared_stereo", "meeting", "guided_stereo"]
 
 
 def merged_stereo(base, new, registration, ids):
@@ -112,12 +112,16 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     arcs = {at[i]: cid for i, cid in registration.assignment["circle"].items()}
     if not lines and not arcs:
         return stereo, {}, {}
+    by_id = {f.id: f for f in inv.features}
     images = {}
     for f in inv.features:
         shown = (1.0, 1.0) if seen is None else seen[f.id].seen
         if max(shown) > 0:
             images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(polylines[f.id], shown))
-    stereo, arc_cleared = clear_arc_ends(stereo, calib, arcs, images)
+    # A smooth edge (tangent faces) shows no grey step of its own: it crowds no rim.
+    steps = {fid: uv for fid, uv in images.items() if not by_id[fid].smooth or fid in arcs.values()}
+    stereo, arc_cleared = clear_arc_ends(stereo, calib, arcs, steps,
+                                         meets={cid: meeting(by_id[cid], inv.features) for cid in arcs.values()})
     stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)
     cleared = {**arc_cleared, **cleared}
     withdrawn = {}
@@ -133,6 +137,23 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     stereo = replace(stereo, features=tuple(f for k, f in enumerate(stereo.features) if k not in gone),
                      withdrawn=tuple(withdrawn.items()))
     return stereo, cleared, withdrawn
+
+
+def meeting(feature, features, tol=1e-3):
+    """Ids of the edges with an end point within ``tol`` mm of one of ``feature``'s (none for a whole circle)."""
+    import numpy as np
+
+    if feature.start is None:
+        return set()
+    ends = np.array([feature.start, feature.end], float)
+    out = set()
+    for g in features:
+        if g.id == feature.id or g.start is None:
+            continue
+        d = np.linalg.norm(ends[:, None, :] - np.array([g.start, g.end], float)[None], axis=2)
+        if d.min() < tol:
+            out.add(g.id)
+    return out
 
 
 def guided_stereo(stereo, registration, seen, inv, calib, polylines):
