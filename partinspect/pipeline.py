@@ -397,7 +397,7 @@ def settle(inputs, stereo, registration, progress):
         # ``more`` is ``stereo`` with the stretches found but not measured, if any.
         return more, registration, seen
     if ends:
-        progress(f"{len(ends)} line(s) fitted again clear of the edges at their ends")
+        progress(f"{len(ends)} edge(s) fitted again clear of other edges at their ends")
     if withdrawn:
         progress(f"{len(withdrawn)} line(s) taken out: another edge's image paired with theirs")
     if found:

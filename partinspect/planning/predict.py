@@ -61,6 +61,7 @@ __all__ = [
     "background_terms",
     "predict_feature",
     "predict_pose",
+    "tied_registration",
 ]
 
 EPIPOLAR_MIN_ANGLE = MIN_EPIPOLAR_ANGLE
@@ -267,6 +268,11 @@ class PosePrediction:
     registration : Registration or None
     registration_error : str or None
     max_ratio : float
+    label : str
+    angles : tuple
+    ambiguity : str
+        Where poses tie (:func:`tied_registration`): the tie in words, as
+        ``inspect`` would state it; "" when the pose is not ambiguous.
     """
 
     part_to_camera: np.ndarray
@@ -277,6 +283,7 @@ class PosePrediction:
     max_ratio: float = DEFAULT_RATIO
     label: str = ""
     angles: tuple = field(default=())
+    ambiguity: str = ""
 
     @property
     def n_decidable(self):
@@ -842,12 +849,82 @@ def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, mo
             reg = register(*records, inventory, datums=None, pose_hint=P)
     except RegistrationError as exc:
         reg_error = f"no registration: {exc.problem}"
+    if reg is not None:
+        reg = tied_registration(reg, [fp.record for fp in circles], [fp.record for fp in lines], inventory,
+                                used_datums, P)
     preds = []
     parts = reg.features_in_part_frame() if reg is not None else None
+
+    def evaluate(c, r, p):
+        return evaluate_characteristic(c, p, r, inventory, seed=seed, n_mc=n_mc or N_MC, one_scene=not model.systematic)
+
+    rival_parts = [r.registration.features_in_part_frame() for r in reg.competing] if reg is not None else []
     for c in characteristics:
-        ev = None
-        if reg is not None:
-            ev = evaluate_characteristic(c, parts, reg, inventory, seed=seed, n_mc=n_mc or N_MC,
-                                         one_scene=not model.systematic)
-        preds.append(_characteristic_prediction(c, ev, features, max_ratio, reg_error))
-    return PosePrediction(P, features, preds, reg, reg_error, max_ratio, label, tuple(angles))
+        ev = evaluate(c, reg, parts) if reg is not None else None
+        pred = _characteristic_prediction(c, ev, features, max_ratio, reg_error)
+        if rival_parts and ev is not None and ev.standard_uncertainty is not None:
+            pred = _across_poses(pred, ev, reg, rival_parts, evaluate)
+        preds.append(pred)
+    return PosePrediction(P, features, preds, reg, reg_error, max_ratio, label, tuple(angles),
+                          reg.ambiguity if reg is not None and reg.competing else "")
+
+
+def tied_registration(reg, circles, lines, inventory, datums, part_to_camera):
+    """``reg`` with the poses that explain its features as well as the true pose, as ``inspect`` would find them.
+
+    The prediction registers with the true pose as hint, which skips the
+    search and so never sees a tie. ``inspect`` searches
+    (:func:`partinspect.cad.registration.register` without a hint): where
+    the features measured are symmetric and the CAD model is not (a
+    clocking feature out of sight), several poses tie
+    (:mod:`partinspect.cad.ties`). The same search is made here on the
+    predicted features; where it finds a tie, the registration is made
+    again from the true pose and the tied ones, the true pose first, so the
+    competing poses are named relative to it.
+
+    Parameters
+    ----------
+    reg : Registration
+        At the true pose.
+    circles, lines : list
+        The predicted measured features' records, rig frame.
+    inventory : Inventory
+    datums : list of str or None
+    part_to_camera : ndarray, shape (4, 4)
+        The true pose.
+
+    Returns
+    -------
+    Registration
+        ``reg`` itself when nothing ties (or the search fails: the hinted
+        registration stands), else one with ``competing`` poses.
+    """
+    from partinspect.cad.registration import RegistrationError, register
+
+    try:
+        found = register(circles, lines, inventory, datums=datums)
+        if not found.competing:
+            return reg
+        hints = np.concatenate([np.asarray(part_to_camera, float)[None], found.poses])
+        return register(circles, lines, inventory, datums=datums, pose_hint=hints)
+    except RegistrationError:
+        return reg
+
+
+def _across_poses(pred, ev, reg, rival_parts, evaluate):
+    """``pred`` not decidable when its characteristic depends on which of the tied poses is right.
+
+    As ``inspect`` judges it (:func:`partinspect.tolerances.ambiguity.dependence`):
+    its CAD features matched to other measured edges under a competing
+    pose, or its value there differing beyond the uncertainty. Such a
+    characteristic comes out inconclusive whatever its U.
+    """
+    from partinspect.tolerances.ambiguity import alike, dependence, depends_on_words
+
+    c = pred.characteristic
+    rivals = [evaluate(c, r.registration, p) if alike([c], reg, r.registration) else None
+              for r, p in zip(reg.competing, rival_parts)]
+    what = dependence(c, ev, reg, rivals)
+    if what is None:
+        return pred
+    return dataclasses.replace(pred, decidable=False, reason=f"{depends_on_words(reg)}; {what}")

@@ -55,6 +55,7 @@ def _pose_dict(pred, center):
         "part_to_camera": np.round(pred.part_to_camera, 12).tolist(),
         "decidable": pred.n_decidable,
         "registration_error": pred.registration_error,
+        "ambiguity": pred.ambiguity or None,
         "characteristics": [c.to_dict() for c in pred.characteristics],
         "features": _features_dict(pred),
     }
@@ -199,6 +200,8 @@ def plan_table(result):
                     if start.not_inspected() else ""))
     if start.registration_error:
         lines.append(f"  {start.registration_error}")
+    if start.ambiguity:
+        lines.append(f"  pose ambiguous: {start.ambiguity}")
     for c in start.undecidable():
         lines.append(f"  {c.id}: {c.reason}")
     for c in start.characteristics:
@@ -212,6 +215,8 @@ def plan_table(result):
         from partinspect.planning.search import pose_text
 
         lines.append(f"  --pose {pose_text(best.part_to_camera, result.center)}")
+        if best.ambiguity:
+            lines.append(f"  pose ambiguous: {best.ambiguity}")
         fixed = [cb.id for cs, cb in zip(start.characteristics, best.characteristics) if cb.decidable and not cs.decidable]
         if fixed:
             lines.append(f"  makes decidable: {', '.join(fixed)}")

@@ -35,7 +35,7 @@ from dataclasses import replace
 
 from partinspect.tolerances.decision import INCONCLUSIVE
 
-__all__ = ["assigned", "alike", "agree", "reconcile", "pose_words"]
+__all__ = ["assigned", "alike", "agree", "reconcile", "pose_words", "depends_on_words", "dependence"]
 
 
 def assigned(registration, cad_id):
@@ -92,6 +92,49 @@ def _deciding(registration):
     return ids
 
 
+def depends_on_words(registration):
+    """The head of the reason of a characteristic that depends on which competing pose is right."""
+    deciding = _deciding(registration)
+    tell = (f" ({', '.join(deciding)}, which would tell, {'was' if len(deciding) == 1 else 'were'} not measured)"
+            if deciding else "")
+    return (f"depends on {pose_words(registration)} is right: the measured features are symmetric, "
+            f"the CAD model is not{tell}")
+
+
+def dependence(c, evaluation, registration, rival_evaluations):
+    """What makes a characteristic depend on the pose, as :func:`reconcile` judges it, without decisions.
+
+    For the plan, which predicts uncertainties and makes no decisions: the
+    test is :func:`reconcile`'s but for the decision's (the value's
+    agreement within E_n <= 1 stands for it).
+
+    Parameters
+    ----------
+    c : Characteristic
+    evaluation : Evaluation
+        Under ``registration``.
+    registration : Registration
+        With ``competing`` poses.
+    rival_evaluations : list
+        One per competing pose: the characteristic's Evaluation under it,
+        or None where it was not evaluated.
+
+    Returns
+    -------
+    str or None
+        None when the characteristic is the same under every pose; else
+        what differs, in words.
+    """
+    differing = []
+    for rival in registration.competing:
+        differing += [fid for fid in _differing(c, registration, rival.registration) if fid not in differing]
+    if differing:
+        return f"{', '.join(differing)} {'is' if len(differing) == 1 else 'are'} matched to different measured edges in them"
+    if all(o is not None and agree(o, evaluation) for o in rival_evaluations):
+        return None
+    return "its value differs beyond the uncertainty"
+
+
 def reconcile(decisions, registration, rival_decisions):
     """The decisions under the best pose, made inconclusive where a competing pose would decide otherwise.
 
@@ -118,11 +161,7 @@ def reconcile(decisions, registration, rival_decisions):
     """
     if not registration.competing:
         return list(decisions)
-    deciding = _deciding(registration)
-    tell = (f" ({', '.join(deciding)}, which would tell, {'was' if len(deciding) == 1 else 'were'} not measured)"
-            if deciding else "")
-    head = (f"depends on {pose_words(registration)} is right: the measured features are symmetric, "
-            f"the CAD model is not{tell}")
+    head = depends_on_words(registration)
     out = []
     for d in decisions:
         c = d.evaluation.characteristic

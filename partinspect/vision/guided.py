@@ -23,7 +23,8 @@ from dataclasses import replace
 import numpy as np
 
 from partinspect.vision.contours import CLEARANCE, arc_length, end_runs
-from partinspect.vision.fitting import fit_line, line_with_covariance
+from partinspect.vision.edges import BACKGROUND_DISTANCES
+from partinspect.vision.fitting import fit_ellipse, fit_line, line_with_covariance
 from partinspect.vision.ideal import IDEAL_FIELDS
 from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, line_angles
 from partinspect.vision.stereo import measure_pair_feature
@@ -138,13 +139,13 @@ class _Crowd:
         pts = np.concatenate(polys + [np.zeros((0, 2))])
         self.tree = cKDTree(pts) if len(pts) else None
 
-    def clear_of_others(self, uv, cid, reach):
-        """Mask of the points ``uv`` farther than ``reach`` px from every edge's image but ``cid``'s."""
+    def clear_of_others(self, uv, cid, reach, ignore=()):
+        """Mask of the points ``uv`` farther than ``reach`` px from every edge's image but ``cid``'s (and ``ignore``'s)."""
         if self.tree is None or len(uv) == 0:
             return np.ones(len(uv), bool)
-        k = self.ids.index(cid)
+        own = [self.ids.index(i) for i in (cid, *ignore) if i in self.ids]
         near = self.tree.query_ball_point(uv, reach)
-        return np.array([not np.any(self.owner[n] != k) for n in near], bool)
+        return np.array([np.isin(self.owner[n], own).all() for n in near], bool)
 
     def nearest_other(self, uv, cid):
         """The edge other than ``cid`` whose image lies nearest to most of the points ``uv`` (None: no other)."""
@@ -345,6 +346,138 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
         return stereo, {}, covered
     return replace(stereo, left=replace(L, features=lefts), right=replace(R, features=rights),
                    features=tuple(feats)), cleared, covered
+
+
+def arc_stretch(feature, keep, corr_length):
+    """An image arc feature restricted to some of its points and fitted again.
+
+    Parameters
+    ----------
+    feature : EdgeFeature
+        An arc (:class:`partinspect.vision.stereo.EdgeFeature`).
+    keep : ndarray of int, shape (K,)
+        Positions of the kept points in the feature's point arrays.
+    corr_length : float
+        Correlation length of the points' noise along the edge, px.
+
+    Returns
+    -------
+    EdgeFeature
+        Same kind, segments, polarity and blur; its points and their per
+        point data (ideal coordinates, edge normals, background readings)
+        those at ``keep``; its ellipse (with covariance) fitted to those
+        points alone, from the whole arc's ellipse as start, without the
+        smoothing-bias correction (as the chain fits arcs).
+    """
+    keep = np.asarray(keep, int)
+    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in IDEAL_FIELDS})
+    fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
+    per_point = {name: getattr(feature, name)[keep] for name in _ARC_POINT_FIELDS if getattr(feature, name) is not None}
+    return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
+                   ideal=ideal, fit=fit, **per_point)
+
+
+_ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
+
+
+def clear_arc_ends(stereo, calib, arcs, images, *, meets=None, min_points=12):
+    """Measured arcs fitted again without their end points that lie near another edge's image.
+
+    Where a rim passes out of sight behind a face of the part, the edge
+    that hides it (a counterbore's or a bore's upper rim, seen across the
+    wall) runs into it in the image: over its last few px the rim and the
+    occluding edge are closer than the edge filter's reach, the thin band
+    of the wall between them is smoothed into both, and the rim's points
+    are pushed off it, all to one side. They run up to the arc's ends,
+    where they set its ellipse's extent: the measured circle comes out
+    several tenths of a mm large, by many of its standard uncertainties
+    (the fit's Type A sees a smooth arc). The segmentation keeps arcs'
+    crowded points (:func:`partinspect.vision.contours._make_segments`:
+    a rim's own two sides meet at its tips); once the pose is known, the
+    other edges' images say which points another edge crowds: those
+    within ``CLEARANCE`` edge widths of the reach of the shading reading
+    (``max(BACKGROUND_DISTANCES)`` px) are left out, wherever they lie on
+    the arc (an ellipse needs no run of points to stay one edge, unlike a
+    line, :func:`clear_line_ends`), by position alone, never by residual.
+    The same reading beside a hub's top rim, where the rim at its foot
+    comes near it at the sides, turns a round rim out of round.
+
+    Parameters
+    ----------
+    stereo : StereoResult
+    calib : StereoCalibration
+    arcs : dict of int to str
+        Index into ``stereo.features`` of a measured circle -> the CAD edge
+        it was registered as.
+    images : dict of str to (ndarray (M, 2), ndarray (M, 2))
+        As :func:`clear_line_ends`'s: per edge that shows in the images, its
+        whole image in the left and the right image (distorted px), hidden
+        stretches included: where a rim passes behind a face, the face's
+        outline (no CAD edge) continues it in the image, and the hidden
+        stretch's image stands for it.
+    meets : dict of str to set of str, optional
+        Per arc, the edges that meet it at its ends: they do not crowd it
+        (where a slot's side runs tangentially into its round end, the
+        side continues the same grey step; the segmentation ends the arc
+        at the junction).
+    min_points : int
+        Points each image must keep; an arc that would keep fewer stays as
+        it was.
+
+    Returns
+    -------
+    stereo : StereoResult
+        The arcs that lost points refitted (image features at the same
+        indices, and their 3D circles); an arc whose refit fails, or whose
+        two images' arcs are then not one circle, stays as it was.
+    cleared : dict of str to (int, int)
+        Edge -> points left out in the left and the right image.
+
+    References
+    ----------
+    .. [1] Canny, J. (1986). A computational approach to edge detection.
+       IEEE TPAMI 8(6), 679-698 (section on the interaction of nearby
+       edges under the smoothing filter).
+    """
+    L, R, geo = stereo.left, stereo.right, stereo.geometry
+    sigma = float(L.edges.sigma)
+    crowds = [_Crowd(images, 0), _Crowd(images, 1)]
+    # The shading beside a rim is read up to max(BACKGROUND_DISTANCES) px
+    # off it, and another edge's smoothing reaches CLEARANCE edge widths
+    # beyond that reading.
+    reach = [max(BACKGROUND_DISTANCES) + CLEARANCE * float(np.median(res.edges.width)) if len(res.edges.width)
+             else 0.0 for res in (L, R)]
+    lefts, rights, feats = list(L.features), list(R.features), list(stereo.features)
+    cleared = {}
+    for k, cid in arcs.items():
+        f3 = stereo.features[k]
+        if f3.kind != "arc" or cid not in images:
+            continue
+        kept, lost = [], []
+        for side, res in enumerate((L, R)):
+            f = res.features[f3.left if side == 0 else f3.right]
+            bad = ~crowds[side].clear_of_others(f.uv, cid, reach[side], (meets or {}).get(cid, ()))
+            kept.append(np.flatnonzero(~bad))
+            lost.append(int(bad.sum()))
+        if not any(lost) or min(len(x) for x in kept) < min_points:
+            continue
+        scale = L.features[f3.left].corr_length or sigma
+        try:
+            fl, fr = (res.features[i] if not n else arc_stretch(res.features[i], keep, scale)
+                      for res, i, keep, n in zip((L, R), (f3.left, f3.right), kept, lost))
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
+                                      fl, fr, calib, geo, scale, stereo.edge_break)
+        if new is None:
+            continue
+        lefts[f3.left], rights[f3.right] = fl, fr
+        feats[k] = replace(new, guided=f3.guided)
+        cleared[cid] = tuple(lost)
+    if not cleared:
+        return stereo, {}
+    return replace(stereo, left=replace(L, features=lefts), right=replace(R, features=rights),
+                   features=tuple(feats)), cleared
 
 
 def _concat(features, positions):

@@ -5,9 +5,10 @@ registered, every CAD edge's image is known (as polylines in distorted
 pixels, :func:`partinspect.cad.projection.edge_polylines`), and three
 things the blind pass cannot do become possible:
 
-- a registered line's end points near another edge's image are left out
-  and the line refitted (a faint edge displaces a neighbour's points
-  without giving points of its own);
+- a registered line's or arc's end points near another edge's image are
+  left out and the feature refitted (a faint edge displaces a neighbour's
+  points without giving points of its own; a rim running into the edge
+  that hides it is pushed off by it);
 - a registered line all of whose points in one image lie on another edge's
   image, and that disagrees with the pose, is taken out with the reason;
 - collinear CAD edges, one straight line in each image, are measured on
@@ -17,7 +18,7 @@ The inventory and registration are taken as arguments (objects with the
 attributes used here); this module imports nothing of :mod:`partinspect.cad`.
 """
 
-__all__ = ["merged_stereo", "image_owners", "posed_stereo", "cleared_stereo", "guided_stereo"]
+__all__ = ["merged_stereo", "image_owners", "posed_stereo", "cleared_stereo", "meeting", "guided_stereo"]
 
 
 def merged_stereo(base, new, registration, ids):
@@ -72,11 +73,13 @@ def posed_stereo(stereo, registration, seen, inv, calib, polylines):
 
 
 def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
-    """``stereo`` with its registered lines fitted again clear of the other edges' images at their ends.
+    """``stereo`` with its registered lines and arcs fitted again clear of the other edges' images at their ends.
 
     Under the registered pose every CAD edge's image is known, faint ones
     too, whose grey step displaces a line's end points without giving edge
-    points of its own (:func:`partinspect.vision.guided.clear_line_ends`).
+    points of its own (:func:`partinspect.vision.guided.clear_line_ends`),
+    and the occluding edge a rim runs into where it passes out of sight
+    (:func:`partinspect.vision.guided.clear_arc_ends`).
     ``seen``: the visibility of each CAD feature, to take in each image
     only the edges it sees; None to take every edge (more points left out
     near hidden edges' images, never fewer). ``polylines``: every CAD
@@ -101,18 +104,26 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     """
     from dataclasses import replace
 
-    from partinspect.vision.guided import clear_line_ends
+    from partinspect.vision.guided import clear_arc_ends, clear_line_ends
 
     at = [k for k, f in enumerate(stereo.features) if f.kind == "line"]
     lines = {at[i]: cid for i, cid in registration.assignment["line"].items()}
-    if not lines:
+    at = [k for k, f in enumerate(stereo.features) if f.kind != "line"]
+    arcs = {at[i]: cid for i, cid in registration.assignment["circle"].items()}
+    if not lines and not arcs:
         return stereo, {}, {}
+    by_id = {f.id: f for f in inv.features}
     images = {}
     for f in inv.features:
         shown = (1.0, 1.0) if seen is None else seen[f.id].seen
         if max(shown) > 0:
             images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(polylines[f.id], shown))
+    # A smooth edge (tangent faces) shows no grey step of its own: it crowds no rim.
+    steps = {fid: uv for fid, uv in images.items() if not by_id[fid].smooth or fid in arcs.values()}
+    stereo, arc_cleared = clear_arc_ends(stereo, calib, arcs, steps,
+                                         meets={cid: meeting(by_id[cid], inv.features) for cid in arcs.values()})
     stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)
+    cleared = {**arc_cleared, **cleared}
     withdrawn = {}
     for cid, (side, other) in covered.items():
         if cid in registration.outliers and other is not None:
@@ -126,6 +137,23 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     stereo = replace(stereo, features=tuple(f for k, f in enumerate(stereo.features) if k not in gone),
                      withdrawn=tuple(withdrawn.items()))
     return stereo, cleared, withdrawn
+
+
+def meeting(feature, features, tol=1e-3):
+    """Ids of the edges with an end point within ``tol`` mm of one of ``feature``'s (none for a whole circle)."""
+    import numpy as np
+
+    if feature.start is None:
+        return set()
+    ends = np.array([feature.start, feature.end], float)
+    out = set()
+    for g in features:
+        if g.id == feature.id or g.start is None:
+            continue
+        d = np.linalg.norm(ends[:, None, :] - np.array([g.start, g.end], float)[None], axis=2)
+        if d.min() < tol:
+            out.add(g.id)
+    return out
 
 
 def guided_stereo(stereo, registration, seen, inv, calib, polylines):
