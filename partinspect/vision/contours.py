@@ -87,12 +87,6 @@ _SIGMA_TOL_REFIT = 1e-3
 # than a point's noise.
 CLEARANCE = 3.0
 
-# An arc's point displaced by more than this many edge widths w by a second
-# step across its profile (EdgePoints.neighbour_bias) is left out of its fit
-# (_beside_step): the displacement an equal step at CLEARANCE widths gives,
-# CLEARANCE exp(-CLEARANCE^2 / 2), so that arcs keep the clearance lines do.
-CROWDED_BIAS = CLEARANCE * np.exp(-0.5 * CLEARANCE ** 2)
-
 # A line piece's own end point this many of its standard uncertainties off
 # the fitted line is on another edge (see _off_line); noise alone puts an
 # on-line point there with probability 6e-7.
@@ -766,12 +760,10 @@ def _make_segments(edges, contours, contour_ids, accepted, refit, min_points):
     for a stretch would otherwise lose it; the chi-square test of the
     segmentation has passed them. Arcs keep theirs: the two sides of a rim
     seen nearly edge-on come within the reach of each other at its tips,
-    whose points fix the ellipse's major axis. An arc's points that a
-    second step across their profile displaces more than a line's
-    clearance allows are left out instead, wherever they lie on it
-    (:func:`_beside_step`). A line left with fewer than ``min_points`` is
+    whose points fix the ellipse's major axis. A line left with fewer than
+    ``min_points`` is
     dropped, and one that lost points is refitted whatever ``refit``
-    says; an arc that would be left with fewer keeps its points.
+    says.
 
     Parameters
     ----------
@@ -792,18 +784,13 @@ def _make_segments(edges, contours, contour_ids, accepted, refit, min_points):
     crowded = _crowded(edges, whole, [todo[k][5] for k in lines], reach,
                        [_off_line(edges, idx, todo[k][4], todo[k][5]) for k, idx in zip(lines, whole)])
     ends = dict(zip(lines, map(end_runs, crowded)))
-    for k, t in enumerate(todo):
-        if t[3] == "arc":
-            ends[k] = _beside_step(edges, t[0].index[t[2]], t[5])
     out, arcs = [], []
     for k, (contour, cid, pos, kind, fit, fit_index) in enumerate(todo):
         bad = ends.get(k)
         trimmed = bad is not None and bool(bad.any())
-        if trimmed and (~bad).sum() < min_points:
-            if kind == "line":
-                continue
-            trimmed = False
         if trimmed:
+            if (~bad).sum() < min_points:
+                continue
             fit_index = fit_index[~bad]
         xy, cov = edges.xy[fit_index], edges.cov[fit_index]
         if not (refit or trimmed):
@@ -823,45 +810,6 @@ def _make_segments(edges, contours, contour_ids, accepted, refit, min_points):
     for (k, _), fit in zip(arcs, refits):
         out[k] = replace(out[k], fit=fit)
     return out
-
-
-def _beside_step(edges, piece, fitted):
-    """An arc's fitted points displaced by a second step across their profile.
-
-    ``EdgePoints.neighbour_bias`` is the displacement a step within the
-    detector's reach gives a point (a dark line inside a hole's rim, a
-    close edge beside it): a point it moves by more than
-    ``CROWDED_BIAS`` edge widths is as crowded as a line's end within
-    ``CLEARANCE`` widths of another edge. The fixed pattern of that step
-    does not average out along the rim, and the grey-dependent noise of a
-    bright face can leave the stretch within the segmentation's test. A
-    step that is the arc's own edge (the other side of a narrow ellipse at
-    its tips, whose smoothing the blur correction of the fits models)
-    does not count: where it lies within an edge width of a point of the
-    same piece.
-
-    Parameters
-    ----------
-    edges : EdgePoints
-    piece : ndarray of int
-        The arc's edge point indices, its unfitted ends too.
-    fitted : ndarray of int
-        The indices of the points it fits.
-
-    Returns
-    -------
-    ndarray of bool, shape (len(fitted),)
-    """
-    if edges.neighbour_bias is None or len(fitted) == 0:
-        return np.zeros(len(fitted), bool)
-    w = float(np.median(edges.width))
-    bad = edges.neighbour_bias[fitted] > CROWDED_BIAS * w
-    if bad.any():
-        i = fitted[bad]
-        step = edges.xy[i] + edges.neighbour_offset[i, None] * edges.normal[i]
-        own = cKDTree(edges.xy[piece]).query(step, distance_upper_bound=w)[0] < w
-        bad[np.flatnonzero(bad)[own]] = False
-    return bad
 
 
 def end_runs(bad):

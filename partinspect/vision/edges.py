@@ -50,7 +50,6 @@ __all__ = [
     "edge_error_correlation",
     "background_shift_std",
     "noise_scale_map",
-    "neighbour_steps",
 ]
 
 # Variance of a point's position along the edge, px^2. The along-edge
@@ -93,19 +92,6 @@ of rim points in the 3D fits (:mod:`partinspect.vision.stereo`, the bound
 averaged along the edge) and, with the bound as read at each point, in the
 segmentation's test of the whole of a closed contour and of two arcs
 together (:mod:`partinspect.vision.contours`)."""
-# Where :func:`neighbour_steps` looks for a second step across an edge point,
-# in step widths W from the point. Inside 2 W two steps merge into one
-# profile (whose width the point's own reading sees), and the point's own
-# profile departs from a Gaussian by as much (a disc PSF, the concave side
-# of a small rim); a step beyond 4 W moves the point by under 4 exp(-8) W,
-# 0.1 % of W per unit contrast ratio.
-NEIGHBOUR_RANGE = (2.0, 4.0)
-# px between the samples of the profile read by neighbour_steps.
-NEIGHBOUR_STEP = 0.25
-# A peak of the profile left beside an edge point is a second step when it
-# exceeds this many standard deviations of a gradient component's noise:
-# edge_points' own low threshold, a step the detector could see.
-STEP_THRESHOLD = 4.0
 # px: wider profiles are not step edges (a plateau of the gradient magnitude
 # on a shading ramp steeper than the thresholds); optical blur of a usable
 # image keeps step edges well below it.
@@ -163,14 +149,6 @@ class EdgePoints:
         where it depends on the grey level (photon noise, pixel response
         non-uniformity; :func:`partinspect.vision.noise.noise_level_function`);
         None where it is the same everywhere. ``cov`` includes it.
-    neighbour_bias : ndarray, shape (N,) or None
-        Displacement of each point by a second step across its profile
-        within the detector's reach, px (:func:`neighbour_steps`); 0 where
-        there is none. Not applied to ``xy``.
-    neighbour_offset : ndarray, shape (N,) or None
-        Where that step lies, px along the normal from the point (NaN where
-        there is none): whether it is the point's own edge (the other side
-        of a narrow ellipse) or another.
     """
 
     xy: np.ndarray
@@ -186,8 +164,6 @@ class EdgePoints:
     background_shift: np.ndarray | None = None
     background_bound: np.ndarray | None = None
     noise_scale: np.ndarray | None = None
-    neighbour_bias: np.ndarray | None = None
-    neighbour_offset: np.ndarray | None = None
 
     def __len__(self):
         return len(self.xy)
@@ -200,8 +176,7 @@ class EdgePoints:
     def take(self, index):
         """The subset of points selected by an index array or boolean mask."""
         opt = [None if a is None else a[index] for a in (self.background_shift, self.background_bound,
-                                                           self.noise_scale, self.neighbour_bias,
-                                                           self.neighbour_offset)]
+                                                           self.noise_scale)]
         return EdgePoints(self.xy[index], self.normal[index], self.strength[index], self.cov[index],
                           self.pixel[index], self.width[index], self.shape, self.sigma, self.noise,
                           self.grad_noise, *opt)
@@ -458,105 +433,6 @@ def background_gradients(gx, gy, xy, normal, strength, width, grad_noise=0.0, di
     return shift, bound
 
 
-def neighbour_steps(gx, gy, xy, normal, strength, width, grad_noise=0.0):
-    """How a second step across each edge point's profile displaces it.
-
-    The point is the maximum of the smoothed gradient g(t) across the edge
-    (t along the normal n, px). Its own step gives ``m exp(-t^2 / 2 W^2)``
-    (W the step width, m the point's gradient magnitude); a second step at
-    t = d with gradient r_2 at its own peak adds ``r_2 exp(-(t - d)^2 / 2
-    W^2)``, whose slope at the point moves the maximum by, to first order,
-
-        delta = (r_2 / m) d exp(-d^2 / (2 W^2)),
-
-    towards a step of the same sign and away from one of the opposite sign
-    (a dark line beside the edge, a close parallel edge). The profile is
-    read along n from ``NEIGHBOUR_RANGE[0]`` to ``NEIGHBOUR_RANGE[1]`` step
-    widths on both sides, the point's own step subtracted and each side's
-    level at its outer end (a shading ramp, which ``background_shift``
-    carries, is no step); every local peak
-    of what is left inside the range gives its delta from its height and
-    position (a peak counts when it exceeds ``STEP_THRESHOLD`` times the
-    gradient noise, its height taken less twice the noise in quadrature),
-    and the largest over both sides is returned. The delta is that of the
-    detector's own estimator: its three samples lie s = |n . e| px apart
-    along n, and a step's gradient r_2 there moves the log-parabola's
-    vertex by ``W^2 (r_2(s) - r_2(-s)) / (2 s m exp(-s^2 / 2 W^2))``
-    (the formula above as s -> 0; at s = 1 px up to 1.6 times it for a
-    step 3 px away).
-
-    Parameters
-    ----------
-    gx, gy : ndarray, shape (H, W)
-        The filtered gradient of the image.
-    xy, normal : ndarray, shape (N, 2)
-        Edge points, px, and their unit normals (dark to bright).
-    strength, width : ndarray, shape (N,)
-        Gradient magnitude at each point (m) and the per-point profile
-        widths (their median over step edges is W, :func:`_step_width`).
-    grad_noise : float or ndarray, shape (N,)
-        Standard deviation of each gradient component from image noise at
-        each point, grey levels / px.
-
-    Returns
-    -------
-    bias : ndarray, shape (N,)
-        ``|delta|`` of the step that moves the point most, px; 0 where none.
-    offset : ndarray, shape (N,)
-        Its d, px along n (negative on the dark side); NaN where none.
-
-    References
-    ----------
-    .. [1] Canny, J. (1986). A computational approach to edge detection. IEEE
-           TPAMI 8(6), 679-698 (the delocalisation of an edge by a
-           neighbouring one).
-    """
-    n = len(xy)
-    if n == 0:
-        return np.zeros(0), np.zeros(0)
-    W = _step_width(width)
-    t = np.arange(NEIGHBOUR_RANGE[0] * W, NEIGHBOUR_RANGE[1] * W + 1e-9, NEIGHBOUR_STEP)
-    t = np.concatenate([-t, t])  # dark side, then bright side, each from the inner end out
-    p = xy[:, None, :] + t[None, :, None] * normal[:, None, :]
-    g = _bilinear(gx, p[..., 0], p[..., 1]) * normal[:, None, 0] + _bilinear(gy, p[..., 0], p[..., 1]) * normal[:, None, 1]
-
-    def bell(x):
-        return np.exp(-x * x / (2.0 * W * W))
-
-    r = g - strength[:, None] * bell(t)[None, :]
-    k = len(t) // 2
-    far = np.zeros((n, 2 * k))
-    # A shading ramp beside the edge is a level, not a step (background_shift
-    # carries it): each side's level at its outer end is taken off, and the
-    # part of a step's own tail that level took with it put back.
-    for lo, hi in ((0, k), (k, 2 * k)):
-        r[:, lo:hi] -= r[:, hi - 3:hi].mean(axis=1, keepdims=True)
-        far[:, lo:hi] = np.minimum(bell(np.abs(t[hi - 3:hi]).mean() - np.abs(t[lo:hi])), 0.5)[None, :]
-    noise = np.broadcast_to(np.asarray(grad_noise, float), (n,))[:, None]
-    height = np.sqrt(np.maximum(r * r - 4.0 * noise * noise, 0.0)) / (1.0 - far)
-    # A step is a peak inside the range: at its inner end the profile left
-    # may rise towards the point from the point's own step alone (a PSF that
-    # is not Gaussian, the concave side of a small rim), which no second
-    # step need be, and a step that close merges with the point's own.
-    peak = np.zeros_like(height, bool)
-    for lo, hi in ((0, k), (k, 2 * k)):
-        idx = np.arange(lo + 1, hi - 1)
-        peak[:, idx] = (height[:, idx] >= height[:, idx - 1]) & (height[:, idx] > height[:, idx + 1]) \
-            & (np.abs(r[:, idx]) > STEP_THRESHOLD * noise)
-    # The detector's three samples lie s = |n . e| px apart along the normal
-    # (e the pixel axis it reads along); to first order a second step's
-    # gradient r_2(x) there moves its log-parabola's vertex by
-    # W^2 (r_2(s) - r_2(-s)) / (2 s m exp(-s^2 / 2 W^2)) along the normal,
-    # W^2 r_2'(0) / m as s -> 0.
-    s = np.max(np.abs(normal), axis=1)[:, None]
-    diff = bell(s - t[None, :]) - bell(s + t[None, :])
-    delta = np.where(peak, height * np.abs(diff) * W * W / (2.0 * s * strength[:, None] * bell(s)), 0.0)
-    best = np.argmax(delta, axis=1)
-    bias = delta[np.arange(n), best]
-    offset = np.where(bias > 0, t[best], np.nan)
-    return bias, offset
-
-
 def _step_width(width):
     """Profile width of the step edges among points, px: the median of ``width`` below ``MAX_STEP_WIDTH``.
 
@@ -730,8 +606,5 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
     # and the second difference of its logarithm is -(n . e)^2 / w^2.
     Dl = np.log(a) - 2.0 * np.log(b) + np.log(c)
     width = np.sqrt(np.maximum(-n_ax2 / np.minimum(Dl, -1e-12), 0.0))
-    point_noise = sg if scale is None else sg * scale
-    shift, bound = background_gradients(gx, gy, xy, nrm, m, width, point_noise)
-    crowd, where = neighbour_steps(gx, gy, xy, nrm, m, width, point_noise)
-    return EdgePoints(xy, nrm, m, cov, pixel, width, (H, W), float(sigma), noise, sg, shift, bound, scale,
-                      crowd, where)
+    shift, bound = background_gradients(gx, gy, xy, nrm, m, width, sg if scale is None else sg * scale)
+    return EdgePoints(xy, nrm, m, cov, pixel, width, (H, W), float(sigma), noise, sg, shift, bound, scale)

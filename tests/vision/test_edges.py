@@ -269,31 +269,3 @@ def test_thresholds_follow_grey_dependent_noise():
     assert spurious_global > 20  # what the image-wide thresholds let through
     assert spurious_local == 0
     assert rim_local >= rim_global - 2 and rim_local > 200
-
-
-def test_a_second_step_beside_an_edge_states_the_displacement_it_gives():
-    # The rim of tests/vision/test_contours.py with a dark line on its dark
-    # side over 60-120 deg: the displacement of the points there against
-    # the same image without the line, and neighbour_bias's statement of it.
-    from tests.vision.test_contours import _angles, _rim_beside_a_dark_line
-
-    def rim(band):
-        ep = edge_points(_rim_beside_a_dark_line(1.0, 0, band), 1.0, noise=1.0)
-        r = np.hypot(ep.xy[:, 0] - 100.3, ep.xy[:, 1] - 99.6)
-        ang = _angles(ep.xy)
-        on = np.abs(r - 40.0) < 1.0
-        return ep, r, ang, on
-
-    ep, r, ang, on = rim(True)
-    _, r0, ang0, on0 = rim(False)
-    mid = on & (ang > 75.0) & (ang < 105.0)
-    moved = np.median(r[mid]) - np.median(r0[on0 & (ang0 > 75.0) & (ang0 < 105.0)])
-    stated = np.median(ep.neighbour_bias[mid])
-    assert 0.1 < moved < 0.16
-    assert 0.6 * moved < stated < 1.4 * moved
-    # On the dark side, where the line is.
-    assert np.all(ep.neighbour_offset[mid] < -2.0)
-    # Away from the line: no step, or one that moves the point by under a
-    # third of that.
-    far = on & ((ang < 45.0) | (ang > 135.0))
-    assert np.quantile(ep.neighbour_bias[far], 0.99) < stated / 2
