@@ -131,6 +131,21 @@ def _check_inputs(part, rig, tolerances, max_ratio, model, check=0):
     return part, rig, find_tolerances(part, tolerances)
 
 
+def _check_search(rotation, max_tilt, step, views, tilts, check):
+    """The search's and the views' options, each refused by name (exit code 2)."""
+    for name, v in (("--rotation", rotation), ("--max-tilt", max_tilt)):
+        if not (0 <= v <= 180 and math.isfinite(v)):
+            raise InputError(None, f"{name} must be between 0 and 180 degrees, got {v!r}")
+    if not (0 < step <= 180):
+        raise InputError(None, f"--step must be between 0 and 180 degrees, got {step!r}")
+    if not (isinstance(views, int) and 0 <= views <= 8):
+        raise InputError(None, f"--views must be a number of views from 1 to 8, got {views!r}")
+    if views and not (tilts and all(math.isfinite(t) and -180.0 <= t <= 180.0 for t in tilts)):
+        raise InputError(None, f"--tilts must be angles from -180 to 180 degrees, got {tilts!r}")
+    if views and check:
+        raise InputError(None, "--check renders one pose; it cannot be combined with --views")
+
+
 def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, model=None, search=True,
              rotation=180.0, max_tilt=30.0, step=30.0, check=0, seed=0, renderer=None, views=0, tilts=(0.0, 180.0),
              progress=None):
@@ -189,17 +204,7 @@ def run_plan(part, rig, *, tolerances=None, pose=None, max_ratio=DEFAULT_RATIO, 
     if check and renderer is None:
         raise ValueError("a check needs a renderer to make its images")
     part, rig, tol_path = _check_inputs(part, rig, tolerances, max_ratio, model, check)
-    for name, v in (("--rotation", rotation), ("--max-tilt", max_tilt)):
-        if not (0 <= v <= 180 and math.isfinite(v)):
-            raise InputError(None, f"{name} must be between 0 and 180 degrees, got {v!r}")
-    if not (0 < step <= 180):
-        raise InputError(None, f"--step must be between 0 and 180 degrees, got {step!r}")
-    if not (isinstance(views, int) and 0 <= views <= 8):
-        raise InputError(None, f"--views must be a number of views from 1 to 8, got {views!r}")
-    if views and not (tilts and all(math.isfinite(t) and -180.0 <= t <= 180.0 for t in tilts)):
-        raise InputError(None, f"--tilts must be angles from -180 to 180 degrees, got {tilts!r}")
-    if views and check:
-        raise InputError(None, "--check renders one pose; it cannot be combined with --views")
+    _check_search(rotation, max_tilt, step, views, tilts, check)
 
     from partinspect.vision.calibration import read_calibration
 

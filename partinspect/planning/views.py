@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -308,7 +309,12 @@ def view_turns(views):
         rotation, tilt_x, tilt_y = p.angles
         R = (Rotation.from_euler("x", tilt_x, degrees=True) * Rotation.from_euler("y", tilt_y, degrees=True)
              * Rotation.from_euler("z", rotation, degrees=True))
-        angles = np.round(R.as_euler("xyz", degrees=True), 3)
+        with warnings.catch_warnings():
+            # A part laid on its side (tilt 90) is SciPy's gimbal lock: the
+            # three angles are not unique, and any triple it gives composes
+            # to the same rotation, which is all --views needs.
+            warnings.simplefilter("ignore", UserWarning)
+            angles = np.round(R.as_euler("xyz", degrees=True), 3)
         out.append(np.where(np.abs(angles) < 5e-4, 0.0, angles))
     return out
 
