@@ -88,7 +88,8 @@ class PmiItem:
         Dimension and tolerance modifiers as OCCT names them
         ("All_Around", "Maximum_Material_Requirement", ...), plus the
         material condition ("MMC"/"LMC") and zone ("diameter_zone",
-        "projected_zone") where given.
+        "projected_zone") where given, and ``"datum_B_MMB"`` (or ``_LMB``)
+        for a datum referenced at its material boundary.
     datums : tuple of str
         Tolerances: the datum reference frame, datum letters in order of
         precedence (primary first). Datums: the letter itself.
@@ -539,12 +540,24 @@ def _tolerances(labels, targets, text_values):
         for i in range(1, refs.Length() + 1):
             d = XCAFDoc_Datum.Set_s(refs.Value(i)).GetObject()
             drf.append((d.GetPosition(), _text(d.GetName())))
+            letter, mods = _text(d.GetName()), d.GetModifiers()
+            for k in range(1, mods.Length() + 1):
+                boundary = _DATUM_BOUNDARY.get(_enum_tail(mods.Value(k), "XCAFDimTolObjects_DatumSingleModif_"))
+                if letter and boundary and f"datum_{letter}_{boundary}" not in modifiers:
+                    modifiers.append(f"datum_{letter}_{boundary}")
+                    notes.append(f"datum {letter} at {boundary}: the datum shift it allows is not applied "
+                                 "(the check is stricter than the drawing)")
         datums = tuple(dict.fromkeys(letter for _, letter in sorted(drf) if letter))
         if missing:
             notes.append(f"{missing} attached face(s) not on the part's solid (supplemental geometry)")
         items.append(PmiItem(f"gtol-{n}", "tolerance", ttype, name, _clean(value), None, None, tuple(modifiers), datums, faces,
                              faces2, edges, tuple(notes)))
     return items
+
+
+# A datum feature of size referenced at its maximum or least material
+# boundary (ASME Y14.5 MMB/LMB, ISO 2692's (M)/(L) after a datum letter).
+_DATUM_BOUNDARY = {"MaximumMaterialRequirement": "MMB", "LeastMaterialRequirement": "LMB"}
 
 
 def _datums(labels, targets):

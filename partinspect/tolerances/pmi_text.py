@@ -25,7 +25,11 @@ def describe_item(item):
     text += f" {unit}"
     extra = [m for m in item.modifiers if m in ("MMC", "LMC")]
     if item.datums and item.kind == "tolerance":
-        text += " | " + " | ".join(item.datums)
+        marks = {"MMB": "(M)", "LMB": "(L)"}
+        text += " | " + " | ".join(d + "".join(marks[b] for b in marks if f"datum_{d}_{b}" in item.modifiers)
+                                   for d in item.datums)
+        if any(m.startswith("datum_") for m in item.modifiers):
+            extra.append("no datum shift applied")
     return text + (f" ({', '.join(extra)})" if extra else "")
 
 
