@@ -74,6 +74,11 @@ def stretch_along(uv, polyline, *, max_distance=MAX_DISTANCE, trim=0.0):
     return (d <= max_distance) & (s >= trim) & (s <= length[-1] - trim), s
 
 
+def _ideal_at(feature, keep):
+    """The feature's ideal (undistorted) point data at the positions ``keep``."""
+    return replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in IDEAL_FIELDS})
+
+
 def line_stretch(feature, keep, corr_length):
     """An image line feature restricted to some of its points and fitted again.
 
@@ -95,7 +100,7 @@ def line_stretch(feature, keep, corr_length):
         covariance) that of those points alone.
     """
     keep = np.asarray(keep, int)
-    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in IDEAL_FIELDS})
+    ideal = _ideal_at(feature, keep)
     fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False), ideal.xy,
                                corr_length)
     extra = {} if feature.edge_normal is None else {"edge_normal": feature.edge_normal[keep]}
@@ -370,7 +375,7 @@ def arc_stretch(feature, keep, corr_length):
         smoothing-bias correction (as the chain fits arcs).
     """
     keep = np.asarray(keep, int)
-    ideal = replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in IDEAL_FIELDS})
+    ideal = _ideal_at(feature, keep)
     fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
     per_point = {name: getattr(feature, name)[keep] for name in _ARC_POINT_FIELDS if getattr(feature, name) is not None}
     return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
