@@ -444,6 +444,7 @@ def evaluate(inputs, m, progress):
 
     progress(f"evaluating {len(inputs.characteristics)} characteristics")
     judged, not_inspected = split_unseen(inputs.characteristics, m.seen, m.registration)
+    judged = _with_band_places(judged, inputs, m, progress)
     decisions = decide_all(_evaluate_on_two_cores(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
     if m.registration.competing:
         decisions = _judged_across_poses(judged, decisions, m.registration, inputs, progress)
@@ -475,6 +476,26 @@ def evaluate(inputs, m, progress):
         skipped_edges=inputs.inv.to_dict().get("skipped", {}),
     )
     return report, features
+
+
+def _with_band_places(characteristics, inputs, m, progress):
+    """The characteristics with each broken rim's band place predicted from the images (:mod:`.vision.band_place`).
+
+    Only where the spec states an edge break; a rim whose place cannot be
+    predicted keeps the uniform band.
+    """
+    from partinspect.tolerances.edge_break import broken_rims, with_band_places
+    from partinspect.vision.band_place import band_place
+
+    rims = broken_rims(characteristics, inputs.inv, m.registration.part_to_camera)
+    if not rims:
+        return characteristics
+    progress(f"predicting where {len(rims)} broken rim(s) show their edge")
+    widths = tuple(float(np.median(side.edges.width)) for side in (m.stereo.left, m.stereo.right))
+    with inputs.timings.stage("edge-break band places"):
+        places = {fid: band_place((inputs.left, inputs.right), inputs.calib, m.registration.part_to_camera, *rim,
+                                  width=widths) for fid, rim in rims.items()}
+    return with_band_places(characteristics, {fid: p for fid, p in places.items() if p is not None})
 
 
 def _judged_across_poses(characteristics, decisions, registration, inputs, progress):

@@ -443,3 +443,22 @@ def test_pmi_datums_that_leave_the_pose_free_fall_back_to_every_feature(monkeypa
     spec = SimpleNamespace(alignment_datums=("line-1", "line-2"), datum_frame=())
     with pytest.raises(InputError, match="4 constraints"):
         pipeline._register(stereo, SimpleNamespace(resolved=spec, inv=None, images="images"))
+
+
+def test_a_stated_edge_break_has_its_band_place_predicted_on_the_rims_seen_from_their_face(workdir, tmp_path):
+    from partinspect.pipeline import run_inspection
+
+    spec = tmp_path / "broken.tol.yaml"
+    spec.write_text("edge_break: {min: 0.1, max: 0.1}\n")
+    report = run_inspection(workdir / "part.step", workdir / "images", tmp_path / "out", tolerances=spec).report
+    sizes = {c["feature"]: c.get("details", {}) for c in report["characteristics"]
+             if c["type"] == "diameter" and c["measured"] is not None}
+    placed = {f: d["edge_break"] for f, d in sizes.items() if "edge_break" in d}
+    assert {"circle-2", "circle-4", "circle-8"} <= set(placed)
+    for eb in placed.values():
+        assert eb["band_place"] == "predicted from the light on the part"
+        assert 0.0 <= eb["s"] <= 1.0 and eb["s_standard_uncertainty"] < 1 / np.sqrt(12)
+        # What the break leaves of the diameter's uncertainty, against the uniform band's 0.1 / sqrt(3).
+        assert eb["standard_uncertainty"] < 0.1 / np.sqrt(3)
+    assert "circle-3" not in placed  # the bottom rim, seen through its hole: the wall's own silhouette
+    assert "edge-break band places" in {t["stage"] for t in report["timings"]["stages"]}

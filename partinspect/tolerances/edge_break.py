@@ -33,28 +33,37 @@ References
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
-__all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms"]
+import numpy as np
+
+__all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms", "broken_rims", "with_band_places"]
 
 
-def band_offset(b_min, b_max):
+def band_offset(b_min, b_max, place=None):
     """Mean and standard deviation of the apparent edge's offset ``s b`` across a break's band, mm.
 
     Parameters
     ----------
     b_min, b_max : float
         The break's size range, mm, ``0 <= b_min <= b_max``.
+    place : (float, float), optional
+        The band place ``s`` predicted for this rim and its standard
+        uncertainty (:mod:`partinspect.vision.band_place`); by default ``s``
+        is uniform in [0, 1].
 
     Returns
     -------
     mean, std : float
-        ``s ~ U(0, 1)`` and ``b ~ U(b_min, b_max)`` independent:
-        ``E[s b] = E[b] / 2``, ``E[(s b)^2] = E[b^2] / 3``.
+        ``s`` and ``b ~ U(b_min, b_max)`` independent: ``E[s b] = E[s]
+        E[b]``, ``E[(s b)^2] = E[s^2] E[b^2]``; uniform ``s`` has ``E[s] =
+        1/2``, ``E[s^2] = 1/3``.
     """
     eb = 0.5 * (b_min + b_max)
     eb2 = (b_min * b_min + b_min * b_max + b_max * b_max) / 3.0
-    mean = 0.5 * eb
-    return mean, math.sqrt(max(eb2 / 3.0 - mean * mean, 0.0))
+    es, es2 = (0.5, 1.0 / 3.0) if place is None else (place[0], place[0] ** 2 + place[1] ** 2)
+    mean = es * eb
+    return mean, math.sqrt(max(es2 * eb2 - mean * mean, 0.0))
 
 
 def band_rms(b_min, b_max):
@@ -68,7 +77,7 @@ def band_rms(b_min, b_max):
     return math.hypot(mean, std)
 
 
-def size_on_broken_rim(radius, radius_u, convex, b_min, b_max):
+def size_on_broken_rim(radius, radius_u, convex, b_min, b_max, place=None):
     """The radius of a hole's wall (or a boss's) from the radius measured on its broken rim.
 
     Parameters
@@ -81,6 +90,9 @@ def size_on_broken_rim(radius, radius_u, convex, b_min, b_max):
         unknown, when only the Type B is added.
     b_min, b_max : float
         The edge break's size range, mm.
+    place : (float, float), optional
+        The predicted band place and its standard uncertainty
+        (:func:`band_offset`); by default uniform across the band.
 
     Returns
     -------
@@ -91,7 +103,7 @@ def size_on_broken_rim(radius, radius_u, convex, b_min, b_max):
     u_break : float
         The break's Type B part of ``u``, mm.
     """
-    mean, std = band_offset(b_min, b_max)
+    mean, std = band_offset(b_min, b_max, place)
     if convex is None:
         correction, u_break = 0.0, band_rms(b_min, b_max)
     else:
@@ -123,3 +135,70 @@ def apparent_edge_rms(b_min, b_max):
     """
     eb2 = (b_min * b_min + b_min * b_max + b_max * b_max) / 3.0
     return math.sqrt(2.0 * eb2 / 3.0)
+
+
+def broken_rims(characteristics, inventory, part_to_camera):
+    """The rims whose size is judged through a stated edge break and whose face the left camera sees.
+
+    Parameters
+    ----------
+    characteristics : sequence of Characteristic
+    inventory : partinspect.cad.features.Inventory
+    part_to_camera : ndarray, shape (4, 4)
+        The registered pose.
+
+    Returns
+    -------
+    dict
+        CAD feature id to ``(center, face_normal, radius, hole, size)``:
+        the rim's centre (part frame, mm), its planar face's outward unit
+        normal, its radius, True for a hole (False a boss) and the break's
+        expected size ``(min + max) / 2``, mm. Only circles bounding one
+        plane and one cylinder: what :mod:`partinspect.vision.band_place`
+        can predict.
+    """
+    T = np.asarray(part_to_camera, float)
+    camera = -T[:3, :3].T @ T[:3, 3]
+    out = {}
+    for c in characteristics:
+        sizes = [c] + ([c.material.size] if getattr(c.material, "size", None) is not None else [])
+        for s in sizes:
+            if s.edge_break is None or s.type not in ("diameter", "radius") or s.features[0] in out:
+                continue
+            f = inventory[s.features[0]]
+            faces = [inventory[fid] for fid in f.faces if fid in inventory]
+            planes = [g for g in faces if g.surface == "plane"]
+            walls = [g for g in faces if g.surface == "cylinder" and g.convex is not None]
+            if len(planes) == 1 and len(walls) == 1 and float((camera - f.center) @ planes[0].normal) > 0:
+                out[s.features[0]] = (np.asarray(f.center, float), np.asarray(planes[0].normal, float),
+                                      float(f.radius), not walls[0].convex, 0.5 * sum(s.edge_break))
+    return out
+
+
+def with_band_places(characteristics, places):
+    """The characteristics with each broken rim's size given its predicted band place.
+
+    Parameters
+    ----------
+    characteristics : list of Characteristic
+    places : dict
+        CAD feature id to an object with ``s`` and ``u``
+        (:class:`partinspect.vision.band_place.BandPlace`).
+
+    Returns
+    -------
+    list of Characteristic
+        Sizes of those rims with ``band_place = (s, u)``, and positions at
+        MMC/LMC with their size characteristic likewise.
+    """
+    def placed(c):
+        p = places.get(c.features[0]) if c.edge_break is not None and c.type in ("diameter", "radius") else None
+        return c if p is None else replace(c, band_place=(float(p.s), float(p.u)))
+
+    out = []
+    for c in characteristics:
+        c = placed(c)
+        if getattr(c.material, "size", None) is not None:
+            c = replace(c, material=replace(c.material, size=placed(c.material.size)))
+        out.append(c)
+    return out

@@ -614,12 +614,16 @@ def _size_result(c, rec, registration, inventory, k):
         return measured_result(c, f * float(rec.radius), f * float(rec.radius_std), k,
                                "first order (pose-invariant); the wall's silhouette, seen through the hole past its "
                                "broken rim")
-    r, u, corr, u_b = size_on_broken_rim(float(rec.radius), float(rec.radius_std), convex, *c.edge_break)
+    r, u, corr, u_b = size_on_broken_rim(float(rec.radius), float(rec.radius_std), convex, *c.edge_break,
+                                         place=c.band_place)
     wall = {False: "the hole's wall", True: "the boss's wall", None: "the wall (material side unknown)"}[convex]
+    place = ({"band_place": "uniform across the band"} if c.band_place is None else
+             {"band_place": "predicted from the light on the part", "s": c.band_place[0],
+              "s_standard_uncertainty": c.band_place[1]})
     return measured_result(c, f * r, f * u, k, "first order (pose-invariant), edge break Type B",
                            edge_break={"min": c.edge_break[0], "max": c.edge_break[1], "correction": f * corr,
                                        "standard_uncertainty": f * u_b, "rim": f * float(rec.radius),
-                                       "measured_as": f"{wall}, from its broken rim"})
+                                       "measured_as": f"{wall}, from its broken rim", **place})
 
 
 def _position_with_bonus(c, position, u_position, pf, rec, nominal, registration, inventory, k, method):

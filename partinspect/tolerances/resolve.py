@@ -105,6 +105,11 @@ class Characteristic:
         Sizes and circularity of circles only: the rim's edge break (min,
         max), mm, from the spec (:mod:`partinspect.tolerances.edge_break`);
         None for a sharp rim.
+    band_place : tuple of 2 float or None
+        Sizes of a broken rim only: where its apparent edge lies across the
+        break's band (0 the wall, 1 the face) and that place's standard
+        uncertainty, predicted from the images once the pose is known
+        (:mod:`partinspect.vision.band_place`); None: uniform across the band.
     material : MaterialCondition or None
         Position only: the MMC or LMC modifier and, once
         :func:`with_material_sizes` resolved it, the size characteristic
@@ -127,6 +132,7 @@ class Characteristic:
     edge_break: tuple[float, float] | None = None
     material: MaterialCondition | None = None
     towards: tuple[float, float, float] | None = None
+    band_place: tuple[float, float] | None = None
 
     @property
     def feature(self):

@@ -98,3 +98,43 @@ def test_the_band_is_carried_in_pixels_at_each_cameras_depth_and_left_out_of_the
     assert _without_band(line, (left, right)).bias is None
     rim = View(np.zeros((3, 2)), np.full(3, 0.01), np.eye(3, 4), 1.0, np.hypot([0.02, 0.03, 0.04], left), 5.0)
     np.testing.assert_allclose(_without_band(rim, (left, right)).bias, [0.02, 0.03, 0.04])
+
+
+@pytest.mark.parametrize("place", [(0.3, 0.05), (0.8, 0.2)])
+def test_band_offset_with_a_predicted_place_is_the_mean_and_spread_of_s_times_b(place):
+    rng = np.random.default_rng(2)
+    x = rng.normal(place[0], place[1], 400_000) * rng.uniform(0.05, 0.15, 400_000)
+    mean, std = band_offset(0.05, 0.15, place)
+    assert mean == pytest.approx(x.mean(), rel=0.01)
+    assert std == pytest.approx(x.std(), rel=0.01)
+
+
+def test_a_predicted_band_place_reaches_the_size_and_its_bonus_and_narrows_it(plate):
+    from types import SimpleNamespace
+
+    from partinspect.tolerances.edge_break import broken_rims, with_band_places
+
+    inv, T, ids = plate
+    spec = parse_spec("edge_break: {min: 0.1, max: 0.1}\nfeatures:\n  circle-4:\n"
+                      "    position: {tolerance: 0.05, material: MMC}\n", "part.tol.yaml")
+    chars = characteristics_for(spec, inv)
+    rims = broken_rims(chars, inv, T)
+    # The top rims (seen from their face) are predicted; the bottom rims, seen through their holes, are not.
+    assert {"circle-2", "circle-4", "circle-8"} <= set(rims) and "circle-3" not in rims
+    center, normal, radius, hole, size = rims["circle-4"]
+    assert hole and radius == pytest.approx(6.0) and size == pytest.approx(0.1) and normal @ [0, 0, 1] > 0.99
+    placed = {c.id: c for c in with_band_places(chars, {"circle-4": SimpleNamespace(s=0.3, u=0.05)})}
+    assert placed["circle-4.diameter"].band_place == (0.3, 0.05)
+    assert placed["circle-4.position"].material.size.band_place == (0.3, 0.05)
+    assert placed["circle-2.diameter"].band_place is None
+    rng = np.random.default_rng(3)
+    m = measure_features(inv, T, ids, rng)
+    circles = tuple(dataclasses.replace(c, radius=c.radius + 0.3 * 0.1) for c in m.circles)  # every rim at s = 0.3
+    reg = register(circles, m.lines, inv, pose_hint=T)
+    uniform, predicted = (
+        {e.characteristic.id: e for e in evaluate(cs, reg, inv, n_mc=200)}["circle-4.diameter"]
+        for cs in ([c for c in chars if c.id == "circle-4.diameter"], [placed["circle-4.diameter"]]))
+    assert abs(predicted.measured - 12.0) < 3 * predicted.standard_uncertainty
+    assert abs(uniform.measured - 12.0) > 0.03  # the uniform band's mean, s = 0.5, is 0.04 mm off here
+    assert predicted.details["edge_break"]["standard_uncertainty"] < 0.3 * uniform.details["edge_break"]["standard_uncertainty"]
+    assert predicted.details["edge_break"]["band_place"] == "predicted from the light on the part"

@@ -1,0 +1,463 @@
+"""Where the apparent edge of a broken rim lies across its band, predicted from the light on the part.
+
+A machined rim is broken (rounded or chamfered, ISO 13715) while its CAD
+edge is sharp, and the step the edge detector finds lies somewhere across
+the break's band: where, depends on the grey levels across the band, the
+view and the blur. Without more knowledge that place is uniform across
+the band (:mod:`partinspect.tolerances.edge_break`); this module predicts
+it from physics read off the images, for a rim of the registered part:
+
+1. *The light.* Beside the rim the image shows the rim's planar face and,
+   where the camera looks into a hole (or at a boss), its wall. For a
+   Lambertian surface under a distant light a face of outward unit normal
+   ``n`` has the grey ``max(0, n . k) + a`` (``k`` the light's direction
+   scaled by albedo and irradiance, ``a`` the ambient) [1]_. The face's
+   grey read outside the rim and the wall's read inside it, round the rim,
+   give ``A = n_face . k``, the wall's ``B(theta) = n_wall(theta) . k`` (a
+   sinusoid round the rim) and ``a`` by least squares (:func:`fit_light`).
+2. *The band's profile.* Across a fillet of radius R the normal turns from
+   the face's to the wall's, ``n(psi) = sin(psi) n_face + cos(psi)
+   n_wall``, and its grey follows from ``A``, ``B`` and ``a``; across a
+   chamfer it is constant at the mean normal. Projected into each camera,
+   up to where the band turns away from the camera (the occluding contour
+   on the near side of a hole), between the face's grey and the grey read
+   just past the band, it is a 1D profile across the rim
+   (:func:`band_profile`).
+3. *The detector.* The detector finds the maximum of the gradient of the
+   image blurred by the edge's whole blur (optics, pixel and the
+   derivative filter: ``EdgePoints.width``, read from the image), so the
+   profile is blurred by a Gaussian of that width and its steepest place
+   taken (:func:`apparent_place`).
+4. *The size.* The apparent points of both images (the sharp rim's image
+   moved by the predicted place at each angle) are fitted with the chain's
+   own two-view circle fit (:func:`partinspect.vision.fit3d.fit_circle_3d`),
+   and the fitted radius, less the sharp rim's, divided by the break's
+   size is the band place ``s`` of the rim's size: 0 at the wall, 1 at the
+   face's edge of the band.
+
+ISO 13715 leaves the break's shape open, so the place is predicted for a
+fillet and for a chamfer and the rim's ``s`` taken midway, the two being
+the ends of a rectangular distribution (JCGM 100, 4.3.7). The light's
+least-squares uncertainty is carried by moving its four parameters along
+their covariance's principal directions (JCGM 100, 5.2), and what the
+Lambertian model does not explain (its residual grey levels, as a share of
+the grey-level step across the band, a share of the band) as a Type B
+component of its own; the place's standard uncertainty never exceeds the
+uniform band's ``1 / sqrt(12)``.
+
+Frames: rim geometry in the part frame (mm), the pose ``part_to_camera``
+into the left camera (the rig frame), images in distorted pixels.
+
+References
+----------
+.. [1] B. K. P. Horn, Robot Vision, MIT Press, 1986, chapter 10 (image
+       irradiance of a Lambertian surface).
+.. [2] ISO 13715:2019, Technical product documentation -- Edges of
+       undefined shape -- Indication and dimensioning.
+.. [3] JCGM 100:2008 (GUM), 4.3.7 (rectangular distribution), 5.2
+       (correlated input quantities).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d, map_coordinates
+from scipy.optimize import least_squares
+
+from partinspect.vision.calibration import project_points
+from partinspect.vision.fit3d import View, fit_circle_3d
+
+__all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "band_place"]
+
+ANGLES = 60
+"""Angles round the rim at which the band is predicted."""
+
+SECTION_SAMPLES = 100
+"""Samples across the band's section."""
+
+READ_WIDTHS = 3.0
+"""How far beyond the band a face's grey is read, in edge widths: clear of the step's blur."""
+
+RIVAL = 0.5
+"""A second step counts as a rival of the steepest where its gradient reaches this share of it: the
+detector's non-maximum suppression keeps both, and which one its chain links depends on the neighbours."""
+
+UNIFORM_STD = 1.0 / math.sqrt(12.0)
+"""Standard deviation of a place uniform across the band (nothing known)."""
+
+
+@dataclass(frozen=True)
+class BandPlace:
+    """The predicted place of a broken rim's apparent edge across its band (0 the wall, 1 the face's side).
+
+    Attributes
+    ----------
+    s : float
+        Best estimate: midway between the extremes the break's shapes
+        (fillet, chamfer) and any rival step give.
+    u : float
+        Its standard uncertainty: the shape's (rival steps included), the
+        light fit's and the model's components combined, at most ``1 /
+        sqrt(12)``.
+    s_fillet, s_chamfer : float
+        The place for each shape (steepest steps).
+    u_shape, u_light, u_model : float
+        The components.
+    """
+
+    s: float
+    u: float
+    s_fillet: float
+    s_chamfer: float
+    u_shape: float
+    u_light: float
+    u_model: float
+
+    def to_dict(self):
+        return {k: round(float(v), 4) for k, v in self.__dict__.items()}
+
+
+def rim_section(shape, material_side, n=SECTION_SAMPLES):
+    """A unit break's section from the face's edge (index 0) to the wall's (last).
+
+    Parameters
+    ----------
+    shape : {"fillet", "chamfer"}
+    material_side : {1, -1}
+        +1 for a hole (the material lies at larger radius), -1 for a boss.
+    n : int
+
+    Returns
+    -------
+    radial, axial : ndarray, shape (n,)
+        Offsets from the sharp rim per unit break size: radially out from
+        the axis and along the face's outward normal.
+    w_face, w_wall : ndarray, shape (n,)
+        The section's unit normal as ``w_face n_face + w_wall n_wall``.
+    """
+    if shape == "fillet":
+        psi = np.linspace(0.5 * np.pi, 0.0, n)
+        radial, axial = material_side * (1.0 - np.cos(psi)), -(1.0 - np.sin(psi))
+        return radial, axial, np.sin(psi), np.cos(psi)
+    tau = np.linspace(1.0, 0.0, n)
+    h = np.full(n, math.sqrt(0.5))
+    return material_side * tau, -(1.0 - tau), h, h
+
+
+def _light_model(p, theta, kind):
+    A, b1, b2, a = p
+    lit = np.where(kind == 0, A, b1 * np.cos(theta) + b2 * np.sin(theta))
+    return np.maximum(lit, 0.0) + a
+
+
+def fit_light(theta, grey, kind):
+    """Least-squares Lambertian light round a rim: ``A``, the wall's sinusoid ``(b1, b2)`` and the ambient ``a``.
+
+    Parameters
+    ----------
+    theta : ndarray, shape (N,)
+        Angle round the rim of each sample, rad.
+    grey : ndarray, shape (N,)
+        Grey levels read beside the rim.
+    kind : ndarray of int, shape (N,)
+        0 for a sample of the rim's planar face (model ``max(0, A) + a``), 1
+        for one of its wall (``max(0, b1 cos theta + b2 sin theta) + a``).
+
+    Returns
+    -------
+    params : ndarray, shape (4,)
+        ``(A, b1, b2, a)``, grey levels.
+    cov : ndarray, shape (4, 4)
+        Their covariance from the residuals (robust loss; Gauss-Newton form).
+    rms : float
+        The residuals' robust RMS, grey levels: what a Lambertian light does
+        not explain here.
+    """
+    theta, grey, kind = (np.asarray(x) for x in (theta, grey, kind))
+    face, wall = grey[kind == 0], grey[kind == 1]
+    a0 = float(np.percentile(wall, 5)) if wall.size else float(np.min(grey))
+    X = np.c_[np.cos(theta[kind == 1]), np.sin(theta[kind == 1])]
+    b0 = np.linalg.lstsq(X, wall - a0, rcond=None)[0] if wall.size >= 2 else np.zeros(2)
+    p0 = np.r_[float(np.median(face)) - a0 if face.size else 0.0, b0, a0]
+    # Another edge read beside the rim is an outlier, not a misfit of the light: a robust loss at the
+    # scale of a plain fit's residuals.
+    first = least_squares(lambda p: _light_model(p, theta, kind) - grey, p0)
+    scale = max(1.4826 * float(np.median(np.abs(first.fun - np.median(first.fun)))), 1e-6 * float(np.ptp(grey)) + 1e-12)
+    fit = least_squares(lambda p: _light_model(p, theta, kind) - grey, first.x, loss="soft_l1", f_scale=scale)
+    r = np.asarray(_light_model(fit.x, theta, kind) - grey)
+    rms = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    J = fit.jac
+    return fit.x, np.linalg.pinv(J.T @ J) * rms * rms, rms
+
+
+def band_profile(u, grey, g_face, g_past, width, step=0.02):
+    """The image's grey profile across the band, blurred by the edge's width, on a fine grid.
+
+    Parameters
+    ----------
+    u : ndarray, shape (m,)
+        Image coordinate of each visible section sample along the rim's
+        outward image direction, px, face's end first.
+    grey : ndarray, shape (m,)
+        Their grey levels.
+    g_face : float
+        Grey level beyond the face's end (a plane under a distant light: constant).
+    g_past : float or (float, float, float)
+        Grey level past the band's visible end, or ``(x, g, slope)``: the
+        grey ``g`` read at ``x`` and its slope along ``u`` there, extended
+        linearly to the band (what is seen past a hole's near rim, the far
+        wall, is shaded across).
+    width : float
+        The edge's whole blur (standard deviation), px.
+    step : float
+        Grid step, px.
+
+    Returns
+    -------
+    grid, profile : ndarray
+    """
+    lo, hi = float(min(u.min(), u.max())), float(max(u.min(), u.max()))
+    reach = 5.0 * width + 1.0
+    grid = np.arange(lo - reach, hi + reach, step)
+    order = np.argsort(u)
+    prof = np.interp(grid, u[order], grey[order])
+    x, g, slope = g_past if np.ndim(g_past) else (0.0, float(g_past), 0.0)
+    past = g + slope * (grid - x)
+    face_high = u[0] > u[-1]
+    prof[grid > hi] = g_face if face_high else past[grid > hi]
+    prof[grid < lo] = past[grid < lo] if face_high else g_face
+    return grid, gaussian_filter1d(prof, width / step, mode="nearest")
+
+
+def apparent_place(u, grey, g_face, g_past, width, rival=RIVAL):
+    """Where the detector finds the step: the blurred profile's steepest place, and a rival, px (as ``u``).
+
+    A band lit otherwise than both its faces has two steps (a highlight or
+    a shadow along it): the detector's chain may follow either, so the
+    second steepest local maximum of the gradient, where it reaches
+    ``rival`` times the steepest, is returned as the other possible place.
+
+    Returns
+    -------
+    place, other : float
+        ``other`` equals ``place`` where there is no rival step.
+    """
+    grid, prof = band_profile(u, grey, g_face, g_past, width)
+    slope = np.abs(np.gradient(prof))
+    peaks = np.flatnonzero((slope[1:-1] > slope[:-2]) & (slope[1:-1] >= slope[2:])) + 1
+    if peaks.size == 0:
+        return (float(grid[np.argmax(slope)]),) * 2
+    order = peaks[np.argsort(slope[peaks])[::-1]]
+    best = float(grid[order[0]])
+    other = float(grid[order[1]]) if order.size > 1 and slope[order[1]] >= rival * slope[order[0]] else best
+    return best, other
+
+
+def _rim_frame(center, axis, radius, theta):
+    """Sharp rim points (n, 3) and outward radial unit vectors (n, 3), part frame."""
+    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    rh = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
+    return center + radius * rh, rh
+
+
+def _read(image, uv):
+    return map_coordinates(np.asarray(image, float), [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
+
+
+@dataclass(frozen=True)
+class _Rim:
+    """A rim in the part frame: centre, the face's outward normal, radius, material side, break size (internal)."""
+
+    center: np.ndarray
+    axis: np.ndarray
+    radius: float
+    side: int
+    size: float
+
+
+def _camera_views(calib, part_to_camera):
+    """Per camera: K, D, the part-to-camera rotation and translation, its centre in the part frame, its rig P."""
+    T = np.asarray(part_to_camera, float)
+    out = []
+    for i in (0, 1):
+        K, D, R, t = calib.camera(i)
+        Rp, tp = R @ T[:3, :3], R @ T[:3, 3] + np.ravel(t)
+        out.append((K, D, Rp, tp, -Rp.T @ tp, K @ np.c_[R, np.ravel(t)]))
+    return tuple(out)
+
+
+def _outward(p0, rh, side, K, D, R, t):
+    """The sharp rim's pixels and the unit image direction towards its face (the band's outer side)."""
+    uv0 = project_points(p0, K, D, R, t)
+    d = project_points(p0 + 0.01 * side * rh, K, D, R, t) - uv0
+    return uv0, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _sections(rim, theta, shape):
+    """Section points (a, m, 3) and normal weights of the rim's band at each angle."""
+    radial, axial, wf, ww = rim_section(shape, rim.side)
+    p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
+    P = p0[:, None] + rim.size * (radial[None, :, None] * rh[:, None] + axial[None, :, None] * rim.axis)
+    n_wall = -rim.side * rh
+    N = wf[None, :, None] * rim.axis + ww[None, :, None] * n_wall[:, None]
+    return P, N, wf, ww, p0, rh
+
+
+def _image_places(rim, image, cam, theta, light, shape, width):
+    """Per angle, the apparent place across the band, its rival and the image's own, px along the outward direction.
+
+    Returns an array of shape (3, angles), NaN where the band is not seen.
+    """
+    K, D, R, t, C, _ = cam
+    P, N, wf, ww, p0, rh = _sections(rim, theta, shape)
+    A, b1, b2, a = light
+    B = b1 * np.cos(theta) + b2 * np.sin(theta)
+    grey = np.maximum(wf[None] * A + ww[None] * B[:, None], 0.0) + a
+    facing = np.einsum("amk,amk->am", C - P, N) > 0
+    uv0, d = _outward(p0, rh, rim.side, K, D, R, t)
+    places = np.full((3, len(theta)), np.nan)
+    uv_all = project_points(P.reshape(-1, 3), K, D, R, t).reshape(P.shape[0], P.shape[1], 2)
+    for i in range(len(theta)):
+        m = int(np.argmin(facing[i])) if not facing[i].all() else P.shape[1]
+        if m < 2 or not np.isfinite(uv_all[i, :m]).all():
+            continue
+        u = (uv_all[i, :m] - uv0[i]) @ d[i]
+        out = np.sign(u[0] - u[-1]) * READ_WIDTHS * width
+        g_face, g_past = _read(image, uv0[i] + np.array([u[0] + out, u[-1] - out])[:, None] * d[i])
+        places[:2, i] = apparent_place(u, grey[i, :m], g_face, g_past, width)
+        places[2, i] = _observed_place(image, uv0[i], d[i], min(u[0], u[-1]) - width, max(u[0], u[-1]) + width)
+    return places
+
+
+def _observed_place(image, origin, direction, lo, hi, step=0.05):
+    """The steepest place of the image's own profile between ``lo`` and ``hi`` px along ``direction``.
+
+    The profile is read at ``step`` px and smoothed by the detector's
+    derivative filter (a Gaussian of 1 px): where the detector finds the
+    step, read without its chaining, to check the prediction against.
+    """
+    x = np.arange(lo - 4.0, hi + 4.0, step)
+    prof = gaussian_filter1d(_read(image, origin + x[:, None] * direction), 1.0 / step, mode="nearest")
+    slope = np.abs(np.gradient(prof))
+    inside = (x >= lo) & (x <= hi)
+    return float(x[inside][np.argmax(slope[inside])])
+
+
+def _light_samples(rim, images, cams, theta, width):
+    """Grey levels of the rim's face just outside the band and of its wall just inside, where seen (both images)."""
+    th, g, kind = [], [], []
+    for image, cam in zip(images, cams):
+        K, D, R, t, C, _ = cam
+        p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
+        uv0, d = _outward(p0, rh, rim.side, K, D, R, t)
+        out_px = READ_WIDTHS * width + rim.size * float(np.median(np.linalg.norm(
+            project_points(p0 + rim.side * rh, K, D, R, t) - uv0, axis=1)))
+        face = uv0 + out_px * d
+        wall_seen = np.einsum("ak,ak->a", C - (p0 - rim.size * rim.axis), -rim.side * rh) > 0
+        wall = uv0 - out_px * d
+        ok = np.isfinite(face).all(1)
+        th += [theta[ok], theta[ok & wall_seen]]
+        g += [_read(image, face[ok]), _read(image, wall[ok & wall_seen])]
+        kind += [np.zeros(ok.sum(), int), np.ones((ok & wall_seen).sum(), int)]
+    return np.concatenate(th), np.concatenate(g), np.concatenate(kind)
+
+
+def _fitted_place(rim, images, cams, theta, light, shape, width):
+    """The rim's band place from the apparent points of both images through the two-view circle fit.
+
+    The fit takes ideal (undistorted) pixels: the places, read on the
+    images as they are, move the ideal image of the sharp rim.
+
+    Returns
+    -------
+    (s, s_rival, misfit) or None
+        The place from the steepest steps, from their rivals, and the RMS
+        of the predicted less the image's own steepest places round the
+        rim, what a shift and a sinusoid (the pose's error and the size
+        measured) leave, as a share of the band's width in the image.
+    """
+    views, rivals, sharp, misfit = [], [], [], []
+    p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
+    for image, cam, w in zip(images, cams, width):
+        places = _image_places(rim, image, cam, theta, light, shape, w)
+        ok = np.isfinite(places[0])
+        if ok.sum() < 6:
+            return None
+        K, D, R, t, _, P = cam
+        uv0, d = _outward(p0[ok], rh[ok], rim.side, K, np.zeros(5), R, t)
+        sigma = np.full(ok.sum(), 0.1)
+        views.append(View(uv0 + places[0, ok, None] * d, sigma, P))
+        rivals.append(View(uv0 + places[1, ok, None] * d, sigma, P))
+        sharp.append(View(uv0, sigma, P))
+        X = np.c_[np.ones(ok.sum()), np.cos(theta[ok]), np.sin(theta[ok])]
+        e = places[0, ok] - places[2, ok]
+        e = e - X @ np.linalg.lstsq(X, e, rcond=None)[0]
+        band_px = rim.size * float(np.median(np.linalg.norm(
+            project_points(p0[ok] + rim.side * rh[ok], K, D, R, t) - project_points(p0[ok], K, D, R, t), axis=1)))
+        misfit.append(float(np.sqrt(np.mean(e * e))) / band_px)
+    K, D, R, t, C, _ = cams[0]
+    c_rig, n_rig = R @ rim.center + t, R @ rim.axis
+    r_sharp = fit_circle_3d(sharp, c_rig, n_rig, rim.radius).radius
+    s, s_rival = (rim.side * (fit_circle_3d(v, c_rig, n_rig, rim.radius).radius - r_sharp) / rim.size
+                  for v in (views, rivals))
+    return s, s_rival, float(np.sqrt(np.mean(np.square(misfit))))
+
+
+def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, width):
+    """The predicted band place of a broken rim's size, or None where it cannot be predicted.
+
+    Parameters
+    ----------
+    images : (ndarray, ndarray)
+        Left and right grey images, shape (H, W).
+    calib : StereoCalibration
+    part_to_camera : ndarray, shape (4, 4)
+        The registered pose (part frame to the left camera).
+    center, axis : array_like, shape (3,)
+        The rim's centre and its planar face's outward unit normal, part frame, mm.
+    radius : float
+        The sharp rim's radius, mm.
+    hole : bool
+        True for a hole's rim, False for a boss's.
+    size : float
+        The break's size (fillet radius or chamfer leg), mm: its expected value.
+    width : (float, float)
+        Each image's edge width (``EdgePoints.width``, median), px.
+
+    Returns
+    -------
+    BandPlace or None
+        None where the light cannot be fitted (too few samples) or too
+        little of the rim is seen in an image.
+    """
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    cams = _camera_views(calib, part_to_camera)
+    rim = _Rim(np.asarray(center, float), axis, float(radius), 1 if hole else -1, float(size))
+    theta = np.linspace(0.0, 2.0 * np.pi, ANGLES, endpoint=False)
+    T, g, kind = _light_samples(rim, images, cams, theta, float(np.mean(width)))
+    if (kind == 0).sum() < 6 or (kind == 1).sum() < 6:
+        return None
+    light, cov, rms = fit_light(T, g, kind)
+
+    def place(p, shape):
+        return _fitted_place(rim, images, cams, theta, p, shape, width)
+
+    fillet, chamfer = place(light, "fillet"), place(light, "chamfer")
+    if fillet is None or chamfer is None:
+        return None
+    # Shape and rival steps: the place lies anywhere between the extremes they give.
+    lo, hi = min(fillet[:2] + chamfer[:2]), max(fillet[:2] + chamfer[:2])
+    s_mid, u_shape = 0.5 * (lo + hi), (hi - lo) / math.sqrt(12.0)
+    w, V = np.linalg.eigh(cov)
+    moves = [place(light + math.sqrt(max(wi, 0.0)) * V[:, j], "fillet") for j, wi in enumerate(w)]
+    u_light = math.sqrt(sum((m[0] - fillet[0]) ** 2 for m in moves if m is not None))
+    # What the model does not explain of the image's own steps round the rim (the better shape's).
+    u_model = min(fillet[2], chamfer[2])
+    u = min(UNIFORM_STD, math.sqrt(u_shape**2 + u_light**2 + u_model**2))
+    s_f, s_c = fillet[0], chamfer[0]
+    return BandPlace(float(np.clip(s_mid, 0.0, 1.0)), u, s_f, s_c, u_shape, u_light, u_model)
