@@ -444,7 +444,7 @@ def evaluate(inputs, m, progress):
 
     progress(f"evaluating {len(inputs.characteristics)} characteristics")
     judged, not_inspected = split_unseen(inputs.characteristics, m.seen, m.registration)
-    judged = _with_band_places(judged, inputs, m, progress)
+    judged, m = _at_band_places(judged, inputs, m, progress)
     decisions = decide_all(_evaluate_on_two_cores(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
     if m.registration.competing:
         decisions = _judged_across_poses(judged, decisions, m.registration, inputs, progress)
@@ -478,24 +478,44 @@ def evaluate(inputs, m, progress):
     return report, features
 
 
-def _with_band_places(characteristics, inputs, m, progress):
-    """The characteristics with each broken rim's band place predicted from the images (:mod:`.vision.band_place`).
+def _at_band_places(characteristics, inputs, m, progress):
+    """Broken rims measured at their predicted band places (:mod:`.vision.band_place`), registered again.
 
-    Only where the spec states an edge break; a rim whose place cannot be
-    predicted keeps the uniform band.
+    Only where the spec states an edge break. A rim refitted with its
+    points moved onto the sharp rim's image measures the wall; one that
+    could not be keeps its fit and has its size corrected by the place
+    (``Characteristic.band_place``); one whose place cannot be predicted
+    keeps the uniform band.
+
+    Returns
+    -------
+    characteristics : list of Characteristic
+    m : Measured
     """
     from partinspect.tolerances.edge_break import broken_rims, with_band_places
-    from partinspect.vision.band_place import band_place
+    from partinspect.vision.band_place import band_place, rims_at_sharp_edge
 
     rims = broken_rims(characteristics, inputs.inv, m.registration.part_to_camera)
     if not rims:
-        return characteristics
+        return characteristics, m
     progress(f"predicting where {len(rims)} broken rim(s) show their edge")
     widths = tuple(float(np.median(side.edges.width)) for side in (m.stereo.left, m.stereo.right))
     with inputs.timings.stage("edge-break band places"):
         places = {fid: band_place((inputs.left, inputs.right), inputs.calib, m.registration.part_to_camera, *rim,
                                   width=widths) for fid, rim in rims.items()}
-    return with_band_places(characteristics, {fid: p for fid, p in places.items() if p is not None})
+        places = {fid: p for fid, p in places.items() if p is not None}
+        at = [k for k, f in enumerate(m.stereo.features) if f.kind != "line"]
+        arcs = {at[i]: cid for i, cid in m.registration.assignment["circle"].items()}
+        stereo, refitted = rims_at_sharp_edge(m.stereo, inputs.calib, m.registration.part_to_camera, arcs,
+                                              {fid: (p, rims[fid]) for fid, p in places.items()})
+    if refitted:
+        progress(f"{len(refitted)} broken rim(s) measured at their predicted place")
+        try:
+            with inputs.timings.stage("registering"):
+                m = replace(m, stereo=stereo, registration=_register(stereo, inputs, m.registration.poses))
+        except InputError:
+            pass
+    return with_band_places(characteristics, places), m
 
 
 def _judged_across_poses(characteristics, decisions, registration, inputs, progress):

@@ -53,7 +53,7 @@ import numpy as np
 
 from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
-from partinspect.tolerances.edge_break import band_rms, size_on_broken_rim
+from partinspect.tolerances.edge_break import band_offset, band_rms, size_on_broken_rim
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
 from partinspect.tolerances.material import position_with_bonus
 
@@ -614,12 +614,21 @@ def _size_result(c, rec, registration, inventory, k):
         return measured_result(c, f * float(rec.radius), f * float(rec.radius_std), k,
                                "first order (pose-invariant); the wall's silhouette, seen through the hole past its "
                                "broken rim")
-    r, u, corr, u_b = size_on_broken_rim(float(rec.radius), float(rec.radius_std), convex, *c.edge_break,
-                                         place=c.band_place)
+    moved = getattr(rec, "band_place", None)
+    if moved is not None:
+        # The rim's points were moved onto the sharp rim by E[b] times their place: what is left is
+        # the break's size about E[b] (the places' own u is in the fit's covariance).
+        _, u_b = band_offset(*c.edge_break, place=(moved.s, 0.0))
+        r, u, corr = float(rec.radius), math.hypot(float(rec.radius_std), u_b), 0.0
+        place = {"band_place": "predicted from the light on the part; the rim's points moved by it and fitted again",
+                 "s": moved.s, "s_standard_uncertainty": moved.u}
+    else:
+        r, u, corr, u_b = size_on_broken_rim(float(rec.radius), float(rec.radius_std), convex, *c.edge_break,
+                                             place=c.band_place)
+        place = ({"band_place": "uniform across the band"} if c.band_place is None else
+                 {"band_place": "predicted from the light on the part", "s": c.band_place[0],
+                  "s_standard_uncertainty": c.band_place[1]})
     wall = {False: "the hole's wall", True: "the boss's wall", None: "the wall (material side unknown)"}[convex]
-    place = ({"band_place": "uniform across the band"} if c.band_place is None else
-             {"band_place": "predicted from the light on the part", "s": c.band_place[0],
-              "s_standard_uncertainty": c.band_place[1]})
     return measured_result(c, f * r, f * u, k, "first order (pose-invariant), edge break Type B",
                            edge_break={"min": c.edge_break[0], "max": c.edge_break[1], "correction": f * corr,
                                        "standard_uncertainty": f * u_b, "rim": f * float(rec.radius),

@@ -61,7 +61,7 @@ References
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d, map_coordinates
@@ -69,8 +69,14 @@ from scipy.optimize import least_squares
 
 from partinspect.vision.calibration import project_points
 from partinspect.vision.fit3d import View, fit_circle_3d
+from partinspect.vision.fitting import fit_ellipse
+from partinspect.vision.matching import Match
+from partinspect.vision.stereo import measure_pair_feature
 
-__all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "band_place"]
+__all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "band_place", "rims_at_sharp_edge"]
+
+FINE_ANGLES = 720
+"""Angles at which the sharp rim's image is sampled to give each edge point its angle."""
 
 ANGLES = 60
 """Angles round the rim at which the band is predicted."""
@@ -106,6 +112,19 @@ class BandPlace:
         The place for each shape (steepest steps).
     u_shape, u_light, u_model : float
         The components.
+    theta : ndarray, shape (n,)
+        Angles round the rim (about its face's normal, from
+        ``cross(normal, x)``), rad.
+    offsets : (ndarray, ndarray), shape (n,) each
+        Per image, the apparent step's place at each angle, px along the
+        image direction towards the rim's face from the sharp rim's image
+        (midway between the extremes the shapes and rival steps give; NaN
+        where the band is not seen).
+    u_point : float
+        The standard uncertainty of one point's place, as a share of the
+        break: the shapes' and rival steps' range at its angle
+        (rectangular), the model's misfit and the light's, combined in
+        quadrature (RMS over the angles), at most ``1 / sqrt(12)``.
     """
 
     s: float
@@ -115,9 +134,13 @@ class BandPlace:
     u_shape: float
     u_light: float
     u_model: float
+    theta: np.ndarray = None
+    offsets: tuple = None
+    u_point: float = None
 
     def to_dict(self):
-        return {k: round(float(v), 4) for k, v in self.__dict__.items()}
+        return {k: round(float(getattr(self, k)), 4)
+                for k in ("s", "u", "s_fillet", "s_chamfer", "u_shape", "u_light", "u_model", "u_point")}
 
 
 def rim_section(shape, material_side, n=SECTION_SAMPLES):
@@ -367,11 +390,28 @@ def _light_samples(rim, images, cams, theta, width):
     return np.concatenate(th), np.concatenate(g), np.concatenate(kind)
 
 
-def _fitted_place(rim, images, cams, theta, light, shape, width):
+def _places(rim, images, cams, theta, light, shape, width):
+    """Per image, :func:`_image_places` of the rim for one shape and light."""
+    return [_image_places(rim, image, cam, theta, light, shape, w) for image, cam, w in zip(images, cams, width)]
+
+
+def _band_px(rim, cam, p0, rh):
+    """The break's width in the image at each angle, px."""
+    K, D, R, t = cam[:4]
+    return rim.size * np.linalg.norm(project_points(p0 + rim.side * rh, K, D, R, t) - project_points(p0, K, D, R, t),
+                                     axis=1)
+
+
+def _fitted_place(rim, cams, theta, places):
     """The rim's band place from the apparent points of both images through the two-view circle fit.
 
     The fit takes ideal (undistorted) pixels: the places, read on the
     images as they are, move the ideal image of the sharp rim.
+
+    Parameters
+    ----------
+    places : list of ndarray, shape (3, angles)
+        Per image, :func:`_image_places`.
 
     Returns
     -------
@@ -383,29 +423,37 @@ def _fitted_place(rim, images, cams, theta, light, shape, width):
     """
     views, rivals, sharp, misfit = [], [], [], []
     p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
-    for image, cam, w in zip(images, cams, width):
-        places = _image_places(rim, image, cam, theta, light, shape, w)
-        ok = np.isfinite(places[0])
+    for cam, pl in zip(cams, places):
+        ok = np.isfinite(pl[0])
         if ok.sum() < 6:
             return None
         K, D, R, t, _, P = cam
         uv0, d = _outward(p0[ok], rh[ok], rim.side, K, np.zeros(5), R, t)
         sigma = np.full(ok.sum(), 0.1)
-        views.append(View(uv0 + places[0, ok, None] * d, sigma, P))
-        rivals.append(View(uv0 + places[1, ok, None] * d, sigma, P))
+        views.append(View(uv0 + pl[0, ok, None] * d, sigma, P))
+        rivals.append(View(uv0 + pl[1, ok, None] * d, sigma, P))
         sharp.append(View(uv0, sigma, P))
         X = np.c_[np.ones(ok.sum()), np.cos(theta[ok]), np.sin(theta[ok])]
-        e = places[0, ok] - places[2, ok]
+        e = pl[0, ok] - pl[2, ok]
         e = e - X @ np.linalg.lstsq(X, e, rcond=None)[0]
-        band_px = rim.size * float(np.median(np.linalg.norm(
-            project_points(p0[ok] + rim.side * rh[ok], K, D, R, t) - project_points(p0[ok], K, D, R, t), axis=1)))
-        misfit.append(float(np.sqrt(np.mean(e * e))) / band_px)
+        misfit.append(float(np.sqrt(np.mean(e * e))) / float(np.median(_band_px(rim, cam, p0[ok], rh[ok]))))
     K, D, R, t, C, _ = cams[0]
     c_rig, n_rig = R @ rim.center + t, R @ rim.axis
     r_sharp = fit_circle_3d(sharp, c_rig, n_rig, rim.radius).radius
     s, s_rival = (rim.side * (fit_circle_3d(v, c_rig, n_rig, rim.radius).radius - r_sharp) / rim.size
                   for v in (views, rivals))
     return s, s_rival, float(np.sqrt(np.mean(np.square(misfit))))
+
+
+def _point_places(rim, cams, theta, shapes):
+    """Per image, the place at each angle midway between the shapes' and rivals' extremes, and its range, px."""
+    out = []
+    p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
+    for i, cam in enumerate(cams):
+        c = np.concatenate([pl[i][:2] for pl in shapes])
+        lo, hi = np.min(c, axis=0), np.max(c, axis=0)
+        out.append((0.5 * (lo + hi), (hi - lo) / _band_px(rim, cam, p0, rh)))
+    return out
 
 
 def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, width):
@@ -444,20 +492,114 @@ def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, 
         return None
     light, cov, rms = fit_light(T, g, kind)
 
-    def place(p, shape):
-        return _fitted_place(rim, images, cams, theta, p, shape, width)
-
-    fillet, chamfer = place(light, "fillet"), place(light, "chamfer")
+    shapes = {shape: _places(rim, images, cams, theta, light, shape, width) for shape in ("fillet", "chamfer")}
+    fillet, chamfer = (_fitted_place(rim, cams, theta, shapes[k]) for k in ("fillet", "chamfer"))
     if fillet is None or chamfer is None:
         return None
     # Shape and rival steps: the place lies anywhere between the extremes they give.
     lo, hi = min(fillet[:2] + chamfer[:2]), max(fillet[:2] + chamfer[:2])
     s_mid, u_shape = 0.5 * (lo + hi), (hi - lo) / math.sqrt(12.0)
     w, V = np.linalg.eigh(cov)
-    moves = [place(light + math.sqrt(max(wi, 0.0)) * V[:, j], "fillet") for j, wi in enumerate(w)]
+    moves = [_fitted_place(rim, cams, theta, _places(rim, images, cams, theta, light + math.sqrt(max(wi, 0.0)) * V[:, j],
+                                                      "fillet", width)) for j, wi in enumerate(w)]
     u_light = math.sqrt(sum((m[0] - fillet[0]) ** 2 for m in moves if m is not None))
     # What the model does not explain of the image's own steps round the rim (the better shape's).
     u_model = min(fillet[2], chamfer[2])
     u = min(UNIFORM_STD, math.sqrt(u_shape**2 + u_light**2 + u_model**2))
     s_f, s_c = fillet[0], chamfer[0]
-    return BandPlace(float(np.clip(s_mid, 0.0, 1.0)), u, s_f, s_c, u_shape, u_light, u_model)
+    points = _point_places(rim, cams, theta, list(shapes.values()))
+    ranges = np.concatenate([r[np.isfinite(r)] for _, r in points])
+    u_point = min(UNIFORM_STD, math.sqrt(float(np.mean(ranges**2)) / 12.0 + u_light**2 + u_model**2))
+    return BandPlace(float(np.clip(s_mid, 0.0, 1.0)), u, s_f, s_c, u_shape, u_light, u_model, theta,
+                     tuple(p for p, _ in points), u_point)
+
+
+def _moved_to_sharp(feature, rim, cam, place, corr_length):
+    """An image arc with each point moved by minus its predicted place (towards the sharp rim's image), refitted.
+
+    Each point takes the place of the nearest of the sharp rim's image
+    samples (the 60 predicted angles interpolated round the rim; an angle
+    where the band is not seen takes its nearest seen one). The move is
+    made in the distorted image and carried to the ideal one by each
+    point's Jacobian; covariances are kept (the place's uncertainty is the
+    Type B the fit is given).
+    """
+    fine = np.linspace(0.0, 2.0 * np.pi, FINE_ANGLES, endpoint=False)
+    seen = np.isfinite(place.offset)
+    if seen.sum() < 2:
+        return None
+    period = np.r_[place.theta[seen] - 2 * np.pi, place.theta[seen], place.theta[seen] + 2 * np.pi]
+    offset = np.interp(fine, period, np.tile(place.offset[seen], 3))
+    p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, fine)
+    uv0, d = _outward(p0, rh, rim.side, *cam[:4])
+    near = np.argmin(np.linalg.norm(feature.uv[:, None] - uv0[None], axis=2), axis=1)
+    shift = -offset[near, None] * d[near]
+    xy = feature.ideal.xy + np.einsum("nij,nj->ni", feature.ideal.jacobian, shift)
+    ideal = replace(feature.ideal, xy=xy)
+    fit = fit_ellipse(xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
+    return replace(feature, uv=feature.uv + shift, ideal=ideal, fit=fit)
+
+
+@dataclass(frozen=True)
+class _ImagePlace:
+    theta: np.ndarray
+    offset: np.ndarray
+
+
+def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
+    """Broken rims refitted with their points moved onto the sharp rim's image by their predicted places.
+
+    The rim's two-view fit then measures the sharp rim, whose size is the
+    wall's, and each point carries, in place of the whole band, the
+    prediction's own uncertainty: ``u_point`` of the break's expected
+    size, as the Type B of :func:`partinspect.vision.stereo.edge_band`.
+
+    Parameters
+    ----------
+    stereo : StereoResult
+    calib : StereoCalibration
+    part_to_camera : ndarray, shape (4, 4)
+        The registered pose.
+    arcs : dict of int to str
+        Index into ``stereo.features`` of a measured circle -> its CAD edge.
+    places : dict of str to (BandPlace, tuple)
+        CAD edge -> its predicted place and its rim ``(center, axis,
+        radius, hole, size)`` as :func:`band_place` takes them.
+
+    Returns
+    -------
+    stereo : StereoResult
+        Those rims refitted (their image features too), each with its
+        ``band_place``; a rim whose refit fails stays as it was.
+    refitted : set of str
+    """
+    L, R, geo = stereo.left, stereo.right, stereo.geometry
+    cams = _camera_views(calib, part_to_camera)
+    lefts, rights, feats = list(L.features), list(R.features), list(stereo.features)
+    refitted = set()
+    for k, cid in arcs.items():
+        if cid not in places or places[cid][0].offsets is None:
+            continue
+        place, (center, axis, radius, hole, size) = places[cid]
+        axis = np.asarray(axis, float) / np.linalg.norm(axis)
+        rim = _Rim(np.asarray(center, float), axis, float(radius), 1 if hole else -1, float(size))
+        f3 = stereo.features[k]
+        scale = L.features[f3.left].corr_length or float(L.edges.sigma)
+        try:
+            moved = [_moved_to_sharp(res.features[i], rim, cam, _ImagePlace(place.theta, off), scale)
+                     for res, i, cam, off in zip((L, R), (f3.left, f3.right), cams, place.offsets)]
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if any(m is None for m in moved):
+            continue
+        new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
+                                      *moved, calib, geo, scale, place.u_point * rim.size)
+        if new is None:
+            continue
+        lefts[f3.left], rights[f3.right] = moved
+        feats[k] = replace(new, guided=f3.guided, band_place=place)
+        refitted.add(cid)
+    if not refitted:
+        return stereo, refitted
+    return replace(stereo, left=replace(L, features=lefts), right=replace(R, features=rights),
+                    features=tuple(feats)), refitted

@@ -200,6 +200,11 @@ class Feature3D:
         ``param_cov_calibration`` is ``G G^T``, and two features measured
         with one calibration have the cross-covariance ``G_a G_b^T``, for
         the calibration's error is one error shared by all of them.
+    band_place : BandPlace or None
+        A broken rim whose points were moved, each by its predicted place
+        across the break, onto the sharp rim's image and fitted again
+        (:func:`partinspect.vision.band_place.rims_at_sharp_edge`): the
+        size measured is the wall's. None otherwise.
     """
 
     kind: str
@@ -226,6 +231,7 @@ class Feature3D:
     point_errors: object = None
     guided: str | None = None
     calibration_response: np.ndarray | None = None
+    band_place: object = None
 
     @property
     def points(self):
