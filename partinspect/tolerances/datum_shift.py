@@ -47,7 +47,11 @@ Uncertainty: the optimum is a non-smooth function of every measured input
 hence the allowances), so it is propagated by Monte Carlo (JCGM 101): the
 inputs drawn from their joint normal distribution, the optimum found again
 for each draw, and ``u`` the root mean square of the drawn optima about
-the measured one. The allowance's own uncertainty (half the datum size's)
+the value they are drawn at. As for one position, the measured offsets of a
+norm near zero are biased up by the noise: the draws are taken about the
+pattern's centres with each offset from its shifted place shrunk to zero
+unless it is significant (:func:`shrunk_centres`), a parametric bootstrap
+of the estimator's error rather than its spread about itself. The allowance's own uncertainty (half the datum size's)
 is carried that way, and the decision's guard band covers it.
 
 References
@@ -76,7 +80,7 @@ from scipy.optimize import minimize
 from partinspect.tolerances.material import bonus_sign, reference_size
 
 __all__ = ["BOUNDARIES", "DatumRef", "ShiftResult", "parse_datum", "allowance", "plane_basis", "best_shift",
-           "shift_monte_carlo"]
+           "shift_monte_carlo", "shrunk_centres"]
 
 BOUNDARIES = {"M": "MMB", "L": "LMB"}
 _DATUM_RE = re.compile(r"^([A-Z][A-Z0-9]*)(?:\((M|L)\))?$")
@@ -205,6 +209,8 @@ class ShiftResult:
         The frame's shift from the first datum feature's own axis, mm.
     rotation : float
         Its rotation from the placement without a shift, rad.
+    residuals : ndarray, shape (n, 2)
+        Each measured centre's offset from its place in the shifted frame, mm.
     """
 
     values: np.ndarray
@@ -212,6 +218,7 @@ class ShiftResult:
     unshifted: np.ndarray
     translation: np.ndarray
     rotation: float
+    residuals: np.ndarray
 
 
 def _rot(theta):
@@ -263,36 +270,61 @@ def best_shift(nominal, measured, bonus, tolerance, datum_nominal, datum_measure
     def frame(x):
         return D[0] + s0 + rho[0] * x[:2], _rot(theta_of(x))
 
-    def values(x):
+    def residuals(x):
         origin, R = frame(x)
-        r = C - (origin + (P - D[0]) @ R.T)
-        return 2.0 * np.sqrt(np.einsum("ij,ij->i", r, r) + _EPS2) - b
+        arms = (P - D[0]) @ R.T
+        r = C - (origin + arms)
+        return r, np.sqrt(np.einsum("ij,ij->i", r, r) + _EPS2), arms
+
+    def values(x):
+        return 2.0 * residuals(x)[1] - b
+
+    def excess_jac(y):
+        # d/dy of z - (2 |r_i| - b_i - t_i); d r_i / d a = -rho_0, d r_i / d w = -J R (n_i - n_0) / reach
+        r, norm, arms = residuals(y[:3])
+        u = r / norm[:, None]
+        out = np.empty((len(r), 4))
+        out[:, :2] = 2.0 * rho[0] * u
+        turns = rotation != "fixed"
+        out[:, 2] = 2.0 * (u[:, 0] * -arms[:, 1] + u[:, 1] * arms[:, 0]) / reach if turns else 0.0
+        out[:, 3] = 1.0
+        return out
 
     def clock(x):
         origin, R = frame(x)
         return float(v @ (M[1] - origin - R @ (D[1] - D[0])))
 
+    def clock_jac(y):
+        _, R = frame(y[:3])
+        arm = R @ (D[1] - D[0])
+        return np.r_[-rho[0] * v, -float(v @ np.array([-arm[1], arm[0]])) / reach, 0.0]
+
     x0 = np.zeros(3)
     z0 = float(np.max(values(x0) - t))
-    cons = [{"type": "ineq", "fun": lambda y: y[3] - (values(y[:3]) - t)},
-            {"type": "ineq", "fun": lambda y: 1.0 - y[0] ** 2 - y[1] ** 2}]
-    if rotation == "clocked":
-        cons.append({"type": "ineq", "fun": lambda y: rho[1] - abs(clock(y[:3]))} if rho[1] > 0 else
-                    {"type": "eq", "fun": lambda y: clock(y[:3])})
+    cons = [{"type": "ineq", "fun": lambda y: y[3] - (values(y[:3]) - t), "jac": excess_jac},
+            {"type": "ineq", "fun": lambda y: 1.0 - y[0] ** 2 - y[1] ** 2,
+             "jac": lambda y: np.array([-2.0 * y[0], -2.0 * y[1], 0.0, 0.0])}]
+    if rotation == "clocked" and rho[1] > 0:
+        cons += [{"type": "ineq", "fun": lambda y: rho[1] - clock(y[:3]), "jac": lambda y: -clock_jac(y)},
+                 {"type": "ineq", "fun": lambda y: rho[1] + clock(y[:3]), "jac": clock_jac}]
+    elif rotation == "clocked":
+        cons.append({"type": "eq", "fun": lambda y: clock(y[:3]), "jac": clock_jac})
     best = x0
     if rho[0] > 0 or (rotation == "clocked" and rho[1] > 0) or rotation == "free":
-        res = minimize(lambda y: y[3], np.r_[x0, z0], method="SLSQP", constraints=cons,
-                       options={"ftol": 1e-10, "maxiter": 100})
+        res = minimize(lambda y: y[3], np.r_[x0, z0], jac=lambda y: np.array([0.0, 0.0, 0.0, 1.0]), method="SLSQP",
+                       constraints=cons, options={"ftol": 1e-10, "maxiter": 100})
         y = res.x[:3].copy()
         y[:2] /= max(1.0, float(np.hypot(y[0], y[1])))  # on the disc, not a rounding outside it
         held = rotation != "clocked" or abs(clock(y)) <= rho[1] + _FEASIBLE
         if held and np.max(values(y) - t) < z0:
             best = y
-    v_best = values(best)
-    return ShiftResult(v_best, v_best + b, values(x0), rho[0] * best[:2], float(theta_of(best) - theta0))
+    r = residuals(best)[0]
+    norm = np.linalg.norm(r, axis=1)  # the smoothing was for the solver only
+    return ShiftResult(2.0 * norm - b, 2.0 * norm, 2.0 * np.linalg.norm(residuals(x0)[0], axis=1) - b,
+                       rho[0] * best[:2], float(theta_of(best) - theta0), r)
 
 
-def shift_monte_carlo(x, cov, unpack, rng, n):
+def shift_monte_carlo(x, cov, unpack, rng, n, at=None):
     """Monte Carlo (JCGM 101) standard uncertainty of every value :func:`best_shift` gives.
 
     Parameters
@@ -306,18 +338,48 @@ def shift_monte_carlo(x, cov, unpack, rng, n):
     rng : numpy.random.Generator
     n : int
         Draws.
+    at : ndarray, shape (p,), optional
+        The inputs to simulate the estimator's error at (default ``x``):
+        a parametric bootstrap, as :func:`~partinspect.tolerances.evaluate.true_position`
+        does for one position, where the measured inputs themselves are a
+        biased place to draw about (:func:`shrunk_centres`).
 
     Returns
     -------
     result : ShiftResult
         At the measured inputs.
     u : ndarray, shape (k,)
-        Root mean square of each drawn value about the measured one: the
-        optimum's spread and its bias together (it is a minimum over the
-        frame's freedom, so noise biases it).
+        Root mean square of each drawn value about its value at ``at``:
+        the estimator's spread and its bias together (a norm near zero,
+        minimised over the frame's freedom, is biased by noise).
     """
     result = unpack(np.asarray(x, float))
+    at = np.asarray(x if at is None else at, float)
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    draws = np.asarray(x, float) + rng.standard_normal((n, len(x))) @ (V * np.sqrt(np.clip(w, 0, None))).T
+    draws = at + rng.standard_normal((n, len(at))) @ (V * np.sqrt(np.clip(w, 0, None))).T
     drawn = np.array([unpack(d).values for d in draws])
-    return result, np.sqrt(np.mean((drawn - result.values) ** 2, axis=0))
+    return result, np.sqrt(np.mean((drawn - unpack(at).values) ** 2, axis=0))
+
+
+def shrunk_centres(residuals, plane_covs, factor=3.0):
+    """Each residual offset shrunk towards zero unless it is significant, shape (n, 2).
+
+    ``|mu|^2 = max(0, |r|^2 - factor tr(cov))``: the same shrinkage
+    :func:`~partinspect.tolerances.evaluate.true_position` simulates a
+    position at (an offset is taken as zero unless it stands out of its
+    noise); the pattern's centres moved to their places plus ``mu`` are
+    where the datum shift's error is simulated.
+
+    Parameters
+    ----------
+    residuals : ndarray, shape (n, 2)
+        :attr:`ShiftResult.residuals`, mm.
+    plane_covs : ndarray, shape (n, 2, 2)
+        The centres' covariances in the plane, mm^2.
+    factor : float
+    """
+    r = np.asarray(residuals, float)
+    rr = np.einsum("ij,ij->i", r, r)
+    excess = rr - factor * np.trace(np.asarray(plane_covs, float), axis1=1, axis2=2)
+    scale = np.sqrt(np.where(rr > 0, np.maximum(excess, 0.0) / np.where(rr > 0, rr, 1.0), 0.0))
+    return r * scale[:, None]

@@ -55,7 +55,7 @@ from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
 from partinspect.tolerances.edge_break import band_rms, size_on_broken_rim
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
-from partinspect.tolerances.datum_shift import allowance, best_shift, plane_basis, shift_monte_carlo
+from partinspect.tolerances.datum_shift import allowance, best_shift, plane_basis, shift_monte_carlo, shrunk_centres
 from partinspect.tolerances.material import position_with_bonus
 
 __all__ = [
@@ -690,7 +690,14 @@ def _pattern(members, parts, registration, inventory, k, rng, n_draws):
                         for (d, _, _), size, ref in zip(use, z[3 * n_c + m:], refs)])
         return best_shift(P, centres[:m], z[3 * n_c:3 * n_c + m], t, D, centres[m:], rho, rotation)
 
-    result, u = shift_monte_carlo(x, cov, solve, rng, n_draws)
+    # The error is simulated about the pattern's places in the shifted
+    # frame plus each offset shrunk as true_position does (the measured
+    # offsets, norms near zero, are biased up by the noise).
+    measured = solve(x)
+    plane_covs = np.array([E @ cov_c[3 * i:3 * i + 3, 3 * i:3 * i + 3] @ E.T for i in range(m)])
+    at = x.copy()
+    at[:3 * m] -= ((measured.residuals - shrunk_centres(measured.residuals, plane_covs)) @ E).ravel()
+    result, u = shift_monte_carlo(x, cov, solve, rng, n_draws, at=at)
     rho_u = [allowance(d.boundary, d.internal, size, u_s, ref) for (d, _, _), size, u_s, ref in
              zip(use, sizes, u_sizes, refs)]
     shift = {"datums": " | ".join(d.label for d in datums), "applied": True,
@@ -704,7 +711,7 @@ def _pattern(members, parts, registration, inventory, k, rng, n_draws):
              "pattern": [e.id for e in members]}
     method = (f"datum shift ({shift['datums']}): the pattern of {m} placed together at its best within the "
               f"shift, Monte Carlo (JCGM 101, {n_draws} draws of centres, sizes and the datum features' "
-              "sizes), pose covariance included")
+              "sizes, about the offsets shrunk unless significant), pose covariance included")
     return [measured_result(e.characteristic, result.values[i], u[i], k, method,
                             **{**e.details, "position": float(result.positions[i]),
                                "without_shift": float(result.unshifted[i]), "datum_shift": shift})

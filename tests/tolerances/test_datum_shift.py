@@ -184,3 +184,14 @@ def test_several_views_say_the_shift_is_not_applied(plate):
         assert after.measured == before.measured and decide(after).decision == "fail"
         assert after.details["datum_shift"] == {"datums": "A | B(M) | C(M)", "applied": False, "reason": "several views"}
         assert after.method.endswith("no datum shift applied (several views)")
+
+
+def test_offsets_are_shrunk_unless_significant():
+    from partinspect.tolerances.datum_shift import shrunk_centres
+
+    covs = np.array([np.eye(2) * 1e-4] * 3)  # tr = 2e-4 mm^2: 3 tr = 6e-4
+    r = np.array([[0.02, 0.0], [0.0, 0.03], [0.1, 0.0]])
+    mu = shrunk_centres(r, covs)
+    assert mu[0] == pytest.approx([0.0, 0.0])  # 4e-4 < 6e-4: taken as zero
+    assert mu[1] == pytest.approx([0.0, math.sqrt(9e-4 - 6e-4)])
+    assert mu[2] == pytest.approx([math.sqrt(0.01 - 6e-4), 0.0])
