@@ -320,6 +320,12 @@ def test_ctc03_datums_at_mmb_go_through_inspect_spec_and_back(ctc03):
     chars = {c.id: c for c in characteristics_for(parse_spec(text), inv)}
     refs = chars[f"{holes[0]}.position"].datums
     assert [d.label for d in refs] == ["A", "B(M)", "C(M)"] and not any(d.features for d in refs)
+    # named by hand (the NIST drawing's B and C: the 0.438 in holes at y = 466.4 mm), they are holes whose
+    # MMB is their MMC size, 0.438 - 0.005 in
+    named = characteristics_for(parse_spec(text + "datum_features: {B: [circle-19, circle-20], C: [circle-3, circle-4]}\n"), inv)
+    refs = {c.id: c for c in named}[f"{holes[0]}.position"].datums
+    assert [d.of_size for d in refs] == [False, True, True] and refs[1].internal and refs[2].internal
+    assert refs[1].reference(refs[1].sizes[0]) == pytest.approx(0.433 * INCH, abs=1e-6)
     # without a spec file the PMI gives the same frame
     _, from_pmi = load_characteristics(inv, None, STEP_DIR / "nist_ctc_03_asme1_ap242-e2.stp", pmi=pmi)
     assert [d.label for d in {c.id: c for c in from_pmi}[f"{holes[0]}.position"].datums] == ["A", "B(M)", "C(M)"]
