@@ -14,7 +14,10 @@ uncertainty ``u`` and ``U = k u`` (k = 2, JCGM 100 6.2). Values:
 - position: 2 x the centre's offset from its true position in the nominal
   circle's plane (ISO 1101; datum frame = the registration's datums); at
   MMC or LMC, that minus the bonus from the measured size
-  (:mod:`.material`), the limit staying the stated tolerance;
+  (:mod:`.material`), the limit staying the stated tolerance; where its
+  datums allow a datum shift (a datum feature of size at MMB/LMB), the
+  positions with those datums placed together at their best within it
+  (:func:`with_datum_shifts`, :mod:`.datum_shift`);
 - profile: 2 x the largest offset of the measured edge (a line over its
   measured extent, a circle over the nominal range) from the nominal CAD
   edge, plus the form (ISO 1101 line profile, two-sided zone).
