@@ -4,7 +4,11 @@ A feature without a measurement is either out of view (outside an image,
 hidden behind the part), shows too little grey-level step to be detected,
 was measured and then taken out, or was seen and lost somewhere in the
 chain: found only as part of a longer collinear edge, found as edge points
-too few for a fit, or its image feature not matched to the other image.
+too few for a fit, its image feature not matched to the other image, or
+measured but too far from its nominal place to be assigned to it (a hole
+displaced beyond the registration's match gate; the grey-level step and
+the edge points are looked for along the nominal edge, where a displaced
+hole leaves none, so this is asked first).
 The reason names which, so the user knows whether to re-fixture, relight
 or accept it.
 """
@@ -13,7 +17,7 @@ import numpy as np
 
 from partinspect.vision.posed import image_owners
 
-__all__ = ["COVERED_FRACTION", "SATURATED_FRACTION", "image_feature_reasons", "edge_points_along",
+__all__ = ["COVERED_FRACTION", "displaced_circle", "SATURATED_FRACTION", "image_feature_reasons", "edge_points_along",
            "saturation_level", "saturated_along", "unmeasured_reason", "unmeasured_reasons", "edges_found",
            "split_unseen"]
 
@@ -102,6 +106,54 @@ def edge_points_along(measured, uv, lo, hi, reach=1.5):
     if len(uv) == 0 or box.sum() < 2:
         return False
     return bool(np.mean(cKDTree(xy[box]).query(uv)[0] < reach) >= COVERED_FRACTION)
+
+
+def displaced_circle(feature, unassigned, reach=None):
+    """An unassigned measured circle that is ``feature`` displaced, as a reason in words, or None.
+
+    A measured circle is taken as the CAD circle moved when its radius
+    agrees within the pose search's ``RADIUS_GATE``, its normal is parallel
+    within ``ANGLE_GATE``, its centre lies in the nominal circle's plane
+    (within ``MATCH_GATE``) and within the circle's radius of the nominal
+    one (the measured rim still overlaps the nominal hole) but
+    beyond ``MATCH_GATE``, the distance within which registration assigns a
+    measured edge to a CAD edge.
+
+    Parameters
+    ----------
+    feature : partinspect.cad.features.Feature
+        The unmeasured CAD circle or arc (part frame).
+    unassigned : sequence of PartFeature
+        Measured circles no CAD edge was assigned to, part frame.
+    reach : float, optional
+        Farthest centre offset taken, mm; default the circle's radius.
+
+    Returns
+    -------
+    str or None
+    """
+    from partinspect.cad.pose_search import ANGLE_GATE, MATCH_GATE, RADIUS_GATE
+
+    if feature.kind == "line":
+        return None
+    reach = float(feature.radius) if reach is None else reach
+    n = np.asarray(feature.normal, float)
+    best = None
+    for p in unassigned:
+        c, m, r = np.asarray(p.params[:3], float), np.asarray(p.params[3:6], float), float(p.params[6])
+        if abs(r - feature.radius) > RADIUS_GATE or abs(float(m @ n)) < np.cos(ANGLE_GATE):
+            continue
+        d = c - np.asarray(feature.center, float)
+        offset = float(np.linalg.norm(d - (d @ n) * n))
+        if abs(float(d @ n)) <= MATCH_GATE and MATCH_GATE < offset <= reach and (best is None or offset < best[0]):
+            best = (offset, c, r)
+    if best is None:
+        return None
+    offset, c, r = best
+    where = ", ".join(f"{x:.3f}" for x in c)
+    return (f"measured, but {offset:.2f} mm from its nominal place (a circle of radius {r:.3f} mm at [{where}]): "
+            f"beyond the {MATCH_GATE:g} mm within which a measured edge is assigned to its CAD edge, so not matched "
+            "to it; the feature is displaced (or the part is not the model)")
 
 
 def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owners=None, images=None):
@@ -211,11 +263,13 @@ def unmeasured_reasons(inv, stereo, registration, seen, calib, images=None):
     dict of str to str
         :func:`unmeasured_reason` of each unmeasured feature.
     """
-    done = {p.cad_id for p in registration.features_in_part_frame() if p.cad_id is not None}
+    parts = registration.features_in_part_frame()
+    done = {p.cad_id for p in parts if p.cad_id is not None}
+    unassigned = [p for p in parts if p.cad_id is None and p.kind == "circle"]
     reasons = image_feature_reasons(stereo)
     owners = image_owners(stereo, registration)
-    return {f.id: unmeasured_reason(f, seen[f.id], calib, registration.part_to_camera, stereo, reasons, owners,
-                                    images)
+    return {f.id: displaced_circle(f, unassigned) or unmeasured_reason(
+        f, seen[f.id], calib, registration.part_to_camera, stereo, reasons, owners, images)
             for f in inv.features if f.id not in done}
 
 

@@ -546,15 +546,17 @@ def _evaluate_on_two_cores(characteristics, registration, inv):
     values between the two processes.
     """
     from partinspect.tolerances.evaluate import evaluate as evaluate_all
+    from partinspect.tolerances.evaluate import with_datum_shifts
     from partinspect.vision.forked import forked
 
     if len(characteristics) < 2:
         return evaluate_all(characteristics, registration, inv)
     out = list(characteristics)
-    with forked(evaluate_all, out[1::2], registration, inv) as odd:
-        out[0::2] = evaluate_all(out[0::2], registration, inv)
+    # A datum shift places a pattern's members together: after both halves.
+    with forked(evaluate_all, out[1::2], registration, inv, datum_shift=False) as odd:
+        out[0::2] = evaluate_all(out[0::2], registration, inv, datum_shift=False)
         out[1::2] = odd()
-    return out
+    return with_datum_shifts(out, registration, inv)
 
 
 def _check_part_path(part):

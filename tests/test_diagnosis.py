@@ -5,6 +5,7 @@ import shutil
 
 import cv2
 import numpy as np
+import pytest
 
 from partinspect.diagnosis import saturated_along, saturation_level
 
@@ -59,3 +60,42 @@ def test_a_rim_under_a_highlight_says_so(repo, tmp_path):
     assert "saturated (grey level 255)" in entry["reason"] and "left image" in entry["reason"]
     others = [f for f in report["features"] if f["measured"] is None and f["id"] != rim.id]
     assert not any("saturated" in f["reason"] for f in others)
+
+
+def test_a_hole_moved_beyond_the_match_gate_is_said_to_be_displaced():
+    """The plate's 8 mm hole measured 0.8 mm from its place (beyond the 0.5 mm match gate): left unassigned by the
+    registration, and the reason names the displacement, not a missing grey-level step or edge."""
+    from partinspect.cad.registration import register
+    from partinspect.diagnosis import displaced_circle
+    from partinspect.simulate.measured import measure_features
+    from tests.tolerances.conftest import plate as plate_fixture
+
+    inv, T, ids = plate_fixture.__wrapped__()
+    m = measure_features(inv, T, ids, np.random.default_rng(3), n_points=0, shifts={"circle-2": np.array([0.8, 0, 0])})
+    reg = register(m.circles, m.lines, inv, datums=[x for x in ids if x.startswith("line")], pose_hint=T)
+    parts = reg.features_in_part_frame()
+    assert "circle-2" not in {p.cad_id for p in parts}
+    unassigned = [p for p in parts if p.cad_id is None and p.kind == "circle"]
+    why = displaced_circle(inv["circle-2"], unassigned)
+    assert why is not None and why.startswith("measured, but 0.8") and "0.5 mm" in why and "displaced" in why
+    # the other rims are not taken for it: none of them is this hole moved
+    assert all(displaced_circle(inv[f], unassigned) is None for f in ids if f.startswith("circle") and f != "circle-2")
+    # a reach shorter than the offset claims nothing
+    assert displaced_circle(inv["circle-2"], unassigned, reach=0.7) is None
+
+
+@pytest.mark.slow
+def test_a_moved_hole_in_a_render_is_reported_displaced(repo, tmp_path):
+    """End to end on a small render: the 8 mm hole moved 0.8 mm is "measured, but 0.80 mm from its nominal place",
+    not "no edge found along it" (its edge is looked for at the nominal place, where there is none)."""
+    from partinspect.cli import main
+    from partinspect.pipeline import run_inspection
+
+    step = repo / "examples" / "plate" / "part.step"
+    render = tmp_path / "render"
+    assert main(["render", str(step), str(render), "--size", "816x683", "-q", "--deviate", "circle-2.center=0.8,0,0"]) == 0
+    report = run_inspection(step, render / "images", tmp_path / "out").report
+    entry = next(f for f in report["features"] if f["id"] == "circle-2")
+    assert entry["measured"] is None and entry["reason"].startswith("measured, but 0.8"), entry["reason"]
+    size = next(c for c in report["characteristics"] if c["id"] == "circle-2.diameter")
+    assert size["decision"] == "inconclusive" and "from its nominal place" in size["reason"]

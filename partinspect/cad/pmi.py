@@ -545,8 +545,8 @@ def _tolerances(labels, targets, text_values):
                 boundary = _DATUM_BOUNDARY.get(_enum_tail(mods.Value(k), "XCAFDimTolObjects_DatumSingleModif_"))
                 if letter and boundary and f"datum_{letter}_{boundary}" not in modifiers:
                     modifiers.append(f"datum_{letter}_{boundary}")
-                    notes.append(f"datum {letter} at {boundary}: the datum shift it allows is not applied "
-                                 "(the check is stricter than the drawing)")
+                    notes.append(f"datum {letter} at {boundary}: the toleranced features may shift as a pattern "
+                                 "within the datum feature's departure from that boundary")
         datums = tuple(dict.fromkeys(letter for _, letter in sorted(drf) if letter))
         if missing:
             notes.append(f"{missing} attached face(s) not on the part's solid (supplemental geometry)")

@@ -50,6 +50,12 @@ def _details(c):
     if m and d.get("bonus") is not None:
         lines.append(f"at {m['modifier']}: position {d['position']:.4f} - bonus {d['bonus']:.4f} (measured size "
                      f"{d['measured_size']:.4f}, {d['size_at_condition']:.4f} at {m['modifier']})")
+    shift = d.get("datum_shift")
+    if shift and shift.get("applied"):
+        lines.append(f"datum shift ({shift['datums']}): moved {shift['translation']:.4f} mm, turned "
+                     f"{shift['rotation_deg']:.4f} deg; {d['without_shift']:.4f} without it")
+    elif shift:
+        lines.append(f"{shift['datums']}: no datum shift applied ({shift['reason']})")
     if c.get("method"):
         lines.append(f"uncertainty: {c['method']}")
     return "\n".join(lines)

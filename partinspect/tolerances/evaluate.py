@@ -14,7 +14,10 @@ uncertainty ``u`` and ``U = k u`` (k = 2, JCGM 100 6.2). Values:
 - position: 2 x the centre's offset from its true position in the nominal
   circle's plane (ISO 1101; datum frame = the registration's datums); at
   MMC or LMC, that minus the bonus from the measured size
-  (:mod:`.material`), the limit staying the stated tolerance;
+  (:mod:`.material`), the limit staying the stated tolerance; where its
+  datums allow a datum shift (a datum feature of size at MMB/LMB), the
+  positions with those datums placed together at their best within it
+  (:func:`with_datum_shifts`, :mod:`.datum_shift`);
 - profile: 2 x the largest offset of the measured edge (a line over its
   measured extent, a circle over the nominal range) from the nominal CAD
   edge, plus the form (ISO 1101 line profile, two-sided zone).
@@ -55,6 +58,7 @@ from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
 from partinspect.tolerances.edge_break import band_offset, band_rms, size_on_broken_rim
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
+from partinspect.tolerances.datum_shift import allowance, best_shift, plane_basis, shift_monte_carlo, shrunk_centres
 from partinspect.tolerances.material import position_with_bonus
 
 __all__ = [
@@ -62,6 +66,8 @@ __all__ = [
     "Evaluation",
     "evaluate",
     "evaluate_characteristic",
+    "with_datum_shifts",
+    "without_datum_shifts",
     "form_scene_spreads",
     "propagate",
     "monte_carlo",
@@ -81,6 +87,8 @@ __all__ = [
 
 COVERAGE_FACTOR = 2.0
 N_MC = 4000
+# Draws of a pattern's datum shift: each solves the frame placement again.
+N_SHIFT = 400
 _SHRINK = 3.0  # see true_position
 
 
@@ -510,7 +518,7 @@ def _rng(seed, cid):
     return np.random.default_rng([seed, zlib.crc32(cid.encode())])
 
 
-def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC):
+def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_mc=N_MC, datum_shift=True):
     """Evaluate characteristics on a registered measurement.
 
     Parameters
@@ -527,6 +535,10 @@ def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, see
         Seed of the Monte Carlo draws (results are reproducible).
     n_mc : int
         Monte Carlo draws for position and profile.
+    datum_shift : bool
+        Evaluate the positions whose datums allow a datum shift as their
+        patterns (:func:`with_datum_shifts`); False for a caller that
+        evaluates a pattern's members in parts and applies it after.
 
     Returns
     -------
@@ -536,7 +548,177 @@ def evaluate(characteristics, registration, inventory, *, k=COVERAGE_FACTOR, see
         value) has ``measured`` None and a ``reason``.
     """
     parts = registration.features_in_part_frame()
-    return [evaluate_characteristic(c, parts, registration, inventory, k=k, seed=seed, n_mc=n_mc) for c in characteristics]
+    out = [evaluate_characteristic(c, parts, registration, inventory, k=k, seed=seed, n_mc=n_mc) for c in characteristics]
+    return with_datum_shifts(out, registration, inventory, k=k, seed=seed) if datum_shift else out
+
+
+def with_datum_shifts(evaluations, registration, inventory, *, k=COVERAGE_FACTOR, seed=0, n_draws=N_SHIFT):
+    """Positions whose datum reference frame allows a datum shift, evaluated as patterns.
+
+    Positions with the same datums (letters, boundaries and features) are
+    one simultaneous requirement (ASME Y14.5-2018 7.19): their measured
+    features shift, and rotate where the datums allow, together
+    (:mod:`partinspect.tolerances.datum_shift`). Each value becomes the
+    position (minus its bonus) at the best placement the shift allows;
+    ``details["datum_shift"]`` gives the shift applied, or why none was.
+
+    Parameters
+    ----------
+    evaluations : list of Evaluation
+        As :func:`evaluate_characteristic` gives them.
+    registration : Registration
+    inventory : Inventory
+    k : float
+    seed : int
+    n_draws : int
+        Monte Carlo draws of the pattern's inputs.
+
+    Returns
+    -------
+    list of Evaluation
+        In the same order.
+    """
+    groups = {}
+    for i, e in enumerate(evaluations):
+        c = e.characteristic
+        if c.type == "position" and any(d.boundary for d in c.datums):
+            groups.setdefault(tuple((d.letter, d.boundary, d.features) for d in c.datums), []).append(i)
+    out = list(evaluations)
+    if not groups:
+        return out
+    parts = registration.features_in_part_frame()
+    for key, idx in groups.items():
+        members = [evaluations[i] for i in idx if evaluations[i].measured is not None]
+        if not members:
+            continue
+        rng = np.random.default_rng([seed, zlib.crc32("|".join(e.id for e in members).encode())])
+        shifted = _pattern(members, parts, registration, inventory, k, rng, n_draws)
+        done = {e.id: e for e in shifted}
+        for i in idx:
+            out[i] = done.get(out[i].id, out[i])
+    return out
+
+
+def without_datum_shifts(evaluations, why):
+    """The evaluations, each position whose datums allow a datum shift saying why none was applied.
+
+    For callers that evaluate positions one by one where a pattern cannot
+    be placed together (several views: each feature from its own views).
+    """
+    out = []
+    for e in evaluations:
+        c = e.characteristic
+        shifted = c.type == "position" and e.measured is not None and any(d.boundary for d in c.datums)
+        out.append(_not_shifted([e], c.datums, why)[0] if shifted else e)
+    return out
+
+
+def _not_shifted(members, datums, why):
+    """The members as evaluated without a shift, saying why none was applied."""
+    text = " | ".join(d.label for d in datums)
+    return [Evaluation(e.characteristic, e.measured, e.deviation, e.standard_uncertainty, e.expanded_uncertainty,
+                       e.coverage_factor, f"{e.method}; no datum shift applied ({why})", e.reason,
+                       {**e.details, "datum_shift": {"datums": text, "applied": False, "reason": why}})
+            for e in members]
+
+
+def _datum_rims(datums, parts, registration, inventory, k):
+    """Each datum of size's measured rim: [(DatumRef, PartFeature, size Evaluation)], or a reason why not."""
+    out = []
+    for d in datums:
+        if not d.of_size:
+            if d.boundary is not None:
+                return (f"datum {d.letter}'s features are not known as a hole or boss with a size tolerance (give "
+                        f"them under datum_features)" if not d.features else
+                        f"datum {d.letter} ({', '.join(d.features)}) is not one hole or boss with a size tolerance")
+            out.append((d, None, None))
+            continue
+        for size in d.sizes:
+            pf = pick_feature(parts, size.features[0])
+            if pf is not None and pf.kind == "circle":
+                rec = registration.measured_feature(pf.kind, pf.index)
+                out.append((d, pf, _size_result(size, rec, registration, inventory, k)))
+                break
+        else:
+            return f"no rim of datum {d.letter} ({', '.join(d.features)}) was measured"
+    return out
+
+
+def _pattern(members, parts, registration, inventory, k, rng, n_draws):
+    """A pattern's positions at the best placement its datum shift allows (:func:`with_datum_shifts`)."""
+    datums = members[0].characteristic.datums
+    rims = _datum_rims(datums, parts, registration, inventory, k)
+    if isinstance(rims, str):
+        return _not_shifted(members, datums, rims)
+    sized = [i for i, (_, pf, _) in enumerate(rims) if pf is not None]
+    if not sized:
+        return _not_shifted(members, datums, "no datum is a feature of size")
+    located = rims[sized[0]]
+    clocking = rims[sized[1]] if len(sized) > 1 and sized[1] == sized[0] + 1 else None
+    rotation = "clocked" if clocking else ("free" if sized[0] == len(rims) - 1 else "fixed")
+    use = [located] + ([clocking] if clocking else [])
+    feats = [pick_feature(parts, e.characteristic.features[0]) for e in members]
+    nominal = [inventory[e.characteristic.features[0]] for e in members]
+    axis = np.asarray(nominal[0].normal, float)
+    normals = [n.normal for n in nominal] + [inventory[pf.cad_id].normal for _, pf, _ in use]
+    if any(abs(float(np.asarray(n, float) @ axis)) < math.cos(1e-6) for n in normals):
+        return _not_shifted(members, datums, "the pattern's and the datum features' axes are not parallel")
+    E = plane_basis(axis)
+    # The inputs stacked: every centre (joint covariance, the shared pose's
+    # and calibration's parts included), then the bonuses and the datum
+    # sizes, independent of the centres (a full circle's fit leaves its
+    # centre and radius uncorrelated to first order).
+    pfs = feats + [pf for _, pf, _ in use]
+    n_c = len(pfs)
+    cov_c = np.block([[a.param_cov[:3, :3] if a is b else registration.cross_covariance(a, b)[:3, :3] for b in pfs]
+                      for a in pfs])
+    bonus = [float(e.details.get("bonus", 0.0)) for e in members]
+    u_bonus = [float(e.details.get("bonus_standard_uncertainty", 0.0)) for e in members]
+    sizes = [float(sz.measured) / (1.0 if sz.characteristic.type == "diameter" else 0.5) for _, _, sz in use]
+    u_sizes = [float(sz.standard_uncertainty) / (1.0 if sz.characteristic.type == "diameter" else 0.5)
+               for _, _, sz in use]
+    refs = [d.reference(sz.characteristic) for d, _, sz in use]
+    x = np.r_[np.concatenate([pf.center for pf in pfs]), bonus, sizes]
+    cov = np.zeros((len(x), len(x)))
+    cov[:3 * n_c, :3 * n_c] = cov_c
+    cov[3 * n_c:, 3 * n_c:] = np.diag(np.square(u_bonus + u_sizes))
+    P = np.array([n.center for n in nominal]) @ E.T
+    D = np.array([inventory[pf.cad_id].center for _, pf, _ in use]) @ E.T
+    t = np.array([e.characteristic.upper_limit for e in members], float)
+    m = len(members)
+
+    def solve(z):
+        centres = z[:3 * n_c].reshape(-1, 3) @ E.T
+        rho = np.array([float(allowance(d.boundary, d.internal, size, 0.0, ref)[0])
+                        for (d, _, _), size, ref in zip(use, z[3 * n_c + m:], refs)])
+        return best_shift(P, centres[:m], z[3 * n_c:3 * n_c + m], t, D, centres[m:], rho, rotation)
+
+    # The error is simulated about the pattern's places in the shifted
+    # frame plus each offset shrunk as true_position does (the measured
+    # offsets, norms near zero, are biased up by the noise).
+    measured = solve(x)
+    plane_covs = np.array([E @ cov_c[3 * i:3 * i + 3, 3 * i:3 * i + 3] @ E.T for i in range(m)])
+    at = x.copy()
+    at[:3 * m] -= ((measured.residuals - shrunk_centres(measured.residuals, plane_covs)) @ E).ravel()
+    result, u = shift_monte_carlo(x, cov, solve, rng, n_draws, at=at)
+    rho_u = [allowance(d.boundary, d.internal, size, u_s, ref) for (d, _, _), size, u_s, ref in
+             zip(use, sizes, u_sizes, refs)]
+    shift = {"datums": " | ".join(d.label for d in datums), "applied": True,
+             "translation": float(np.linalg.norm(result.translation)),
+             "translation_vector": [round(float(v), 12) for v in result.translation @ E],
+             "rotation_deg": math.degrees(result.rotation), "rotation": rotation,
+             "allowance": {d.letter: float(r) for (d, _, _), (r, _) in zip(use, rho_u)},
+             "allowance_standard_uncertainty": {d.letter: float(ur) for (d, _, _), (_, ur) in zip(use, rho_u)},
+             "datum_sizes": {d.letter: s_ for (d, _, _), s_ in zip(use, sizes)},
+             "boundary_sizes": {d.letter: float(r) for (d, _, _), r in zip(use, refs) if r is not None},
+             "pattern": [e.id for e in members]}
+    method = (f"datum shift ({shift['datums']}): the pattern of {m} placed together at its best within the "
+              f"shift, Monte Carlo (JCGM 101, {n_draws} draws of centres, sizes and the datum features' "
+              "sizes, about the offsets shrunk unless significant), pose covariance included")
+    return [measured_result(e.characteristic, result.values[i], u[i], k, method,
+                            **{**e.details, "position": float(result.positions[i]),
+                               "without_shift": float(result.unshifted[i]), "datum_shift": shift})
+            for i, e in enumerate(members)]
 
 
 def _form_points(record):

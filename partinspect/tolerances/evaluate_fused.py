@@ -28,6 +28,7 @@ from partinspect.tolerances.evaluate import (
     COVERAGE_FACTOR,
     N_MC,
     evaluate_characteristic,
+    without_datum_shifts,
     PAIR_VALUES,
     measured_result,
     nominal_legs,
@@ -183,7 +184,9 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
                 ev = replace(ev, method=f"{ev.method}; combined over {len(views)} views (generalised least squares)")
             evaluations.append(ev)
         used.append(tuple(views))
-    return evaluations, used
+    # Each feature is combined from its own views: there is no one frame to
+    # place a pattern in, and the value without the shift is the stricter.
+    return without_datum_shifts(evaluations, "several views: the pattern is not placed as one across them"), used
 
 
 def pair_value(c, fs, registrations, k=COVERAGE_FACTOR, inventory=None):

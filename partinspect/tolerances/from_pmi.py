@@ -18,7 +18,10 @@ angle                   ``angles``: a pair of lines, one on each face, whose
 position (cylinder)     position of each rim circle, zone = the tolerance;
                         an MMC/LMC modifier becomes ``material``: the bonus
                         from the rim's measured size (:mod:`.material`),
-                        a zero tolerance at MMC/LMC included
+                        a zero tolerance at MMC/LMC included; a datum at
+                        MMB/LMB in its frame, ``datums: [A, B(M), C(M)]``
+                        (the datum shift, :mod:`.datum_shift`), the
+                        datums' features under ``datum_features``
 circularity             circularity of each rim circle
 cylindricity            circularity of each rim circle (a necessary part)
 flatness, straightness  straightness of each straight boundary edge of the
@@ -173,6 +176,7 @@ class _Mapper:
         self.out = PmiSpec(data={"features": {}, "distances": [], "angles": []})
         self.datums = {}
         self.datum_faces = {}
+        self.shifted = False
 
     # -- bookkeeping ----------------------------------------------------------
 
@@ -201,6 +205,9 @@ class _Mapper:
         ids = list(dict.fromkeys(fid for fids in self.out.datums.values() for fid in fids))
         if ids:
             data["datums"] = ids
+        if self.shifted and self.out.datums:
+            # A position's datums at MMB/LMB name letters: say which features they are.
+            data["datum_features"] = {letter: ids for letter, ids in self.out.datums.items()}
         for key in ("features", "distances", "angles"):
             if not data[key]:
                 del data[key]
@@ -352,6 +359,11 @@ class _Mapper:
                               "take the bonus from")
                     return
                 zone["material"] = material[0]
+            if t == "position" and any(m.startswith("datum_") for m in item.modifiers):
+                marks = {"MMB": "(M)", "LMB": "(L)"}
+                zone["datums"] = [d + "".join(marks[b] for b in marks if f"datum_{d}_{b}" in item.modifiers)
+                                  for d in item.datums]
+                self.shifted = True
             self.put_all(item, rims, "position" if t == "position" else "circularity", zone)
         elif t in ("flatness", "straightness"):
             lines = self.lines([f for f in faces if f.surface == "plane"] if t == "flatness" else faces)

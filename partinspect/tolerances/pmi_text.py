@@ -29,7 +29,7 @@ def describe_item(item):
         text += " | " + " | ".join(d + "".join(marks[b] for b in marks if f"datum_{d}_{b}" in item.modifiers)
                                    for d in item.datums)
         if any(m.startswith("datum_") for m in item.modifiers):
-            extra.append("no datum shift applied")
+            extra.append("datum shift")
     return text + (f" ({', '.join(extra)})" if extra else "")
 
 
@@ -133,6 +133,12 @@ def spec_yaml(pmi_spec, pmi, part_name):
         letters = [i.name for i in pmi.items if i.kind == "datum" and i.id in pmi_spec.applies_to]
         head += ["#", f"# datums: the edges of PMI datum(s) {', '.join(letters)}. They alone drive the alignment, so",
                  "# they must be in view; delete the key to align on every feature."]
+    shifted = sorted({d[0] for body in pmi_spec.data.get("features", {}).values()
+                      for d in (body.get("position") or {}).get("datums", ()) if d.endswith(("(M)", "(L)"))})
+    unknown = [d for d in shifted if d not in pmi_spec.data.get("datum_features", {})]
+    if unknown:
+        head += ["#", f"# datum(s) {', '.join(unknown)} at MMB/LMB: the file attaches them to no face. Name their",
+                 "# features under datum_features (e.g. B: [circle-5, circle-6]) for the datum shift to apply."]
     if pmi_spec.not_evaluated:
         head += ["#", "# not evaluated by edge measurement:"]
         head += [f"#   {n.item} ({n.type}): {n.reason}" for n in pmi_spec.not_evaluated]

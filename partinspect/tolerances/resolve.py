@@ -35,6 +35,7 @@ import numpy as np
 from partinspect.errors import InputError
 from partinspect.tolerances import iso2768
 from partinspect.tolerances.geometry import feature_distance, line_angle, line_tilt, lines_parallel
+from partinspect.tolerances.datum_shift import DatumRef, parse_datum
 from partinspect.tolerances.material import MaterialCondition
 from partinspect.tolerances.spec import APPLIES_TO, FEATURE_ID_RE, ToleranceSpec, format_loc, join_errors
 
@@ -118,6 +119,10 @@ class Characteristic:
     towards : tuple of 3 float or None
         Parallelism only: the unit direction (part frame) the tilt is
         taken towards; None: the plane the two lines span.
+    datums : tuple of DatumRef
+        Position only, where the spec gives its datum reference frame: the
+        datums in order of precedence, a datum feature of size at MMB or
+        LMB allowing the datum shift (:mod:`.datum_shift`); empty otherwise.
     """
 
     id: str
@@ -132,6 +137,7 @@ class Characteristic:
     edge_break: tuple[float, float] | None = None
     material: MaterialCondition | None = None
     towards: tuple[float, float, float] | None = None
+    datums: tuple = ()
     band_place: tuple[float, float] | None = None
 
     @property
@@ -156,6 +162,7 @@ class Characteristic:
             **({"edge_break": {"min": self.edge_break[0], "max": self.edge_break[1]}} if self.edge_break else {}),
             **({"material": self.material.to_dict()} if self.material is not None else {}),
             **({"towards": [round(x, 12) for x in self.towards]} if self.towards is not None else {}),
+            **({"datum_reference": [d.to_dict() for d in self.datums]} if self.datums else {}),
         }
 
 
@@ -390,8 +397,22 @@ def _feature_characteristics(check, names):
                 err(loc, f"{target.id} already has its {slot[1]} toleranced in {format_loc(owner[slot])}")
                 continue
             owner[slot] = loc
-            chars.append(_feature_characteristic(f"{key}.{ctype}", ctype, target, tol, check.rule(loc)))
+            c = _feature_characteristic(f"{key}.{ctype}", ctype, target, tol, check.rule(loc))
+            if getattr(tol, "datums", None):
+                c = replace(c, datums=_datum_refs(check, names, tol.datums))
+            chars.append(c)
     return chars
+
+
+def _datum_refs(check, names, datums):
+    """A position's ``datums`` as :class:`DatumRef`, each letter's features from the spec's ``datum_features``."""
+    out = []
+    for text in datums:
+        letter, boundary = parse_datum(text)
+        refs = check.spec.datum_features.get(letter, ())
+        ids = [check.ref_id(ref, ("datum_features", letter, i), names) for i, ref in enumerate(refs)]
+        out.append(DatumRef(letter, boundary, tuple(fid for fid in ids if fid is not None)))
+    return tuple(out)
 
 
 def _datums(check, names):
@@ -648,13 +669,15 @@ def with_edge_breaks(characteristics, resolved):
 
 
 def with_material_sizes(characteristics, inventory, path=None):
-    """The characteristics with each MMC/LMC position tied to its feature's size.
+    """The characteristics with each MMC/LMC position tied to its feature's size, and each datum of size to its.
 
     A position's bonus comes from the measured size of the same edge
     (:mod:`partinspect.tolerances.material`): its diameter or radius
     characteristic (the spec's, the PMI's or the general one, edge break
     included) gives the size at MMC or LMC, and the cylinder the edge
-    bounds tells a hole from a boss.
+    bounds tells a hole from a boss. A position's datum that is a feature
+    of size (the rims of one hole or boss) gets its rims' size
+    characteristics the same way (:mod:`.datum_shift`).
 
     Parameters
     ----------
@@ -679,6 +702,8 @@ def with_material_sizes(characteristics, inventory, path=None):
     sizes = {c.features[0]: c for c in characteristics if c.type in ("diameter", "radius")}
     out, problems = [], []
     for c in characteristics:
+        if c.datums:
+            c = replace(c, datums=tuple(_datum_size(d, sizes, inventory) for d in c.datums))
         if c.material is None or c.material.size is not None:
             out.append(c)
             continue
@@ -697,3 +722,15 @@ def with_material_sizes(characteristics, inventory, path=None):
     if problems:
         raise InputError(path, "; ".join(problems))
     return out
+
+
+def _datum_size(d, sizes, inventory):
+    """A datum with its size characteristics and side, where its features are the rims of one hole or one boss."""
+    if d.sizes or not d.features:
+        return d
+    rims = [fid for fid in d.features if fid in inventory and inventory[fid].kind != "line" and fid in sizes]
+    sides = {inventory[x].convex for fid in rims for x in inventory[fid].faces
+             if x in inventory and inventory[x].surface == "cylinder"}
+    if not rims or len(sides) != 1 or None in sides:
+        return d  # a plane, or no single feature of size: no shift from it
+    return replace(d, sizes=tuple(sizes[fid] for fid in rims), internal=not sides.pop())

@@ -20,7 +20,9 @@ position      circle, arc         ``{tolerance}``: diameter of the centre's
                                   true-position zone; ``material: MMC`` or
                                   ``LMC`` adds the bonus from the measured
                                   size (:mod:`.material`; a zero tolerance
-                                  is allowed then)
+                                  is allowed then); ``datums: [A, B(M)]``
+                                  the frame, a datum at MMB/LMB shifting
+                                  the pattern (:mod:`.datum_shift`)
 straightness  line                ``{tolerance}``: width of the zone
 circularity   circle              ``{tolerance}``: radial width of the zone
 profile       line, circle, arc   ``{tolerance}``: width of the line-profile
@@ -159,10 +161,31 @@ class PositionZone(Zone):
     ``material`` MMC or LMC (ISO 2692 (M), (L)) gives the zone the bonus
     from the measured size's departure from that condition
     (:mod:`partinspect.tolerances.material`); with it the tolerance may be
-    zero (all of the zone is then the bonus).
+    zero (all of the zone is then the bonus). ``datums``, the datum
+    reference frame as the drawing writes it (``[A, B(M), C(M)]``): a datum
+    feature of size at MMB or LMB (its features under the spec's
+    ``datum_features``) lets the features toleranced with the same frame
+    shift together (:mod:`partinspect.tolerances.datum_shift`).
     """
 
     material: Literal["MMC", "LMC"] | None = None
+    datums: tuple[str, ...] | None = None
+
+    @field_validator("datums")
+    @classmethod
+    def _datum_letters(cls, v):
+        from partinspect.tolerances.datum_shift import parse_datum
+
+        letters = []
+        for text in v or ():
+            try:
+                letters.append(parse_datum(text)[0])
+            except ValueError as e:
+                raise PydanticCustomError("datum", str(e)) from None
+        twice = sorted({x for x in letters if letters.count(x) > 1})
+        if twice:
+            raise PydanticCustomError("datum", "datum {got} named twice", {"got": ", ".join(twice)})
+        return v
 
     @field_validator("tolerance")
     @classmethod
@@ -346,6 +369,9 @@ class ToleranceSpec(_Model):
         alone decides.
     datums : tuple of str or None
         Features the alignment uses; None means all.
+    datum_features : dict of str to tuple of str
+        The drawing's datum letters to their features (ids or names), for
+        the ``datums`` of a position tolerance.
     features : dict of str to FeatureSpec
         Keyed by CAD feature id (line-N, circle-N, arc-N) or by a name
         whose FeatureSpec has ``at``.
@@ -360,6 +386,7 @@ class ToleranceSpec(_Model):
     general: str = "ISO 2768-mK"
     decision_rule: Literal["iso14253", "simple"] = "iso14253"
     datums: tuple[str, ...] | None = None
+    datum_features: Annotated[dict[str, tuple[str, ...]], _none_is_empty({})] = {}
     features: Annotated[dict[str, FeatureSpec], _none_is_empty({})] = {}
     distances: Annotated[tuple[DistanceSpec, ...], _none_is_empty(())] = ()
     angles: Annotated[tuple[AngleSpec, ...], _none_is_empty(())] = ()
@@ -595,6 +622,14 @@ def _cross_checks(data):
                     errors.append((("datums", i), f"{ref!r} is already a datum (datums[{seen[ref]}])"))
                 seen.setdefault(ref, i)
 
+    letters = data.get("datum_features")
+    if isinstance(letters, dict):
+        for letter, refs in letters.items():
+            if not (isinstance(letter, str) and re.match(r"^[A-Z][A-Z0-9]*$", letter)):
+                errors.append((("datum_features", letter), f"expected a datum letter (A, B, ...), got {_show(letter)}"))
+            for i, ref in enumerate(refs if isinstance(refs, list) else ()):
+                check_ref(ref, ("datum_features", letter, i))
+
     for section in ("distances", "angles"):
         items = data.get(section)
         if not isinstance(items, list):
@@ -753,6 +788,8 @@ def spec_to_dict(spec):
     out = {"units": spec.units, "general": spec.general, "decision_rule": spec.decision_rule}
     if spec.datums is not None:
         out["datums"] = list(spec.datums)
+    if spec.datum_features:
+        out["datum_features"] = {k: list(v) for k, v in spec.datum_features.items()}
     if spec.edge_break is not None:
         out["edge_break"] = spec.edge_break.model_dump()
     if spec.features:

@@ -125,14 +125,14 @@ def test_ctc03_inch_pmi_on_mm_geometry(ctc03):
 
 def test_ctc03_datums_at_their_material_boundary_are_said(ctc03):
     """ctc_03's gtol-5 (the NIST drawing's position 1.27 mm at MMC | A | B(M) | C(M)): the datum
-    modifiers are read, and the datum shift they allow, which is not applied, is said, not dropped."""
+    modifiers are read, and the datum shift they allow is said, not dropped."""
     from partinspect.tolerances.pmi_text import describe_item
 
     item = next(i for i in ctc03.items if i.id == "gtol-5")
     assert {"datum_B_MMB", "datum_C_MMB"} <= set(item.modifiers) and "datum_A_MMB" not in item.modifiers
-    assert any("datum B at MMB" in n and "not applied" in n for n in item.notes)
+    assert any("datum B at MMB" in n and "shift as a pattern" in n for n in item.notes)
     text = describe_item(item)
-    assert "| A | B(M) | C(M)" in text and "no datum shift applied" in text
+    assert "| A | B(M) | C(M)" in text and "datum shift" in text
     others = [i for i in ctc03.items if i.kind == "tolerance" and i.id != "gtol-5"]
     assert not any(m.startswith("datum_") for i in others for m in i.modifiers)
 

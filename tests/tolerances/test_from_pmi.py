@@ -298,3 +298,64 @@ def test_datum_entry_says_which_datum_features_were_fitted(ctc01):
     assert not fell_back["applied"] and "every matched feature" in fell_back["reason"]
     assert fell_back["frame"][0]["fitted"] == []
     assert datum_entry(load_characteristics(inv, None)[0], a) is None
+
+
+def test_ctc03_datums_at_mmb_go_through_inspect_spec_and_back(ctc03):
+    """gtol-5 (position 0.05 in at MMC | A | B(M) | C(M)): `inspect spec` writes the frame with its datum
+    modifiers, the spec reads back to positions carrying them, and the PMI alone gives the same. The file
+    attaches datums B and C to no face, so the spec says to name them; evaluated, the shift says why it is
+    not applied."""
+    from partinspect.tolerances.loading import load_characteristics
+    from partinspect.tolerances.pmi_text import spec_yaml
+
+    pmi, inv, ps = ctc03
+    holes = ps.applies_to["gtol-5"]
+    for cid in holes:
+        assert ps.data["features"][cid]["position"]["datums"] == ["A", "B(M)", "C(M)"]
+    # positions whose frames have no datum at a boundary keep no datums key
+    assert all("datums" not in body.get("position", {}) for cid, body in ps.data["features"].items() if cid not in holes)
+    text = spec_yaml(ps, pmi, "nist_ctc_03_asme1_ap242-e2.stp")
+    assert "datums: [A, B(M), C(M)]" in text
+    assert "# datum(s) B, C at MMB/LMB: the file attaches them to no face" in text
+    chars = {c.id: c for c in characteristics_for(parse_spec(text), inv)}
+    refs = chars[f"{holes[0]}.position"].datums
+    assert [d.label for d in refs] == ["A", "B(M)", "C(M)"] and not any(d.features for d in refs)
+    # named by hand (the NIST drawing's B and C: the 0.438 in holes at y = 466.4 mm), they are holes whose
+    # MMB is their MMC size, 0.438 - 0.005 in
+    named = characteristics_for(parse_spec(text + "datum_features: {B: [circle-19, circle-20], C: [circle-3, circle-4]}\n"), inv)
+    refs = {c.id: c for c in named}[f"{holes[0]}.position"].datums
+    assert [d.of_size for d in refs] == [False, True, True] and refs[1].internal and refs[2].internal
+    assert refs[1].reference(refs[1].sizes[0]) == pytest.approx(0.433 * INCH, abs=1e-6)
+    # without a spec file the PMI gives the same frame
+    _, from_pmi = load_characteristics(inv, None, STEP_DIR / "nist_ctc_03_asme1_ap242-e2.stp", pmi=pmi)
+    assert [d.label for d in {c.id: c for c in from_pmi}[f"{holes[0]}.position"].datums] == ["A", "B(M)", "C(M)"]
+
+
+def test_pmi_datum_features_are_written_for_a_shifted_frame():
+    """A PMI position with a datum at MMB whose datum has faces: datum_features names its rims."""
+    from types import SimpleNamespace
+
+    from partinspect.tolerances.from_pmi import spec_from_pmi
+    from tests.cad.conftest import EXAMPLES
+
+    inv = inventory(load_step(EXAMPLES / "plate" / "part.step"))
+    hole = next(f for f in inv.faces if f.surface == "cylinder" and abs(f.radius - 6.0) < 1e-6)
+    small = next(f for f in inv.faces if f.surface == "cylinder" and abs(f.radius - 4.0) < 1e-6)
+
+    def item(**kw):
+        base = dict(id="", kind="", type="", name="", value=None, upper=None, lower=None, faces=[], faces2=[],
+                    modifiers=(), datums=(), notes=[])
+        return SimpleNamespace(**{**base, **kw})
+
+    pmi = SimpleNamespace(items=[
+        item(id="datum-B", kind="datum", type="datum", name="B", faces=[hole.id]),
+        item(id="gtol-1", kind="tolerance", type="position", value=0.1, faces=[small.id], datums=("B",),
+             modifiers=("datum_B_MMB",))], unread=())
+    ps = spec_from_pmi(pmi, inv)
+    rims = ps.data["datum_features"]["B"]
+    assert rims and all(inv[r].kind == "circle" and abs(inv[r].radius - 6.0) < 1e-6 for r in rims)
+    body = next(b for b in ps.data["features"].values() if "position" in b)
+    assert body["position"]["datums"] == ["B(M)"]
+    refs = {c.id: c for c in characteristics_for(ps.spec(), inv)}
+    ref = next(c for c in refs.values() if c.type == "position").datums[0]
+    assert ref.of_size and ref.internal and set(ref.features) == set(rims)

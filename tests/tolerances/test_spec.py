@@ -272,7 +272,7 @@ def test_every_mistake_is_reported_in_line_order():
 
 @pytest.mark.parametrize("text", ["", "\n\n", "# only a comment\n", "---\n"])
 def test_empty_file(text):
-    assert problem(text) == "part.tol.yaml: empty file, expected a mapping with keys units, general, decision_rule, datums, features, distances, angles, edge_break"
+    assert problem(text) == "part.tol.yaml: empty file, expected a mapping with keys units, general, decision_rule, datums, datum_features, features, distances, angles, edge_break"
 
 
 @pytest.mark.parametrize(
@@ -291,7 +291,7 @@ def test_not_yaml(text, expected):
 
 @pytest.mark.parametrize("text, got", [("- line-1\n- line-2\n", "a list"), ("just text\n", "'just text'"), ("42\n", "42")])
 def test_yaml_that_is_not_a_mapping(text, got):
-    assert problem(text) == f"part.tol.yaml: line 1: expected a mapping with keys units, general, decision_rule, datums, features, distances, angles, edge_break, got {got}"
+    assert problem(text) == f"part.tol.yaml: line 1: expected a mapping with keys units, general, decision_rule, datums, datum_features, features, distances, angles, edge_break, got {got}"
 
 
 def test_binary_files():
