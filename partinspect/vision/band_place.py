@@ -552,7 +552,11 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
     The rim's two-view fit then measures the sharp rim, whose size is the
     wall's, and each point carries, in place of the whole band, the
     prediction's own uncertainty: ``u_point`` of the break's expected
-    size, as the Type B of :func:`partinspect.vision.stereo.edge_band`.
+    size, as the Type B of :func:`partinspect.vision.stereo.edge_band`. A
+    rim whose place is predicted no better than uniform across the band
+    (``u`` or ``u_point`` at ``1 / sqrt(12)``: the model does not explain
+    the image's own steps there) is left as it was: its points, moved by
+    places the images contradict, would bend it out of round.
 
     Parameters
     ----------
@@ -581,6 +585,8 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
         if cid not in places or places[cid][0].offsets is None:
             continue
         place, (center, axis, radius, hole, size) = places[cid]
+        if max(place.u, place.u_point) >= UNIFORM_STD:
+            continue  # no better than anywhere across the band: moving the points would only bend the rim
         axis = np.asarray(axis, float) / np.linalg.norm(axis)
         rim = _Rim(np.asarray(center, float), axis, float(radius), 1 if hole else -1, float(size))
         f3 = stereo.features[k]
