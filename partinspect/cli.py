@@ -493,12 +493,12 @@ def _run_calibrate(args):
 
 
 def _say_pmi_problems(part_name, not_evaluated, where):
-    """The PMI items a run does not check, summed up in one line on stderr (the reports list each)."""
-    from partinspect.tolerances.pmi_text import pmi_problems_line
+    """The PMI items a run does not check, and the characteristics no tolerance covers, a line each on stderr."""
+    from partinspect.tolerances.pmi_text import general_gaps_line, pmi_problems_line
 
-    line = pmi_problems_line(part_name, not_evaluated, where)
-    if line:
-        print(f"inspect: {line}", file=sys.stderr, flush=True)
+    for line in (pmi_problems_line(part_name, not_evaluated, where), general_gaps_line(part_name, not_evaluated, where)):
+        if line:
+            print(f"inspect: {line}", file=sys.stderr, flush=True)
 
 
 def _progress(quiet):

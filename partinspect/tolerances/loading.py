@@ -1,5 +1,6 @@
 """A part's tolerances: the spec file given or beside the STEP file, the STEP file's PMI, else ISO 2768-mK."""
 
+from dataclasses import replace
 from pathlib import Path
 
 from partinspect.errors import InputError
@@ -32,7 +33,9 @@ def load_characteristics(inv, tol_path, part=None, pmi=None):
     does not tolerance itself, item by item, before the general tolerances
     take the rest (`partinspect.tolerances.from_pmi.merge_pmi`); ``pmi``, the
     file's PMI if already read (`partinspect.cad.pmi.read_pmi`), saves
-    reading it again.
+    reading it again. A characteristic no general tolerance covers (a
+    radius below 0.5 mm under ISO 2768) is listed as not evaluated, with
+    the PMI items that are, rather than stopping the run.
     """
     from partinspect.tolerances import spec as spec_mod
     from partinspect.tolerances.resolve import general_characteristics, resolve_spec, with_edge_breaks, with_material_sizes
@@ -43,5 +46,9 @@ def load_characteristics(inv, tol_path, part=None, pmi=None):
         from partinspect.tolerances.from_pmi import merge_pmi
 
         resolved = merge_pmi(resolved, inv, part, pmi=pmi)
-    chars = with_edge_breaks(list(resolved.characteristics) + general_characteristics(inv, resolved), resolved)
+    gaps = []
+    general = general_characteristics(inv, resolved, gaps=gaps)
+    if gaps:
+        resolved = replace(resolved, not_evaluated=tuple(resolved.not_evaluated) + tuple(gaps))
+    chars = with_edge_breaks(list(resolved.characteristics) + general, resolved)
     return resolved, with_material_sizes(chars, inv, tol_path)

@@ -8,7 +8,9 @@ evaluated, so that `load_spec` reads it back to the same spec.
 
 import math
 
-__all__ = ["describe_item", "pmi_listing", "pmi_problems_line", "spec_yaml"]
+from partinspect.tolerances.resolve import GENERAL_GAP
+
+__all__ = ["describe_item", "general_gaps_line", "pmi_listing", "pmi_problems_line", "spec_yaml"]
 
 
 def describe_item(item):
@@ -90,6 +92,7 @@ def pmi_problems_line(part_name, not_evaluated, where="report.json"):
         that could not be used at all says so and that ISO 2768 applies.
     """
     items = [n if isinstance(n, dict) else n.to_dict() for n in not_evaluated]
+    items = [n for n in items if n["type"] != GENERAL_GAP]
     if not items:
         return None
     broken = [n for n in items if n["type"] == "PMI"]
@@ -143,3 +146,19 @@ def spec_yaml(pmi_spec, pmi, part_name):
         head += ["#", "# not evaluated by edge measurement:"]
         head += [f"#   {n.item} ({n.type}): {n.reason}" for n in pmi_spec.not_evaluated]
     return "\n".join(head) + "\n" + dump_spec(pmi_spec.spec())
+
+
+def general_gaps_line(part_name, not_evaluated, where="report.json"):
+    """One line naming the characteristics no tolerance covers, or None when there are none.
+
+    E.g. ``part.stp: 3 characteristics without a tolerance (ISO 2768 sets
+    none for them: circle-7.radius, ...; give one in the spec); not
+    evaluated, listed in report.json``.
+    """
+    items = [n if isinstance(n, dict) else n.to_dict() for n in not_evaluated]
+    ids = [n["item"] for n in items if n["type"] == GENERAL_GAP]
+    if not ids:
+        return None
+    return (f"{part_name}: {len(ids)} characteristic{'s' if len(ids) != 1 else ''} without a tolerance (ISO 2768 "
+            f"sets none for {'them' if len(ids) != 1 else 'it'}: {', '.join(_compact(ids, 4))}; give one in the spec); "
+            f"not evaluated, listed in {where}")

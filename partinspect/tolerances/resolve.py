@@ -529,7 +529,11 @@ def _parallelism_characteristic(cid, fa, fb, item, rule, report):
                           unit="rad", towards=towards)
 
 
-def general_characteristics(inventory, spec, path=None):
+GENERAL_GAP = "no general tolerance"
+"""The ``type`` of a characteristic no tolerance covers: left untoleranced where ISO 2768 sets none."""
+
+
+def general_characteristics(inventory, spec, path=None, *, gaps=None):
     """The characteristics the general tolerances define for what the spec leaves out.
 
     For each CAD feature, every characteristic below that the spec does not
@@ -555,6 +559,14 @@ def general_characteristics(inventory, spec, path=None):
         A ToleranceSpec is resolved against the inventory first.
     path : str or os.PathLike, optional
         The spec file for error messages.
+    gaps : list, optional
+        Where ISO 2768 defines no general tolerance for a characteristic
+        left untoleranced (a diameter below 0.5 mm, a class-v size up to
+        3 mm, a line over 3000 mm, ...), a ``NotEvaluated`` of type
+        :data:`GENERAL_GAP` is appended here and the rest is evaluated: the
+        drawing leaves that characteristic without a tolerance (ISO 2768-1
+        asks for one beside the dimension), not the whole part. By default
+        that is an error instead.
 
     Returns
     -------
@@ -565,9 +577,8 @@ def general_characteristics(inventory, spec, path=None):
     Raises
     ------
     partinspect.errors.InputError
-        When ISO 2768 defines no general tolerance for a feature left
-        untoleranced (a diameter below 0.5 mm, a class-v size up to 3 mm,
-        a line over 3000 mm, ...): the spec must give one.
+        Without ``gaps``, when ISO 2768 defines no general tolerance for a
+        characteristic left untoleranced: the spec must give one.
     """
     resolved = spec if isinstance(spec, ResolvedSpec) else resolve_spec(spec, inventory, path)
     path = resolved.path if path is None else str(path)
@@ -580,13 +591,14 @@ def general_characteristics(inventory, spec, path=None):
         if len(c.features) == 1:
             given[(c.features[0], _SAME_AS.get(c.type, c.type))] = c
 
-    out, problems = [], []
+    out, problems, problems_by_item = [], [], []
 
     def size(feature, ctype, nominal):
         try:
             lo, up = iso2768.linear_tolerance(nominal, lin)
         except iso2768.NoGeneralTolerance as e:
             problems.append(f"{feature.id} ({ctype} {nominal:.4g} mm): {e}")
+            problems_by_item.append((f"{feature.id}.{ctype}", f"{ctype} {nominal:.4g} mm: {e}"))
             return None
         i = iso2768.range_index(iso2768.LINEAR_RANGES, nominal)
         rule = f"ISO 2768-1 table 1, class {lin}, {iso2768.range_label(iso2768.LINEAR_RANGES, i)}"
@@ -616,12 +628,17 @@ def general_characteristics(inventory, spec, path=None):
                 t = iso2768.straightness_tolerance(length, geo)
             except iso2768.NoGeneralTolerance as e:
                 problems.append(f"{f.id} (straightness over {length:.4g} mm): {e}")
+                problems_by_item.append((f"{f.id}.straightness", f"straightness over {length:.4g} mm: {e}"))
                 continue
             i = iso2768.range_index(iso2768.STRAIGHTNESS_RANGES, length)
             rule = f"ISO 2768-2 table 1, class {geo}, {iso2768.range_label(iso2768.STRAIGHTNESS_RANGES, i)}"
             out.append(Characteristic(f"{f.id}.straightness", "straightness", (f.id,), 0.0, None, t, source, rule))
-    if problems:
+    if problems and gaps is None:
         raise InputError(path, "; ".join(problems))
+    if problems:
+        from partinspect.tolerances.from_pmi import NotEvaluated
+
+        gaps.extend(NotEvaluated(item, GENERAL_GAP, why) for item, why in problems_by_item)
     return out
 
 

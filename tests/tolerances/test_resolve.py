@@ -396,6 +396,25 @@ def test_tiny_hole_needs_a_spec():
     assert {c.id for c in general_characteristics(tiny, spec)} == {"circle-1.circularity", "line-1.straightness"}
 
 
+def test_a_run_lists_what_no_tolerance_covers_and_evaluates_the_rest():
+    from partinspect.tolerances.loading import load_characteristics
+    from partinspect.tolerances.pmi_text import general_gaps_line, pmi_problems_line
+    from partinspect.tolerances.resolve import GENERAL_GAP
+
+    tiny = Inventory((circle(1, (0, 0, 0), 0.2), line(1, (5, 0, 0), (9, 0, 0))), ())
+    gaps = []
+    chars = general_characteristics(tiny, default_spec(), "p.tol.yaml", gaps=gaps)
+    assert {c.id for c in chars} == {"line-1.straightness"}
+    assert [(g.item, g.type) for g in gaps] == [("circle-1.diameter", GENERAL_GAP)]
+    assert "ISO 2768-1 sets no general tolerance below 0.5 mm" in gaps[0].reason
+    resolved, chars = load_characteristics(tiny, None)
+    assert {c.id for c in chars} == {"line-1.straightness"}
+    assert [n.item for n in resolved.not_evaluated] == ["circle-1.diameter"]
+    said = general_gaps_line("p.stp", resolved.not_evaluated)
+    assert said.startswith("p.stp: 1 characteristic without a tolerance (ISO 2768 sets none for it: circle-1.diameter")
+    assert pmi_problems_line("p.stp", resolved.not_evaluated) is None  # not a PMI item
+
+
 def test_characteristics_for_is_spec_then_general_with_unique_ids(inv):
     spec = parse_spec("features:\n  circle-1:\n    diameter: {upper: 0.1, lower: 0}\n")
     chars = characteristics_for(spec, inv)
