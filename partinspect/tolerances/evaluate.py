@@ -872,12 +872,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
                                   f"simulated ({e})")
         details = dict(raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
         u = fr.u
-        if getattr(rec[0], "band_place", None) is not None:
-            # The rim's points were moved by their predicted places: what is left of where each
-            # step lies is each point's Type B, which the form's simulation draws.
-            details["edge_break"] = {"min": c.edge_break[0], "max": c.edge_break[1], "standard_uncertainty": 0.0,
-                                     "band_place": "the rim's points moved by their predicted places"}
-        elif c.edge_break is not None and _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
+        if c.edge_break is not None and _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
             # Where the step lies on a rounded rim's band changes around it: an
             # out-of-roundness of the rim seen, not of the wall, up to the break.
             u_b = band_rms(*c.edge_break)
