@@ -66,24 +66,37 @@ def stated_calibration(calib, kind, d):
 
 
 def true_residual(true_calib, stated, truth):
-    """Median over the visible edges of right minus left band offset of true partners under ``stated``, px."""
+    """Median over the visible edges of right minus left band offset of true partners under ``stated``, px.
+
+    The partners are the edge points where the true rig records them
+    (its own distortion), read as the run reads them: mapped to ideal
+    pixels with the stated intrinsics and distortion. A drawn calibration
+    states a distortion the true rig has not, which moves the ideal pixels
+    by up to tenths of a pixel across the image; reading the true ideal
+    pixels as the stated calibration's took a residual the run never sees.
+    Points outside either image are left out.
+    """
     from partinspect.cad.edge_sampling import sample_edge
     from partinspect.vision.calibration import project_points
+    from partinspect.vision.ideal import to_ideal
     from partinspect.vision.matching import epipolar_geometry
 
     geo = epipolar_geometry(stated)
     P = np.asarray(truth["part_to_camera"], float)
+    size = np.asarray(true_calib.image_size, float)
     out = []
     for f in truth["features"]:
         if not f["visible_both"]:
             continue
         g = {k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in f["rendered"].items()}
         X = sample_edge(f["kind"], g)[0] @ P[:3, :3].T + P[:3, 3]
-        zero = np.zeros(5)
-        x = project_points(X, true_calib.K1, zero, np.eye(3), np.zeros(3))
-        y = project_points(X, true_calib.K2, zero, np.asarray(true_calib.R, float), np.asarray(true_calib.T, float).ravel())
-        ok = np.isfinite(x).all(1) & np.isfinite(y).all(1)
-        out.append(geo.band_right(y[ok]) - geo.band_left(x[ok]))
+        x = project_points(X, true_calib.K1, true_calib.D1, np.eye(3), np.zeros(3))
+        y = project_points(X, true_calib.K2, true_calib.D2, np.asarray(true_calib.R, float),
+                           np.asarray(true_calib.T, float).ravel())
+        ok = np.all((x >= 0) & (x <= size) & (y >= 0) & (y <= size), axis=1)
+        if ok.any():
+            out.append(geo.band_right(to_ideal(y[ok], stated.K2, stated.D2))
+                       - geo.band_left(to_ideal(x[ok], stated.K1, stated.D1)))
     return float(np.median(np.concatenate(out)))
 
 

@@ -740,7 +740,10 @@ def _outlier_z(record):
 
 def _simulation(record, one_scene):
     """Keyword arguments of a form function that simulate the record's points as the chain made them."""
-    return {"errors": _errors(record), "held": _held(record) if one_scene else None, "outlier_z": _outlier_z(record)}
+    model = getattr(record, "point_errors", None)
+    shared = getattr(model, "draw_calibration", None) if getattr(model, "calibration", None) is not None else None
+    return {"errors": _errors(record), "held": _held(record) if one_scene else None, "outlier_z": _outlier_z(record),
+            "shared": shared}
 
 
 def _held(record):

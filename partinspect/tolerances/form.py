@@ -10,7 +10,8 @@ Method (JCGM 101-style Monte Carlo of the noise-only case): fit the
 reference and take the raw zone ``F_raw``; simulate noise-only point sets
 on the fitted reference with errors drawn as the measurement makes them
 (``errors``: correlated along the edge, with the Type B displacements; by
-default independent per point), evaluated the same way; report
+default independent per point; ``shared``: the calibration's, common to
+the edge), evaluated the same way; report
 ``F = F_raw - b`` with ``u = s``, their mean and standard deviation. ``F``
 is left unclipped so that it stays unbiased (it may be slightly negative);
 where the true form is large against the noise it is low by at most ``b``
@@ -284,7 +285,7 @@ def _passed(e, ideal, axis, sd, outlier_z):
     return _across(e, ideal, axis) <= outlier_z * sd
 
 
-def _corrected(kind, P, covs, rng, n_draws, errors, held=None, outlier_z=None):
+def _corrected(kind, P, covs, rng, n_draws, errors, held=None, outlier_z=None, shared=None):
     reference, zone, zones = _FORMS[kind]
     ideal, axis = reference(P)
     if errors is None:
@@ -298,7 +299,12 @@ def _corrected(kind, P, covs, rng, n_draws, errors, held=None, outlier_z=None):
     keep, sd = _kept(covs, ideal, axis)
     P, ideal, e, sd = P[keep], ideal[keep], e[:, keep], sd[keep]
     raw = zone(P)
-    sims = zones(ideal + e, _passed(e, ideal, axis, sd, outlier_z))
+    passed = _passed(e, ideal, axis, sd, outlier_z)
+    if shared is not None:
+        common = shared(rng, n_draws)
+        if common is not None:
+            e = e + np.asarray(common, float)[:, keep]
+    sims = zones(ideal + e, passed)
     if not (np.isfinite(sims).all() and np.isfinite(raw)):
         raise FormSimulationError(f"{int((~np.isfinite(sims)).sum())} of {len(sims)} simulated zones are not finite")
     b, s = float(sims.mean()), float(sims.std(ddof=1))
@@ -308,7 +314,7 @@ def _corrected(kind, P, covs, rng, n_draws, errors, held=None, outlier_z=None):
     return FormResult(raw - b, s, raw, b, len(P), int((~keep).sum()))
 
 
-def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held=None, outlier_z=None):
+def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held=None, outlier_z=None, shared=None):
     """Noise-corrected straightness of measured edge points.
 
     Parameters
@@ -342,6 +348,15 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, hel
         and zone too: a zone is set by the errors' tails, and keeping tails the
         measurement cuts would overstate its noise-only spread. None: every
         point kept.
+    shared : callable, optional
+        ``shared(rng, n_draws)`` -> errors common to the whole edge, shape
+        (n_draws, M, 3), mm, or None: added to the simulated points but not
+        judged by the outlier test, which sees each image's points about
+        their own fitted curve (e.g.
+        :meth:`~partinspect.vision.pointerrors.PointErrorModel.draw_calibration`:
+        a calibration's error bends the triangulated edge, and a zone
+        simulated without it reads that bend as form). Not drawn with
+        ``held``: one scene's images share it.
 
     Returns
     -------
@@ -352,10 +367,10 @@ def straightness(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, hel
     if len(P) < 3:
         raise ValueError("straightness needs at least 3 points")
     rng = np.random.default_rng(0) if rng is None else rng
-    return _corrected("straightness", P, covs, rng, n_draws, errors, held, outlier_z)
+    return _corrected("straightness", P, covs, rng, n_draws, errors, held, outlier_z, shared)
 
 
-def circularity(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held=None, outlier_z=None):
+def circularity(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held=None, outlier_z=None, shared=None):
     """Noise-corrected circularity (roundness) of measured edge points.
 
     Parameters and returns as :func:`straightness`; at least 5 points
@@ -366,7 +381,7 @@ def circularity(points, point_covs, rng=None, n_draws=N_DRAWS, errors=None, held
     if len(P) < 5:
         raise ValueError("circularity needs at least 5 points")
     rng = np.random.default_rng(0) if rng is None else rng
-    return _corrected("circularity", P, covs, rng, n_draws, errors, held, outlier_z)
+    return _corrected("circularity", P, covs, rng, n_draws, errors, held, outlier_z, shared)
 
 
 def scene_spreads(kind, points, point_covs, held, n_images, n_scenes=N_SCENES, rng=None, outlier_z=None):

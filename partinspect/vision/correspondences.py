@@ -79,6 +79,9 @@ class Correspondences:
         d(points) / d(right fitted curve's parameters).
     fit_cov : ndarray, shape (k, k)
         The right fit's covariance used (free directions zeroed).
+    right_params : ndarray, shape (k,) or None
+        The right fitted curve the partners lie on (a line's ``(a, b, c)``
+        of ``a x + b y + c = 0`` or an ellipse's (xc, yc, a, b, theta)).
     """
 
     left_index: np.ndarray
@@ -90,6 +93,7 @@ class Correspondences:
     jac_left: np.ndarray | None = None
     jac_fit: np.ndarray | None = None
     fit_cov: np.ndarray | None = None
+    right_params: np.ndarray | None = None
 
     def __len__(self):
         return len(self.points)
@@ -363,4 +367,4 @@ def correspond(left, right, geo, *, xy=None, min_angle=None, step=1e-4, margin=2
     JL = np.einsum("nij,jk->nik", Jp, Lp)
     cov = np.einsum("nij,njk,nlk->nil", Jx, cov_x, Jx) + np.einsum("nik,nlk->nil", JL, JL)
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
-    return Correspondences(idx, x, y, X, cov, int(len(keep) - n), Jx, Jp, cov_p)
+    return Correspondences(idx, x, y, X, cov, int(len(keep) - n), Jx, Jp, cov_p, pr)

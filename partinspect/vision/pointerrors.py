@@ -16,7 +16,12 @@ than each point's 3x3 covariance:
   noise to it;
 - the right fitted curve's error is common to all points (a smooth
   deformation of the whole edge, which moves the reference more than the
-  zone).
+  zone);
+- the calibration's error is common to all points too, one error for the
+  whole run: besides moving the feature it bends it, for an error of the
+  epipolar geometry slides each partner along the right curve by more
+  where the epipolar lines cross it obliquely
+  (:mod:`partinspect.vision.calibration_points`).
 
 :class:`PointErrorModel` keeps these parts apart and draws them together,
 for the Monte Carlo of :mod:`partinspect.tolerances.form` (JCGM 101: the
@@ -117,6 +122,14 @@ class PointErrorModel:
         passed; a simulation of them leaves out the simulated points
         beyond it (``outlier_z`` of :func:`partinspect.tolerances.form.straightness`).
         None: no such test.
+    calibration : ndarray, shape (N, 3, q) or None
+        Each point's response to the calibration's q principal directions
+        of uncertainty, mm (:func:`partinspect.vision.calibration_points.point_responses`),
+        drawn by :meth:`draw_calibration`, one standard normal deviate per
+        direction common to all points. Kept out of :meth:`draw` and
+        :meth:`covariances`: the image fits' outlier test, and the choice of
+        the points a zone is read on, see each image's edge about its own
+        fitted curve, which the calibration does not move.
     """
 
     arc_length: np.ndarray
@@ -126,10 +139,19 @@ class PointErrorModel:
     common_cov: np.ndarray | None = None
     systematic: tuple = ()
     outlier_z: float | None = None
+    calibration: np.ndarray | None = None
 
     def draw(self, rng, n_draws):
         """Simulated errors of the points, shape (n_draws, N, 3), mm."""
         return self._draw(rng, n_draws, range(len(self.components)), True)
+
+    def draw_calibration(self, rng, n_draws):
+        """Simulated errors of the points from the calibration, shape (n_draws, N, 3), mm; None without them."""
+        G = self.calibration
+        if G is None or G.shape[2] == 0:
+            return None
+        z = rng.standard_normal((n_draws, G.shape[2]))
+        return (z @ G.reshape(-1, G.shape[2]).T).reshape(n_draws, *G.shape[:2])
 
     def draw_held(self, rng, n_patterns, n_draws):
         """Errors of ``n_draws`` images of each of ``n_patterns`` scenes, shape (n_patterns, n_draws, N, 3), mm.
@@ -138,6 +160,7 @@ class PointErrorModel:
         over its images; the random ones (and the common part, the right
         curve's fit of each image) anew for every image. What varies over
         the images of one scene is what noise draws of one render show.
+        The calibration's part is not drawn: one rig's images share it.
         """
         n = len(self.arc_length)
         random = [k for k in range(len(self.components)) if k not in self.systematic]
@@ -182,7 +205,7 @@ class PointErrorModel:
         return out
 
 
-def point_error_model(corr, normals, components, systematic=(), outlier_z=None):
+def point_error_model(corr, normals, components, systematic=(), outlier_z=None, calibration=None):
     """The :class:`PointErrorModel` of a feature's correspondences.
 
     Parameters
@@ -199,6 +222,8 @@ def point_error_model(corr, normals, components, systematic=(), outlier_z=None):
         Which of ``components`` are Type B (see :class:`PointErrorModel`).
     outlier_z : float, optional
         See :class:`PointErrorModel`.
+    calibration : ndarray, shape (N, 3, q), optional
+        The points' responses to the calibration (:class:`PointErrorModel`).
     """
     idx = corr.left_index
     steps = np.linalg.norm(np.diff(corr.left, axis=0), axis=1)
@@ -207,7 +232,7 @@ def point_error_model(corr, normals, components, systematic=(), outlier_z=None):
     J = np.einsum("nij,nj->ni", corr.jac_left, n)
     comps = tuple((np.asarray(std, float)[idx] if np.ndim(std) else np.full(len(idx), float(std)), length)
                   for std, length in components)
-    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov, tuple(systematic), outlier_z)
+    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov, tuple(systematic), outlier_z, calibration)
 
 
 def short_scale_ratio(r, sigma, xy, length):

@@ -64,6 +64,7 @@ from partinspect.vision.edges import (BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FA
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.forked import forked
 from partinspect.frames import orthonormal_frame, plane_basis
+from partinspect.vision.calibration_points import point_responses
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
 from partinspect.vision.bias_evidence import bias_evidence
 from partinspect.vision.fit3d import (View, circle_consistency, circle_residuals_at, fit_circle_3d, fit_line_3d,
@@ -818,7 +819,7 @@ def as_fitted(f, view, corr_length):
     return replace(f, ideal=replace(f.ideal, xy=view.xy), fit=fit)
 
 
-def _point_errors(fl, corr, view):
+def _point_errors(fl, corr, view, calibration=None):
     """The :class:`~partinspect.vision.pointerrors.PointErrorModel` of a feature's triangulated points.
 
     The left points' random part (``view.sigma``, correlated over the edge
@@ -832,6 +833,8 @@ def _point_errors(fl, corr, view):
     part is scaled up to what the residuals show: a Type A evaluation of the
     scatter the form is judged against. It is never scaled down: a ratio
     below 1 may hide structure longer than the differences see.
+    ``calibration``: the points' responses to the calibration's uncertainty
+    (:func:`~partinspect.vision.calibration_points.point_responses`), or None.
     """
     sigma = np.asarray(view.sigma, float) * np.ones(len(fl.ideal.xy))
     ratio, se = short_scale_ratio(fl.fit.residuals, sigma, fl.ideal.xy, view.corr_length)
@@ -846,10 +849,10 @@ def _point_errors(fl, corr, view):
         comps.append((view.bias, view.bias_corr_length))
     # The left feature's fit rejected its points beyond Chauvenet's threshold
     # (imagefeatures._make_features): the form's simulation cuts its tails there too.
-    return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)))
+    return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)), calibration)
 
 
-def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_scale=1.0):
+def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_scale=1.0, point_response=None):
     """The :class:`Feature3D` record of a matched pair's two-view fit.
 
     Parameters
@@ -873,6 +876,10 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_sca
     type_b_scale : float
         What a rim's residuals show of its stated Type B (:func:`type_b_scale`),
         applied to the centre and normal (:func:`_image_param_cov`).
+    point_response : ndarray, shape (N, 3, q), optional
+        The triangulated points' responses to the calibration's uncertainty
+        (:func:`partinspect.vision.calibration_points.point_responses`), which
+        the points' error model draws for the form; None: not drawn.
 
     Returns
     -------
@@ -887,7 +894,7 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_sca
     G = np.asarray(cal_response, float)
     cal_cov = G @ G.T
     total = img_cov + cal_cov + sys_cov
-    errors = _point_errors(fl, corr, view)
+    errors = _point_errors(fl, corr, view, point_response)
     if kind == "line":
         t = (corr.points - fit.point) @ fit.direction
         return Feature3D("line", match.left, match.right, fit.point, fit.direction,
@@ -1075,7 +1082,10 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
     G = calibration_responses(fit, fl.kind, views_under, calib)
-    return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band), scale), None
+    # What the calibration's error does to the points themselves (it bends a
+    # rim, not only moves it): the form's Monte Carlo draws it.
+    P = point_responses(corr, calib) if G.shape[1] else None
+    return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band), scale, P), None
 
 
 def _without_band(view, band):
