@@ -38,7 +38,8 @@ def load_characteristics(inv, tol_path, part=None, pmi=None):
     the PMI items that are, rather than stopping the run.
     """
     from partinspect.tolerances import spec as spec_mod
-    from partinspect.tolerances.resolve import general_characteristics, resolve_spec, with_edge_breaks, with_material_sizes
+    from partinspect.tolerances.resolve import (GENERAL_GAP, general_characteristics, resolve_spec, with_edge_breaks,
+                                                with_material_sizes)
 
     spec = spec_mod.load_spec(tol_path) if tol_path is not None else spec_mod.default_spec()
     resolved = resolve_spec(spec, inv, tol_path)
@@ -49,6 +50,9 @@ def load_characteristics(inv, tol_path, part=None, pmi=None):
     gaps = []
     general = general_characteristics(inv, resolved, gaps=gaps)
     if gaps:
-        resolved = replace(resolved, not_evaluated=tuple(resolved.not_evaluated) + tuple(gaps))
+        from partinspect.tolerances.from_pmi import NotEvaluated
+
+        resolved = replace(resolved, not_evaluated=tuple(resolved.not_evaluated) + tuple(
+            NotEvaluated(item, GENERAL_GAP, why) for item, why in gaps))
     chars = with_edge_breaks(list(resolved.characteristics) + general, resolved)
     return resolved, with_material_sizes(chars, inv, tol_path)

@@ -562,11 +562,11 @@ def general_characteristics(inventory, spec, path=None, *, gaps=None):
     gaps : list, optional
         Where ISO 2768 defines no general tolerance for a characteristic
         left untoleranced (a diameter below 0.5 mm, a class-v size up to
-        3 mm, a line over 3000 mm, ...), a ``NotEvaluated`` of type
-        :data:`GENERAL_GAP` is appended here and the rest is evaluated: the
-        drawing leaves that characteristic without a tolerance (ISO 2768-1
-        asks for one beside the dimension), not the whole part. By default
-        that is an error instead.
+        3 mm, a line over 3000 mm, ...), its ``(id, reason)`` is appended
+        here and the rest is evaluated: the drawing leaves that
+        characteristic without a tolerance (ISO 2768-1 asks for one beside
+        the dimension), not the whole part. By default that is an error
+        instead.
 
     Returns
     -------
@@ -636,9 +636,7 @@ def general_characteristics(inventory, spec, path=None, *, gaps=None):
     if problems and gaps is None:
         raise InputError(path, "; ".join(problems))
     if problems:
-        from partinspect.tolerances.from_pmi import NotEvaluated
-
-        gaps.extend(NotEvaluated(item, GENERAL_GAP, why) for item, why in problems_by_item)
+        gaps.extend(problems_by_item)
     return out
 
 
