@@ -125,3 +125,27 @@ def test_stretches_too_short_for_a_segment_are_dropped():
     keep[:4] = keep[35:] = True
     assert _segmentable(keep, True).sum() == 9
     assert _segmentable(keep, False).sum() == 0
+
+
+def test_faint_edge_as_the_run_judges_it(plate, rig):
+    """The plan calls an edge 'faint' exactly where the run would say it
+    shows too little step: its median step over the part in view against
+    3 x the noise (``cad.visibility``'s rule). The plate's line-2, whose
+    step is read from the rendered noiseless images as the run reads it,
+    is predicted measured at a noise a tenth under a third of that step
+    and faint a tenth over it (it had been measured at both)."""
+    from partinspect.cad.model import load_model
+    from partinspect.cad.visibility import MIN_CONTRAST_SNR, visibility
+    from partinspect.planning.predict import predict_feature
+    from partinspect.simulate.render import render_radiance_pair
+
+    pose = plate.pose(rig)
+    model = load_model(plate.path)
+    seen = visibility(None, plate.inv, rig, pose, mesh=model.mesh, images=render_radiance_pair(plate.scene, rig, pose))
+    f = next(f for f in plate.inv.features if f.id == "line-2")
+    step = min(seen[f.id].contrast)
+    for factor, status in ((0.9, "measured"), (1.1, "faint")):
+        noise = factor * step / MIN_CONTRAST_SNR
+        assert seen[f.id].shows_edge(noise) == (status == "measured")
+        p = predict_feature(f, plate.scene, rig, pose, DetectorModel(noise=noise))
+        assert p.status == status, (factor, p.status, p.reason)
