@@ -503,10 +503,16 @@ def _clear_of_others(scene, camera, part_to_camera, vis, keep, kind, model, shad
 
     A line loses the crowded points that run up to an end of each of its
     stretches (``CLEARANCE`` edge widths: at a corner or a junction), as
-    the segmentation cuts it; a rim loses every crowded point within
-    ``CLEARANCE`` edge widths beyond the span its shading is read over
-    (``max(BACKGROUND_DISTANCES)`` px), as the chain clears a registered
-    arc, unless fewer than ``min_points`` would be left (the chain then
+    the segmentation cuts it; a whole circle loses every crowded point
+    within ``CLEARANCE`` edge widths beyond the span its shading is read
+    over (``max(BACKGROUND_DISTANCES)`` px), as the chain clears a
+    registered rim (:func:`partinspect.vision.guided.clear_arcs`), and a
+    partial arc those within ``CLEARANCE`` edge widths (the chain does not
+    count the edges meeting an arc at its ends, which the ray caster cannot
+    tell from others: with the wider reach the bracket's slot ends, whose
+    sides run tangentially into them, lost points the chain keeps and their
+    predicted radius u rose 1.45-1.54 x the chain's); a rim keeps its
+    points where fewer than ``min_points`` would be left (the chain then
     keeps the arc as it was).
     """
     from partinspect.vision.contours import CLEARANCE, end_runs
@@ -516,7 +522,10 @@ def _clear_of_others(scene, camera, part_to_camera, vis, keep, kind, model, shad
     if len(idx) == 0:
         return keep
     width = profile_width(model.blur, model.sigma)
-    reach = CLEARANCE * width + (0.0 if kind == "line" else max(BACKGROUND_DISTANCES))
+    # A whole rim meets no edge at its ends: the chain clears it out to the span its shading is read
+    # over and CLEARANCE widths beyond; a partial arc's neighbours at its ends are mostly the edges that
+    # meet it there, which the chain does not count (a slot's sides running tangentially into its end).
+    reach = CLEARANCE * width + (max(BACKGROUND_DISTANCES) if kind == "circle" else 0.0)
     bad = crowded(scene, camera, part_to_camera, vis["uv"][idx], vis["normal_uv"][idx], vis["side_label"][idx],
                   vis["side_grey"][idx], reach, shading)
     if kind == "line":
