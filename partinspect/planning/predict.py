@@ -470,6 +470,12 @@ def crowded(scene, camera, part_to_camera, uv, normal, side_label, side_grey, re
     Returns
     -------
     ndarray of bool, shape (N,)
+
+    References
+    ----------
+    .. [1] Canny, J. (1986). A computational approach to edge detection.
+       IEEE TPAMI 8(6), 679-698 (the interaction of nearby edges under the
+       smoothing filter).
     """
     from partinspect.cad.raycast import cast, pixel_rays, shade
     from partinspect.cad.sightlines import CONTRAST_OFFSET, NEIGHBOUR_STEP_FRACTION
@@ -509,9 +515,8 @@ def _clear_of_others(scene, camera, part_to_camera, vis, keep, kind, model, shad
     registered rim (:func:`partinspect.vision.guided.clear_arcs`), and a
     partial arc those within ``CLEARANCE`` edge widths (the chain does not
     count the edges meeting an arc at its ends, which the ray caster cannot
-    tell from others: with the wider reach the bracket's slot ends, whose
-    sides run tangentially into them, lost points the chain keeps and their
-    predicted radius u rose 1.45-1.54 x the chain's); a rim keeps its
+    tell from others: with the wider reach a slot's end, whose sides run
+    tangentially into it, would lose points the chain keeps); a rim keeps its
     points where fewer than ``min_points`` would be left (the chain then
     keeps the arc as it was).
     """
@@ -546,9 +551,8 @@ def _segmentable(keep, closed):
     (:func:`partinspect.vision.contours.segment_contour`; the prediction's
     stretches are trimmed already): a few pixels of a rim seen between two
     occluding edges are found as edge points but belong to no image
-    feature (ftc_10's circle-42 in its view-3: stretches of 5 and 8 points
-    beside its 48 and 110), and counted in, they would fix the arc's
-    ellipse over an angle the chain does not see.
+    feature, and counted in, they would fix the arc's ellipse over an
+    angle the chain does not see (docs/validation.md, ftc_10's view-3).
 
     Parameters
     ----------
@@ -744,11 +748,10 @@ def _least_step(model):
     rule by which ``inspect`` says an edge in view shows too little step
     (:func:`partinspect.diagnosis.unmeasured_reason`) and re-runs for it
     (:mod:`partinspect.adaptive`). An edge between two faces lit alike that
-    shows a step only where it passes in front of the background (ftc_10's
-    line-187 in its view-3: 10 % of it, 19 and 14 points between two
-    corners) had been predicted measured; the chain's corners took more of
-    so short a stretch than the trim the prediction allows, leaving 13 and
-    10 points, too few to match.
+    shows a step only where it passes in front of the background keeps a
+    short stretch between two corners, of which the chain's corners take
+    more than the trim the prediction allows (docs/validation.md, ftc_10's
+    view-3).
     """
     from partinspect.cad.visibility import MIN_CONTRAST_SNR
 
@@ -765,11 +768,9 @@ def radius_untold(fl, fr):
     (:func:`partinspect.vision.matching.match_features`). Where the
     expanded uncertainty ``RADIUS_COVERAGE u`` of the ratio exceeds that
     cap, a true pair is refused unless the noise happens to fall its way:
-    the arc of one image is too short to fix its ellipse (a rim seen over
-    40 degrees of a partly hidden hole in ftc_10's view-3: predicted u of
-    its semi-major axis 51 %; the chain's fit of those points gave twice
-    the true radius and was not matched). The plan then predicts no
-    measurement. ``u`` is read as the matcher reads it, from the two
+    the arc of one image is too short to fix its ellipse (a partly hidden
+    rim seen over some 40 degrees; docs/validation.md, ftc_10's view-3).
+    The plan then predicts no measurement. ``u`` is read as the matcher reads it, from the two
     ellipse fits' covariances of the semi-major axis (independent images,
     JCGM 100 5.1.2); a short arc's real scatter is larger still (its
     least-squares cost is flat along a curved valley), so the rule errs
