@@ -18,7 +18,8 @@ is the u ``inspect`` would report for an exactly nominal part in that pose,
 part of a rim, it reports more). What cannot be measured is said with the
 reason: not visible in both images, a line within ``EPIPOLAR_MIN_ANGLE`` of
 the epipolar lines (depth undetermined), a circle within ``90 -
-EDGE_ON_ANGLE`` degrees of edge-on.
+EDGE_ON_ANGLE`` degrees of edge-on, arcs too short for the matcher to tell
+their radius (:func:`radius_untold`).
 
 Frames: part frame (STEP) for CAD geometry, rig frame (left camera) for
 measured features; mm, radians inside.
@@ -46,7 +47,8 @@ import numpy as np
 
 from partinspect.planning.edge_model import (
     DetectorModel, detector_parameters, profile_width, stated_std_pattern)
-from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE
+from partinspect.vision.matching import (
+    MIN_EPIPOLAR_ANGLE, RADIUS_COVERAGE, RADIUS_WIDENING_MAX, match_features)
 
 __all__ = [
     "EPIPOLAR_MIN_ANGLE",
@@ -60,6 +62,8 @@ __all__ = [
     "sample_view",
     "background_terms",
     "predict_feature",
+    "radius_untold",
+    "crowded",
     "predict_pose",
     "tied_registration",
 ]
@@ -85,6 +89,7 @@ an ellipse into pieces too short to match, which the first-order
 prediction cannot show: such characteristics carry a warning."""
 DEFAULT_RATIO = 0.25
 """A characteristic is decidable when U <= ratio x its tolerance."""
+_RADIUS_TOLERANCE = match_features.__kwdefaults__["radius_tolerance"]  # the matcher's, so the two cannot drift
 _CONTRAST_OFFSET = 1.5  # px either side of the edge where the faces' greys are read (as truth.py)
 _DENSE_PER_PX = 4  # dense samples per pixel of image length before placing the detector's points
 
@@ -111,7 +116,9 @@ class ViewSamples:
         Detector points the whole edge would give if fully visible.
     fractions : dict
         ``in_image``, ``unoccluded``, ``contrast`` and ``visible`` fractions
-        of those points (as :func:`partinspect.cad.sightlines.edge_visibility`).
+        of those points (as :func:`partinspect.cad.sightlines.edge_visibility`),
+        and ``step``: the median noiseless grey step across the edge where
+        it is in the image and unoccluded, grey levels.
     background_bound, background_std : ndarray, shape (N,) or None
         Curved edges: what :func:`partinspect.vision.edges.background_gradients`
         would report for the shading beside each point (``W^2 |g_b - g_d| / h``,
@@ -143,7 +150,9 @@ class FeaturePrediction:
     id, kind : str
     status : str
         "measured", or why not: "hidden", "degenerate" (a line along the
-        epipolar lines), "edge-on" (a circle), "failed".
+        epipolar lines), "edge-on" (a circle), "unmatched" (arcs too short
+        to tell their radius, :func:`radius_untold`), "faint" (a median step
+        under the run's threshold, :func:`_least_step`), "failed".
     reason : str or None
         In words, naming the feature.
     record : partinspect.vision.stereo.Feature3D or None
@@ -423,6 +432,151 @@ def _junctions(vis, every, closed):
     return out
 
 
+def crowded(scene, camera, part_to_camera, uv, normal, side_label, side_grey, reach, shading):
+    """Edge samples with another edge's image within ``reach`` px of them.
+
+    The chain's Gaussian smoothing mixes two edges closer than a few edge
+    widths and displaces both, so it leaves such points out
+    (:func:`partinspect.vision.contours._make_segments` at a line's ends,
+    :func:`partinspect.vision.guided.clear_arcs` anywhere on a rim), by
+    their distance in the image to another edge's points. Here the other
+    edge is found by casting rays on rings around each sample, from the
+    span the visibility rule reads (``CONTRAST_OFFSET`` px) out to
+    ``reach``, at most ``_RING_STEP`` px apart: a face other than the
+    edge's two, whose grey differs from that of the edge's face on the
+    same side by at least ``NEIGHBOUR_STEP_FRACTION`` of the edge's own
+    step, is another edge's side (a face boundary shaded alike shows no
+    edge: a silhouette turning a corner is one grey step; a thin wall
+    between a counterbore's floor and the top face, both lit alike, is
+    two). A corner is found so as well as a parallel neighbour: the third
+    face's wedge begins within ``reach``.
+
+    Parameters
+    ----------
+    scene : RaycastScene
+    camera : tuple
+        ``(K, D, R, t)`` of :func:`partinspect.cad.raycast.camera_in_part`.
+    part_to_camera : ndarray, shape (4, 4)
+    uv, normal : ndarray, shape (N, 2)
+        Distorted px and unit normals of the projected edge.
+    side_label : ndarray of int, shape (N, 2)
+    side_grey : ndarray, shape (N, 2)
+        The face seen and its grey against and along the normal
+        (:func:`partinspect.cad.sightlines.edge_visibility`).
+    reach : float
+        px.
+    shading : Shading
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+
+    References
+    ----------
+    .. [1] Canny, J. (1986). A computational approach to edge detection.
+       IEEE TPAMI 8(6), 679-698 (the interaction of nearby edges under the
+       smoothing filter).
+    """
+    from partinspect.cad.raycast import cast, pixel_rays, shade
+    from partinspect.cad.sightlines import CONTRAST_OFFSET, NEIGHBOUR_STEP_FRACTION
+
+    n = len(uv)
+    if n == 0 or reach <= CONTRAST_OFFSET:
+        return np.zeros(n, bool)
+    radii = np.linspace(CONTRAST_OFFSET, reach, int(np.ceil((reach - CONTRAST_OFFSET) / _RING_STEP)) + 1)
+    a = np.arange(_RING_RAYS) * 2 * np.pi / _RING_RAYS
+    ring = (radii[:, None, None] * np.stack([np.cos(a), np.sin(a)], axis=-1)[None]).reshape(-1, 2)
+    o, d = pixel_rays((uv[:, None, :] + ring[None]).reshape(-1, 2), *camera)
+    light = np.asarray(part_to_camera, float)[:3, :3].T @ shading.direction()
+    hits = cast(scene, o, d)
+    g = shade(scene, hits, d, light, shading).astype(float).reshape(n, len(ring))
+    lab = hits.label.reshape(n, len(ring))
+    quiet = NEIGHBOUR_STEP_FRACTION * np.abs(side_grey[:, 1] - side_grey[:, 0])
+    own = (lab == side_label[:, :1]) | (lab == side_label[:, 1:])
+    # The side of the edge each ray lies on (along its normal or against it) and that side's grey.
+    along = np.einsum("nd,rd->nr", normal, ring) > 0
+    expected = np.where(along, side_grey[:, 1:], side_grey[:, :1])
+    alike = np.abs(g - expected) < quiet[:, None]
+    return (~own & ~alike).any(axis=1)
+
+
+_RING_STEP = 1.5  # px between the rings crowded() casts (a neighbouring face narrower than this may slip through)
+_RING_RAYS = 16  # rays per ring: 2.9 px apart on a 7.5 px ring
+
+
+def _clear_of_others(scene, camera, part_to_camera, vis, keep, kind, model, shading):
+    """``keep`` less the points the chain leaves out beside another edge (:func:`crowded`).
+
+    A line loses the crowded points that run up to an end of each of its
+    stretches (``CLEARANCE`` edge widths: at a corner or a junction), as
+    the segmentation cuts it; a whole circle loses every crowded point
+    within ``CLEARANCE`` edge widths beyond the span its shading is read
+    over (``max(BACKGROUND_DISTANCES)`` px), as the chain clears a
+    registered rim (:func:`partinspect.vision.guided.clear_arcs`), and a
+    partial arc those within ``CLEARANCE`` edge widths (the chain does not
+    count the edges meeting an arc at its ends, which the ray caster cannot
+    tell from others: with the wider reach a slot's end, whose sides run
+    tangentially into it, would lose points the chain keeps); a rim keeps its
+    points where fewer than ``min_points`` would be left (the chain then
+    keeps the arc as it was).
+    """
+    from partinspect.vision.contours import CLEARANCE, end_runs
+    from partinspect.vision.edges import BACKGROUND_DISTANCES
+
+    idx = np.flatnonzero(keep)
+    if len(idx) == 0:
+        return keep
+    width = profile_width(model.blur, model.sigma)
+    # A whole rim meets no edge at its ends: the chain clears it out to the span its shading is read
+    # over and CLEARANCE widths beyond; a partial arc's neighbours at its ends are mostly the edges that
+    # meet it there, which the chain does not count (a slot's sides running tangentially into its end).
+    reach = CLEARANCE * width + (max(BACKGROUND_DISTANCES) if kind == "circle" else 0.0)
+    bad = crowded(scene, camera, part_to_camera, vis["uv"][idx], vis["normal_uv"][idx], vis["side_label"][idx],
+                  vis["side_grey"][idx], reach, shading)
+    if kind == "line":
+        runs = np.split(np.arange(len(idx)), np.flatnonzero(np.diff(idx) > 1) + 1)
+        bad = np.concatenate([end_runs(bad[r]) for r in runs])
+    elif (~bad).sum() < model.min_points:
+        return keep
+    out = keep.copy()
+    out[idx[bad]] = False
+    return out
+
+
+def _segmentable(keep, closed):
+    """``keep`` less its stretches too short for the segmentation to make a piece of.
+
+    The chain's segmentation fits no piece to fewer than its
+    ``min_points`` points left once a contour's ends are trimmed
+    (:func:`partinspect.vision.contours.segment_contour`; the prediction's
+    stretches are trimmed already): a few pixels of a rim seen between two
+    occluding edges are found as edge points but belong to no image
+    feature, and counted in, they would fix the arc's ellipse over an
+    angle the chain does not see (docs/validation.md, ftc_10's view-3).
+
+    Parameters
+    ----------
+    keep : ndarray of bool, shape (N,)
+        Predicted points, in order along the edge.
+    closed : bool
+        A whole circle: a stretch may run on from the last sample to the first.
+    """
+    from partinspect.vision.contours import segment_contour
+
+    least = segment_contour.__kwdefaults__["min_points"]
+    idx = np.flatnonzero(keep)
+    if len(idx) == 0:
+        return keep
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
+    if closed and len(runs) > 1 and keep[0] and keep[-1]:
+        runs = [np.concatenate([runs[-1], runs[0]])] + runs[1:-1]
+    out = keep.copy()
+    for r in runs:
+        if len(r) < least:
+            out[r] = False
+    return out
+
+
 def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shading=None):
     """The edge points the detector would give for one edge in one image.
 
@@ -448,7 +602,9 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
         contrast (the truth's visibility rules), minus ``model.run_trim``
         (lines) or ``model.arc_trim`` (circles, arcs) px at the ends of each
         visible stretch; a junction with a third edge (:func:`_junctions`) ends
-        a stretch.
+        a stretch. Points beside another edge's image are then left out as
+        the chain leaves them out (:func:`_clear_of_others`), and stretches
+        too short to be a piece of the segmentation (:func:`_segmentable`).
 
     Notes
     -----
@@ -481,8 +637,13 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     every = vis["in_image"] & vis["unoccluded"] & vis["contrast"]
     fractions = {k: float(np.mean(vis[k])) for k in ("in_image", "unoccluded", "contrast")}
     fractions["visible"] = float(np.mean(every))
+    seen = vis["in_image"] & vis["unoccluded"]
+    # The run's reading of whether an edge shows: the median step over all of it in view (cad.visibility).
+    fractions["step"] = float(np.median(np.abs(np.diff(vis["side_grey"][seen], axis=1)))) if seen.any() else 0.0
     keep = _trim_runs(every, vis["uv"], model.run_trim if kind == "line" else model.arc_trim, kind == "circle",
                       _junctions(vis, every, kind == "circle"))
+    keep = _clear_of_others(scene, (K, D, R, t), part_to_camera, vis, keep, kind, model, shading)
+    keep = _segmentable(keep, kind == "circle")
     uv, normal = vis["uv"][keep], vis["normal_uv"][keep]
     if model.contrast is not None:
         contrast = np.full(len(uv), float(model.contrast))
@@ -580,6 +741,59 @@ def _image_feature(kind, view, K, D, model):
     return ImageFeature(**base)
 
 
+def _least_step(model):
+    """Grey levels: the run counts an edge shown when the median step across it is at least this.
+
+    :data:`partinspect.cad.visibility.MIN_CONTRAST_SNR` times the noise, the
+    rule by which ``inspect`` says an edge in view shows too little step
+    (:func:`partinspect.diagnosis.unmeasured_reason`) and re-runs for it
+    (:mod:`partinspect.adaptive`). An edge between two faces lit alike that
+    shows a step only where it passes in front of the background keeps a
+    short stretch between two corners, of which the chain's corners take
+    more than the trim the prediction allows (docs/validation.md, ftc_10's
+    view-3).
+    """
+    from partinspect.cad.visibility import MIN_CONTRAST_SNR
+
+    return MIN_CONTRAST_SNR * model.noise
+
+
+def radius_untold(fl, fr):
+    """The standard uncertainty of two arcs' radius ratio where the matcher cannot pair them on it, else None.
+
+    The matcher pairs two arcs only when their 3D radii agree: ``|log(r_l / r_r)|``
+    within ``radius_tolerance`` widened in quadrature by ``RADIUS_COVERAGE``
+    standard uncertainties of the log-ratio, but never beyond
+    ``RADIUS_WIDENING_MAX x radius_tolerance``
+    (:func:`partinspect.vision.matching.match_features`). Where the
+    expanded uncertainty ``RADIUS_COVERAGE u`` of the ratio exceeds that
+    cap, a true pair is refused unless the noise happens to fall its way:
+    the arc of one image is too short to fix its ellipse (a partly hidden
+    rim seen over some 40 degrees; docs/validation.md, ftc_10's view-3).
+    The plan then predicts no measurement. ``u`` is read as the matcher reads it, from the two
+    ellipse fits' covariances of the semi-major axis (independent images,
+    JCGM 100 5.1.2); a short arc's real scatter is larger still (its
+    least-squares cost is flat along a curved valley), so the rule errs
+    on the side of the run.
+
+    Parameters
+    ----------
+    fl, fr : ImageFeature
+        The predicted arcs of the left and right image (ideal pixels).
+
+    Returns
+    -------
+    float or None
+        ``u(log(r_l / r_r))`` (relative) where it exceeds
+        ``RADIUS_WIDENING_MAX x radius_tolerance / RADIUS_COVERAGE``; None
+        where the matcher can pair the arcs.
+    """
+    var = sum(float(f.fit.cov[2, 2]) / float(f.fit.params[2]) ** 2 for f in (fl, fr)
+              if getattr(f.fit, "cov", None) is not None and f.fit.params[2] > 0)
+    u = math.sqrt(var)
+    return u if RADIUS_COVERAGE * u > RADIUS_WIDENING_MAX * _RADIUS_TOLERANCE else None
+
+
 def _hidden_reason(fid, feature, views):
     if getattr(feature, "smooth", False):
         return f"{fid} shows no edge: its faces meet tangentially"
@@ -664,6 +878,14 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
                 f"{fid} is seen nearly edge-on ({np.rad2deg(view_angle):.0f} deg from its axis in the {cam} camera)"), **base)
     if min(len(vl), len(vr)) < model.min_points:
         return FeaturePrediction(status="hidden", reason=_hidden_reason(fid, feature, views), **base)
+    faint = [(name, v.fractions["step"]) for name, v in views
+             if model.contrast is None and v.fractions.get("step", np.inf) < _least_step(model)]
+    if faint and not getattr(feature, "smooth", False):
+        name, step = faint[0]
+        return FeaturePrediction(status="faint", reason=(
+            f"{fid} shows a median grey step of {step:.0f} over the part of it in view in the {name} image, under the "
+            f"{_least_step(model):.0f} the run needs to count it shown (its faces look alike under this lighting; "
+            f"{100 * dict(views)[name].fractions['contrast']:.0f} % of it shows a step)"), **base)
     kind2 = "line" if kind == "line" else "arc"
     try:
         fl = _image_feature(kind2, vl, calib.K1, calib.D1, model)
@@ -672,6 +894,12 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         return FeaturePrediction(status="failed", reason=f"{fid}: 2D fit failed ({exc})", **base)
     if kind != "line":
         base["axis_ratio"] = float(min(f.fit.params[3] / f.fit.params[2] for f in (fl, fr)))
+        short = radius_untold(fl, fr)
+        if short is not None:
+            return FeaturePrediction(status="unmatched", reason=(
+                f"{fid}'s arcs are too short to tell its radius: the matcher could not pair them "
+                f"(u of the two images' radius ratio {100 * short:.0f} %, beyond the "
+                f"{100 * RADIUS_WIDENING_MAX * _RADIUS_TOLERANCE / RADIUS_COVERAGE:.0f} % it accepts)"), **base)
     if kind == "line":
         ang, img = _epipolar_angle(geo, fl, fr)
         base["epipolar_angle"] = ang

@@ -194,4 +194,6 @@ def test_rim_ends_where_a_third_edge_meets_it(plate, rig, radiance):
             for a, w in planned:
                 assert any(abs((a - b + 180) % 360 - 180) < 5 and abs(w - x) < 8 for b, x in found), (side, planned, found)
             n_gaps += len(planned)
-    assert n_gaps == 2 * 3, n_gaps
+    # Three junctions per image, and two more gaps in all where points lie beside another edge's image
+    # (predict._clear_of_others), each found in the chain's points as well.
+    assert n_gaps == 2 * 3 + 2, n_gaps
