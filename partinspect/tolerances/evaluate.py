@@ -664,28 +664,11 @@ def _pattern(members, parts, registration, inventory, k, rng, n_draws):
     if any(abs(float(np.asarray(n, float) @ axis)) < math.cos(1e-6) for n in normals):
         return _not_shifted(members, datums, "the pattern's and the datum features' axes are not parallel")
     E = plane_basis(axis)
-    # The inputs stacked: every centre (joint covariance, the shared pose's
-    # and calibration's parts included), then the bonuses and the datum
-    # sizes, independent of the centres (a full circle's fit leaves its
-    # centre and radius uncorrelated to first order).
-    pfs = feats + [pf for _, pf, _ in use]
-    n_c = len(pfs)
-    cov_c = np.block([[a.param_cov[:3, :3] if a is b else registration.cross_covariance(a, b)[:3, :3] for b in pfs]
-                      for a in pfs])
-    bonus = [float(e.details.get("bonus", 0.0)) for e in members]
-    u_bonus = [float(e.details.get("bonus_standard_uncertainty", 0.0)) for e in members]
-    sizes = [float(sz.measured) / (1.0 if sz.characteristic.type == "diameter" else 0.5) for _, _, sz in use]
-    u_sizes = [float(sz.standard_uncertainty) / (1.0 if sz.characteristic.type == "diameter" else 0.5)
-               for _, _, sz in use]
-    refs = [d.reference(sz.characteristic) for d, _, sz in use]
-    x = np.r_[np.concatenate([pf.center for pf in pfs]), bonus, sizes]
-    cov = np.zeros((len(x), len(x)))
-    cov[:3 * n_c, :3 * n_c] = cov_c
-    cov[3 * n_c:, 3 * n_c:] = np.diag(np.square(u_bonus + u_sizes))
+    x, cov, cov_c, sizes, u_sizes, refs = _pattern_inputs(members, feats + [pf for _, pf, _ in use], use, registration)
+    n_c, m = len(feats) + len(use), len(members)
     P = np.array([n.center for n in nominal]) @ E.T
     D = np.array([inventory[pf.cad_id].center for _, pf, _ in use]) @ E.T
     t = np.array([e.characteristic.upper_limit for e in members], float)
-    m = len(members)
 
     def solve(z):
         centres = z[:3 * n_c].reshape(-1, 3) @ E.T
@@ -701,17 +684,7 @@ def _pattern(members, parts, registration, inventory, k, rng, n_draws):
     at = x.copy()
     at[:3 * m] -= ((measured.residuals - shrunk_centres(measured.residuals, plane_covs)) @ E).ravel()
     result, u = shift_monte_carlo(x, cov, solve, rng, n_draws, at=at)
-    rho_u = [allowance(d.boundary, d.internal, size, u_s, ref) for (d, _, _), size, u_s, ref in
-             zip(use, sizes, u_sizes, refs)]
-    shift = {"datums": " | ".join(d.label for d in datums), "applied": True,
-             "translation": float(np.linalg.norm(result.translation)),
-             "translation_vector": [round(float(v), 12) for v in result.translation @ E],
-             "rotation_deg": math.degrees(result.rotation), "rotation": rotation,
-             "allowance": {d.letter: float(r) for (d, _, _), (r, _) in zip(use, rho_u)},
-             "allowance_standard_uncertainty": {d.letter: float(ur) for (d, _, _), (_, ur) in zip(use, rho_u)},
-             "datum_sizes": {d.letter: s_ for (d, _, _), s_ in zip(use, sizes)},
-             "boundary_sizes": {d.letter: float(r) for (d, _, _), r in zip(use, refs) if r is not None},
-             "pattern": [e.id for e in members]}
+    shift = _shift_details(datums, use, result, E, rotation, sizes, u_sizes, refs, [e.id for e in members])
     method = (f"datum shift ({shift['datums']}): the pattern of {m} placed together at its best within the "
               f"shift, Monte Carlo (JCGM 101, {n_draws} draws of centres, sizes and the datum features' "
               "sizes, about the offsets shrunk unless significant), pose covariance included")
@@ -719,6 +692,49 @@ def _pattern(members, parts, registration, inventory, k, rng, n_draws):
                             **{**e.details, "position": float(result.positions[i]),
                                "without_shift": float(result.unshifted[i]), "datum_shift": shift})
             for i, e in enumerate(members)]
+
+
+def _pattern_inputs(members, pfs, use, registration):
+    """A pattern's inputs stacked: every centre, then the bonuses and the datum sizes, with their covariance.
+
+    The centres keep their joint covariance (the shared pose's and
+    calibration's parts included); the bonuses and the datum sizes are
+    taken as independent of them (a full circle's fit leaves its centre and
+    radius uncorrelated to first order).
+
+    Returns
+    -------
+    x, cov, cov_centres, sizes, u_sizes, refs
+    """
+    n_c = len(pfs)
+    cov_c = np.block([[a.param_cov[:3, :3] if a is b else registration.cross_covariance(a, b)[:3, :3] for b in pfs]
+                      for a in pfs])
+    bonus = [float(e.details.get("bonus", 0.0)) for e in members]
+    u_bonus = [float(e.details.get("bonus_standard_uncertainty", 0.0)) for e in members]
+    sizes = [float(sz.measured) / (1.0 if sz.characteristic.type == "diameter" else 0.5) for _, _, sz in use]
+    u_sizes = [float(sz.standard_uncertainty) / (1.0 if sz.characteristic.type == "diameter" else 0.5)
+               for _, _, sz in use]
+    refs = [d.reference(sz.characteristic) for d, _, sz in use]
+    x = np.r_[np.concatenate([pf.center for pf in pfs]), bonus, sizes]
+    cov = np.zeros((len(x), len(x)))
+    cov[:3 * n_c, :3 * n_c] = cov_c
+    cov[3 * n_c:, 3 * n_c:] = np.diag(np.square(u_bonus + u_sizes))
+    return x, cov, cov_c, sizes, u_sizes, refs
+
+
+def _shift_details(datums, use, result, E, rotation, sizes, u_sizes, refs, pattern):
+    """report.json's ``details.datum_shift`` of a pattern placed within its datum shift."""
+    rho_u = [allowance(d.boundary, d.internal, size, u_s, ref) for (d, _, _), size, u_s, ref in
+             zip(use, sizes, u_sizes, refs)]
+    return {"datums": " | ".join(d.label for d in datums), "applied": True,
+            "translation": float(np.linalg.norm(result.translation)),
+            "translation_vector": [round(float(v), 12) for v in result.translation @ E],
+            "rotation_deg": math.degrees(result.rotation), "rotation": rotation,
+            "allowance": {d.letter: float(r) for (d, _, _), (r, _) in zip(use, rho_u)},
+            "allowance_standard_uncertainty": {d.letter: float(ur) for (d, _, _), (_, ur) in zip(use, rho_u)},
+            "datum_sizes": {d.letter: s_ for (d, _, _), s_ in zip(use, sizes)},
+            "boundary_sizes": {d.letter: float(r) for (d, _, _), r in zip(use, refs) if r is not None},
+            "pattern": pattern}
 
 
 def _form_points(record):

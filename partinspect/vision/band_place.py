@@ -35,6 +35,11 @@ it from physics read off the images, for a rim of the registered part:
    size is the band place ``s`` of the rim's size: 0 at the wall, 1 at the
    face's edge of the band.
 
+Once the place is predicted, :func:`rims_at_sharp_edge` moves each of the
+rim's edge points by its angle's place onto the sharp rim's image and fits
+the rim again, each point carrying the prediction's own uncertainty
+instead of the whole band: the fit then measures the wall's size.
+
 ISO 13715 leaves the break's shape open, so the place is predicted for a
 fillet and for a chamfer and the rim's ``s`` taken midway, the two being
 the ends of a rectangular distribution (JCGM 100, 4.3.7). The light's
@@ -262,6 +267,13 @@ def apparent_place(u, grey, g_face, g_past, width, rival=RIVAL):
     a shadow along it): the detector's chain may follow either, so the
     second steepest local maximum of the gradient, where it reaches
     ``rival`` times the steepest, is returned as the other possible place.
+
+    Parameters
+    ----------
+    u, grey, g_face, g_past, width
+        As :func:`band_profile`.
+    rival : float
+        Share of the steepest step's gradient a second step must reach.
 
     Returns
     -------
