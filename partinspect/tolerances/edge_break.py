@@ -37,7 +37,8 @@ from dataclasses import replace
 
 import numpy as np
 
-__all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms", "broken_rims", "with_band_places"]
+__all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms", "broken_rims", "with_band_places",
+           "cylinder_side", "seen_from_its_face"]
 
 
 def band_offset(b_min, b_max, place=None):
@@ -157,8 +158,6 @@ def broken_rims(characteristics, inventory, part_to_camera):
         plane and one cylinder: what :mod:`partinspect.vision.band_place`
         can predict.
     """
-    T = np.asarray(part_to_camera, float)
-    camera = -T[:3, :3].T @ T[:3, 3]
     out = {}
     for c in characteristics:
         sizes = [c] + ([c.material.size] if getattr(c.material, "size", None) is not None else [])
@@ -169,7 +168,7 @@ def broken_rims(characteristics, inventory, part_to_camera):
             faces = [inventory[fid] for fid in f.faces if fid in inventory]
             planes = [g for g in faces if g.surface == "plane"]
             walls = [g for g in faces if g.surface == "cylinder" and g.convex is not None]
-            if len(planes) == 1 and len(walls) == 1 and float((camera - f.center) @ planes[0].normal) > 0:
+            if len(planes) == 1 and len(walls) == 1 and seen_from_its_face(inventory, s.features[0], part_to_camera):
                 out[s.features[0]] = (np.asarray(f.center, float), np.asarray(planes[0].normal, float),
                                       float(f.radius), not walls[0].convex, 0.5 * sum(s.edge_break))
     return out
@@ -202,3 +201,22 @@ def with_band_places(characteristics, places):
             c = replace(c, material=replace(c.material, size=placed(c.material.size)))
         out.append(c)
     return out
+
+
+def cylinder_side(inventory, feature_id):
+    """``FaceInfo.convex`` of the cylinder a circle bounds (False a hole, True a boss), None if none or several."""
+    faces = [inventory[fid] for fid in inventory[feature_id].faces if fid in inventory]
+    sides = {f.convex for f in faces if f.surface == "cylinder"}
+    return sides.pop() if len(sides) == 1 else None
+
+
+def seen_from_its_face(inventory, feature_id, part_to_camera):
+    """Whether the rim's planar face looks towards the left camera (a near rim), not away (seen through the hole).
+
+    True when the circle bounds no planar face (nothing to tell by).
+    """
+    T = np.asarray(part_to_camera, float)
+    camera = -T[:3, :3].T @ T[:3, 3]  # the left camera's centre, part frame
+    f = inventory[feature_id]
+    planes = [inventory[fid] for fid in f.faces if fid in inventory and inventory[fid].surface == "plane"]
+    return not planes or any(float((camera - f.center) @ p.normal) > 0 for p in planes)

@@ -56,7 +56,7 @@ import numpy as np
 
 from partinspect.cad.pose_refine import calibration_response
 from partinspect.tolerances import geometry
-from partinspect.tolerances.edge_break import band_offset, band_rms, size_on_broken_rim
+from partinspect.tolerances.edge_break import band_offset, band_rms, cylinder_side, seen_from_its_face, size_on_broken_rim
 from partinspect.tolerances.form import N_SCENES, FormSimulationError, circularity, scene_spreads, straightness
 from partinspect.tolerances.datum_shift import allowance, best_shift, plane_basis, shift_monte_carlo, shrunk_centres
 from partinspect.tolerances.material import position_with_bonus
@@ -152,25 +152,6 @@ class Evaluation:
             d["details"] = {k: round(float(v), 12) if isinstance(v, (float, np.floating)) else v
                             for k, v in self.details.items()}
         return d
-
-
-def _cylinder_side(inventory, feature_id):
-    """``FaceInfo.convex`` of the cylinder a circle bounds (False a hole, True a boss), None if none or several."""
-    faces = [inventory[fid] for fid in inventory[feature_id].faces if fid in inventory]
-    sides = {f.convex for f in faces if f.surface == "cylinder"}
-    return sides.pop() if len(sides) == 1 else None
-
-
-def _seen_from_its_face(inventory, feature_id, part_to_camera):
-    """Whether the rim's planar face looks towards the left camera (a near rim), not away (seen through the hole).
-
-    True when the circle bounds no planar face (nothing to tell by).
-    """
-    T = np.asarray(part_to_camera, float)
-    camera = -T[:3, :3].T @ T[:3, 3]  # the left camera's centre, part frame
-    f = inventory[feature_id]
-    planes = [inventory[fid] for fid in f.faces if fid in inventory and inventory[fid].surface == "plane"]
-    return not planes or any(float((camera - f.center) @ p.normal) > 0 for p in planes)
 
 
 def unmeasured_result(c, reason):
@@ -808,8 +789,8 @@ def _size_result(c, rec, registration, inventory, k):
     f = 2.0 if c.type == "diameter" else 1.0
     if c.edge_break is None:
         return measured_result(c, f * float(rec.radius), f * float(rec.radius_std), k, "first order (pose-invariant)")
-    convex = _cylinder_side(inventory, c.features[0])
-    if not _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
+    convex = cylinder_side(inventory, c.features[0])
+    if not seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
         # A rim seen through its hole (or past its boss) shows the wall's
         # own silhouette, where the break has not begun.
         return measured_result(c, f * float(rec.radius), f * float(rec.radius_std), k,
@@ -891,7 +872,7 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
                                   f"simulated ({e})")
         details = dict(raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
         u = fr.u
-        if c.edge_break is not None and _seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
+        if c.edge_break is not None and seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
             # Where the step lies on a rounded rim's band changes around it: an
             # out-of-roundness of the rim seen, not of the wall, up to the break.
             u_b = band_rms(*c.edge_break)

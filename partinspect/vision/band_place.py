@@ -143,9 +143,6 @@ class BandPlace:
     offsets: tuple = None
     u_point: float = None
 
-    def to_dict(self):
-        return {k: round(float(getattr(self, k)), 4)
-                for k in ("s", "u", "s_fillet", "s_chamfer", "u_shape", "u_light", "u_model", "u_point")}
 
 
 def rim_section(shape, material_side, n=SECTION_SAMPLES):
@@ -526,7 +523,7 @@ def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, 
                      tuple(p for p, _ in points), u_point)
 
 
-def _moved_to_sharp(feature, rim, cam, place, corr_length):
+def _moved_to_sharp(feature, rim, cam, theta, offsets, corr_length):
     """An image arc with each point moved by minus its predicted place (towards the sharp rim's image), refitted.
 
     Each point takes the place of the nearest of the sharp rim's image
@@ -537,11 +534,11 @@ def _moved_to_sharp(feature, rim, cam, place, corr_length):
     Type B the fit is given).
     """
     fine = np.linspace(0.0, 2.0 * np.pi, FINE_ANGLES, endpoint=False)
-    seen = np.isfinite(place.offset)
+    seen = np.isfinite(offsets)
     if seen.sum() < 2:
         return None
-    period = np.r_[place.theta[seen] - 2 * np.pi, place.theta[seen], place.theta[seen] + 2 * np.pi]
-    offset = np.interp(fine, period, np.tile(place.offset[seen], 3))
+    period = np.r_[theta[seen] - 2 * np.pi, theta[seen], theta[seen] + 2 * np.pi]
+    offset = np.interp(fine, period, np.tile(offsets[seen], 3))
     p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, fine)
     uv0, d = _outward(p0, rh, rim.side, *cam[:4])
     near = np.argmin(np.linalg.norm(feature.uv[:, None] - uv0[None], axis=2), axis=1)
@@ -550,12 +547,6 @@ def _moved_to_sharp(feature, rim, cam, place, corr_length):
     ideal = replace(feature.ideal, xy=xy)
     fit = fit_ellipse(xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
     return replace(feature, uv=feature.uv + shift, ideal=ideal, fit=fit)
-
-
-@dataclass(frozen=True)
-class _ImagePlace:
-    theta: np.ndarray
-    offset: np.ndarray
 
 
 def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
@@ -604,7 +595,7 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
         f3 = stereo.features[k]
         scale = L.features[f3.left].corr_length or float(L.edges.sigma)
         try:
-            moved = [_moved_to_sharp(res.features[i], rim, cam, _ImagePlace(place.theta, off), scale)
+            moved = [_moved_to_sharp(res.features[i], rim, cam, place.theta, off, scale)
                      for res, i, cam, off in zip((L, R), (f3.left, f3.right), cams, place.offsets)]
         except (np.linalg.LinAlgError, ValueError):
             continue
