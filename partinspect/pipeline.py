@@ -292,10 +292,9 @@ def refined_rig(inputs, m, stated, check, progress):
     from partinspect.vision.calibration_uncertainty import budget_entry
     from partinspect.vision.rig_refinement import RefinementError, circle_observations, refine_rig
 
-    circles = [i for i, f in enumerate(m.stereo.features) if f.kind != "line"]
     # A circle the pose fit left out as inconsistent may be a wrong pair of arcs: it would bend the rig.
-    assigned = m.registration.assignment.get("circle", {})
-    indices = [circles[i] for i in sorted(assigned) if assigned[i] not in m.registration.outliers]
+    assigned = m.registration.cad_ids(m.stereo.features, "circle")
+    indices = sorted(k for k, cid in assigned.items() if cid not in m.registration.outliers)
     progress(f"refining the rig from {len(indices)} registered circles")
     try:
         with inputs.timings.stage("refining the rig"):
@@ -504,8 +503,7 @@ def _at_band_places(characteristics, inputs, m, progress):
         places = {fid: band_place((inputs.left, inputs.right), inputs.calib, m.registration.part_to_camera, *rim,
                                   width=widths) for fid, rim in rims.items()}
         places = {fid: p for fid, p in places.items() if p is not None}
-        at = [k for k, f in enumerate(m.stereo.features) if f.kind != "line"]
-        arcs = {at[i]: cid for i, cid in m.registration.assignment["circle"].items()}
+        arcs = m.registration.cad_ids(m.stereo.features, "circle")
         stereo, refitted = rims_at_sharp_edge(m.stereo, inputs.calib, m.registration.part_to_camera, arcs,
                                               {fid: (p, rims[fid]) for fid, p in places.items()})
     if refitted:

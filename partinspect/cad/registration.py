@@ -203,6 +203,24 @@ class Registration:
         """Standard uncertainties of ``xi``: rad (3) and mm (3)."""
         return np.sqrt(np.diag(self.pose_cov))
 
+    def cad_ids(self, features, kind):
+        """CAD id of each matched measured feature, keyed by its index in ``features``.
+
+        Parameters
+        ----------
+        features : sequence
+            The measured features in the chain's order (each with ``kind``),
+            lines and circles together, as registered.
+        kind : {"line", "circle"}
+            Circles and arcs are the measured features whose kind is not "line".
+
+        Returns
+        -------
+        dict of int to str
+        """
+        at = [k for k, f in enumerate(features) if (f.kind == "line") == (kind == "line")]
+        return {at[i]: cid for i, cid in self.assignment[kind].items()}
+
     def measured_feature(self, kind, index):
         """The measured record (rig frame) as given to :func:`register`."""
         return (self._circles if kind == "circle" else self._lines)[index]

@@ -106,10 +106,8 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
 
     from partinspect.vision.guided import clear_arc_ends, clear_line_ends
 
-    at = [k for k, f in enumerate(stereo.features) if f.kind == "line"]
-    lines = {at[i]: cid for i, cid in registration.assignment["line"].items()}
-    at = [k for k, f in enumerate(stereo.features) if f.kind != "line"]
-    arcs = {at[i]: cid for i, cid in registration.assignment["circle"].items()}
+    lines = registration.cad_ids(stereo.features, "line")
+    arcs = registration.cad_ids(stereo.features, "circle")
     if not lines and not arcs:
         return stereo, {}, {}
     by_id = {f.id: f for f in inv.features}
