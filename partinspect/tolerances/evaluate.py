@@ -856,74 +856,89 @@ def evaluate_characteristic(c, parts, registration, inventory, *, k=COVERAGE_FAC
     rec = [registration.measured_feature(p.kind, p.index) for p in picked]
     pf = picked[0]
     t = c.type
+    if t in ("diameter", "radius", "position") and pf.kind != "circle":
+        return unmeasured_result(c, f"{c.features[0]} is not measured as a circle")
     if t in ("diameter", "radius"):
-        if pf.kind != "circle":
-            return unmeasured_result(c, f"{c.features[0]} is not measured as a circle")
         return _size_result(c, rec[0], registration, inventory, k)
     if t in ("straightness", "circularity"):
-        points = _form_points(rec[0])
-        if points is None:
-            return unmeasured_result(c, f"no edge points with covariances for the {t} of {c.features[0]}")
-        try:
-            fr = (straightness if t == "straightness" else circularity)(
-                *points, rng, **_simulation(rec[0], one_scene))
-        except FormSimulationError as e:
-            return unmeasured_result(c, f"the {t} of {c.features[0]} has no uncertainty: its noise-only zone cannot be "
-                                  f"simulated ({e})")
-        details = dict(raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
-        u = fr.u
-        if c.edge_break is not None and seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
-            # Where the step lies on a rounded rim's band changes around it: an
-            # out-of-roundness of the rim seen, not of the wall, up to the break.
-            u_b = band_rms(*c.edge_break)
-            u = math.hypot(u, u_b)
-            details["edge_break"] = {"min": c.edge_break[0], "max": c.edge_break[1], "standard_uncertainty": u_b}
-        return measured_result(c, fr.value, u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
-                       **details)
+        return _form_result(c, rec[0], registration, inventory, rng, k, one_scene)
     if t in PAIR_VALUES:
-        x, cov, info, sizes = _stacked([(p.kind, r, registration.measured_params(p.kind, p.index))
-                                        for p, r in zip(picked, rec)])
-        g = PAIR_VALUES[t]
-        if t == "parallelism" and c.towards is not None:
-            # The direction into the rig frame with the estimated pose: an
-            # error of the pose turns both lines alike, and their tilt not.
-            towards = np.asarray(registration.rotation, float) @ np.asarray(c.towards, float)
-            g = functools.partial(measured_tilt, towards=towards)
-        elif t == "angle":
-            g = functools.partial(measured_angle, legs=nominal_legs(c, inventory, registration.rotation))
-        try:
-            value, u = propagate(_pair_function(g, info, sizes), x, cov)
-        except ValueError as e:
-            return unmeasured_result(c, f"{t} of the measured features undefined: {e}")
-        return measured_result(c, value, u, k, "first order (pose-invariant)")
-    nominal = inventory[c.features[0]]
+        return _pair_result(c, picked, rec, registration, inventory, k)
     if t == "position":
-        if pf.kind != "circle":
-            return unmeasured_result(c, f"{c.features[0]} is not measured as a circle")
+        nominal = inventory[c.features[0]]
         value, u = true_position(pf.center, pf.covariance, nominal.center, nominal.normal, rng, n_mc)
         method = "Monte Carlo (JCGM 101), pose covariance included"
         if c.material is None:
             return measured_result(c, value, u, k, method, datums=list(registration.datums))
         return _position_with_bonus(c, value, u, pf, rec[0], nominal, registration, inventory, k, method)
     if t == "profile":
-        form_fn = straightness if pf.kind == "line" else (circularity if nominal.kind == "circle" else None)
-        if pf.kind == "line":
-            if pf.start is None:
-                return unmeasured_result(c, f"{c.features[0]}: the measured line has no extent")
-            s0, s1 = (float((pf.start - pf.point) @ pf.direction), float((pf.end - pf.point) @ pf.direction))
-            value, u = line_profile(pf.point, pf.direction, pf.param_cov, s0, s1, nominal.start, nominal.end, rng, n_mc)
-        else:
-            value, u = circle_profile(pf.center, pf.normal, pf.radius, pf.param_cov, nominal, rng, n_mc)
-        details = {"fitted": value}
-        points = _form_points(rec[0])
-        if form_fn is not None and points is not None:
-            try:
-                fr = form_fn(*points, rng, **_simulation(rec[0], one_scene))
-            except FormSimulationError as e:
-                return unmeasured_result(c, f"the profile of {c.features[0]} has no uncertainty: its form's noise-only "
-                                      f"zone cannot be simulated ({e})")
-            value, u = value + fr.value, math.hypot(u, fr.u)
-            details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
-                           n_excluded=fr.n_excluded)
-        return measured_result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", **details)
+        return _profile_result(c, pf, rec[0], inventory, rng, k, n_mc, one_scene)
     return unmeasured_result(c, f"unknown characteristic type {t!r}")
+
+
+def _form_result(c, rec, registration, inventory, rng, k, one_scene):
+    """A straightness or circularity from the feature's edge points (:mod:`partinspect.tolerances.form`)."""
+    t = c.type
+    points = _form_points(rec)
+    if points is None:
+        return unmeasured_result(c, f"no edge points with covariances for the {t} of {c.features[0]}")
+    try:
+        fr = (straightness if t == "straightness" else circularity)(*points, rng, **_simulation(rec, one_scene))
+    except FormSimulationError as e:
+        return unmeasured_result(c, f"the {t} of {c.features[0]} has no uncertainty: its noise-only zone cannot be "
+                              f"simulated ({e})")
+    details = dict(raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points, n_excluded=fr.n_excluded)
+    u = fr.u
+    if c.edge_break is not None and seen_from_its_face(inventory, c.features[0], registration.part_to_camera):
+        # Where the step lies on a rounded rim's band changes around it: an
+        # out-of-roundness of the rim seen, not of the wall, up to the break.
+        u_b = band_rms(*c.edge_break)
+        u = math.hypot(u, u_b)
+        details["edge_break"] = {"min": c.edge_break[0], "max": c.edge_break[1], "standard_uncertainty": u_b}
+    return measured_result(c, fr.value, u, k, "noise-bias corrected form, Monte Carlo noise-only reference (pose-invariant)",
+                   **details)
+
+
+def _pair_result(c, picked, rec, registration, inventory, k):
+    """A value of two measured features (distance, angle, parallelism, ...), first order in their rig-frame parameters."""
+    t = c.type
+    x, cov, info, sizes = _stacked([(p.kind, r, registration.measured_params(p.kind, p.index))
+                                    for p, r in zip(picked, rec)])
+    g = PAIR_VALUES[t]
+    if t == "parallelism" and c.towards is not None:
+        # The direction into the rig frame with the estimated pose: an
+        # error of the pose turns both lines alike, and their tilt not.
+        towards = np.asarray(registration.rotation, float) @ np.asarray(c.towards, float)
+        g = functools.partial(measured_tilt, towards=towards)
+    elif t == "angle":
+        g = functools.partial(measured_angle, legs=nominal_legs(c, inventory, registration.rotation))
+    try:
+        value, u = propagate(_pair_function(g, info, sizes), x, cov)
+    except ValueError as e:
+        return unmeasured_result(c, f"{t} of the measured features undefined: {e}")
+    return measured_result(c, value, u, k, "first order (pose-invariant)")
+
+
+def _profile_result(c, pf, rec, inventory, rng, k, n_mc, one_scene):
+    """A line or circle profile: the fitted feature's departure from nominal plus its form."""
+    nominal = inventory[c.features[0]]
+    form_fn = straightness if pf.kind == "line" else (circularity if nominal.kind == "circle" else None)
+    if pf.kind == "line":
+        if pf.start is None:
+            return unmeasured_result(c, f"{c.features[0]}: the measured line has no extent")
+        s0, s1 = (float((pf.start - pf.point) @ pf.direction), float((pf.end - pf.point) @ pf.direction))
+        value, u = line_profile(pf.point, pf.direction, pf.param_cov, s0, s1, nominal.start, nominal.end, rng, n_mc)
+    else:
+        value, u = circle_profile(pf.center, pf.normal, pf.radius, pf.param_cov, nominal, rng, n_mc)
+    details = {"fitted": value}
+    points = _form_points(rec)
+    if form_fn is not None and points is not None:
+        try:
+            fr = form_fn(*points, rng, **_simulation(rec, one_scene))
+        except FormSimulationError as e:
+            return unmeasured_result(c, f"the profile of {c.features[0]} has no uncertainty: its form's noise-only "
+                                  f"zone cannot be simulated ({e})")
+        value, u = value + fr.value, math.hypot(u, fr.u)
+        details.update(form=fr.value, form_raw=fr.raw, noise_bias=fr.noise_bias, n_points=fr.n_points,
+                       n_excluded=fr.n_excluded)
+    return measured_result(c, value, u, k, "Monte Carlo (JCGM 101), pose covariance included", **details)
