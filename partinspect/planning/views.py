@@ -19,13 +19,16 @@ prediction (:func:`partinspect.planning.predict.predict_pose`):
    set that small covers them all, the set of ``max_views`` that decides
    the most, ties broken by the summed ranking of its views.
 
-The choice counts what each view decides alone. The chosen views are then
+The exact cover counts what each view decides alone. Views are then
 predicted together as the run combines them (:func:`decided_together`:
 the predicted features of every view fused by their covariances, each
 view's pose included, :mod:`partinspect.tolerances.fusion`): a
 characteristic between features no single view sees together (a distance
 from a top rim to a bottom edge), or one that only the combination makes
-precise enough, counts as decided by the views that contribute to it.
+precise enough, counts as decided by the views that contribute to it; and
+the cover is adjusted greedily to that count (:func:`fused_choice`): a
+view added where the combination decides more, a view dropped where the
+others decide together all it did.
 
 References
 ----------
@@ -49,7 +52,7 @@ import numpy as np
 
 from partinspect.planning.search import FixturePose, cause_of, fixture_pose, rank_key
 
-__all__ = ["FLIP_TILT", "view_candidates", "ViewPlan", "fewest_views", "decided_together", "plan_views",
+__all__ = ["FLIP_TILT", "view_candidates", "ViewPlan", "fewest_views", "fused_choice", "decided_together", "plan_views",
            "view_turns", "turns_text"]
 
 FLIP_TILT = 180.0
@@ -166,6 +169,67 @@ def fewest_views(candidates, max_views):
     return tuple(sorted(best[1])), best[2] == target
 
 
+def _decided_by_set(candidates, chosen, together):
+    """Indices of the characteristics the views ``chosen`` decide, alone or together."""
+    views = [candidates[i] for i in chosen]
+    alone = {k for k in range(len(candidates[0].characteristics)) if any(_decides(p, k) for p in views)}
+    return alone | (set(together(views)) if len(views) > 1 else set())
+
+
+def fused_choice(candidates, chosen, max_views, together):
+    """The views ``chosen`` adjusted to what views decide together: one added where it helps, any made needless dropped.
+
+    The exact cover (:func:`fewest_views`) counts what each view decides
+    alone. Combined, views decide more (a distance from a rim seen only
+    from above to one seen only from below), and some view may add nothing
+    the others do not decide together. So, greedily, while fewer than
+    ``max_views``: the candidate that adds the most decided characteristics
+    is added (none when no candidate adds any; the best-ranked first when
+    nothing is chosen yet); then each chosen view whose removal loses no
+    decided characteristic is dropped, the weakest-ranked first. Greedy, not
+    exact: a combination is predicted per set tried (as many sets as
+    candidates per view added), which an exact search over every set of
+    views would multiply.
+
+    Parameters
+    ----------
+    candidates : list of PosePrediction
+    chosen : sequence of int
+        Indices into ``candidates``, e.g. from :func:`fewest_views`.
+    max_views : int
+    together : callable
+        ``together(views) -> dict`` keyed by the indices of the
+        characteristics the views decide only together
+        (:func:`decided_together` with the part's inventory).
+
+    Returns
+    -------
+    tuple of int
+        Increasing indices into ``candidates``.
+    """
+    chosen = list(chosen)
+    if not candidates:
+        return ()
+    if not chosen and max_views > 0:
+        chosen = [max(range(len(candidates)), key=lambda i: rank_key(candidates[i]))]
+    decided = _decided_by_set(candidates, chosen, together)
+    while len(chosen) < max_views:
+        gains = [(len(_decided_by_set(candidates, chosen + [i], together)), rank_key(candidates[i]), i)
+                 for i in range(len(candidates)) if i not in chosen]
+        if not gains:
+            break
+        n, _, best = max(gains)
+        if n <= len(decided):
+            break
+        chosen.append(best)
+        decided = _decided_by_set(candidates, chosen, together)
+    for i in sorted(chosen, key=lambda i: rank_key(candidates[i])):
+        rest = [j for j in chosen if j != i]
+        if rest and _decided_by_set(candidates, rest, together) >= decided:
+            chosen = rest
+    return tuple(sorted(chosen))
+
+
 def _why_undecided(cps, cid, covering):
     """Why no chosen view decides a characteristic: its causes over the candidates."""
     if covering:
@@ -262,9 +326,11 @@ def plan_views(predict, start, center, max_views, *, step=30.0, tilts=(0.0, FLIP
             progress(f"predicting candidate view {k} of {len(poses)}: {fp.label}")
         candidates.append(predict(fixture_pose(start, center, fp), fp))
     chosen, complete = fewest_views(candidates, max_views)
+    if inventory is not None and max_views > 1:
+        if progress:
+            progress("choosing the views by what they decide together")
+        chosen = fused_choice(candidates, chosen, max_views, lambda views: decided_together(views, inventory))
     views = [candidates[i] for i in chosen]
-    if inventory is not None and len(views) > 1 and progress:
-        progress(f"predicting the {len(views)} views together")
     combined = decided_together(views, inventory) if inventory is not None else {}
     decided_by, undecided, out_of_view, together = {}, [], [], {}
     for k, cid in enumerate(c.id for c in candidates[0].characteristics):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from partinspect.cli import main
-from partinspect.planning.views import fewest_views, view_candidates
+from partinspect.planning.views import fewest_views, fused_choice, view_candidates
 from tests.planning.conftest import REPO, SIZE
 
 PLATE = REPO / "examples" / "plate" / "part.step"
@@ -32,6 +32,27 @@ def test_a_view_the_part_cannot_be_registered_in_decides_nothing():
     A = _pose({0, 1, 2, 3, 4, 5}, registration_error="alignment is ambiguous")
     B, C = _pose({0, 1, 2}), _pose({3, 4, 5})
     assert fewest_views([A, B, C], 3) == ((1, 2), True)
+
+
+def test_views_are_chosen_by_what_they_decide_together():
+    # c5 (a distance from a rim seen only by B to one seen only by C) is decided by B and C together;
+    # A decides c0-c3 alone, which B and C decide together as well.
+    A, B, C, D = _pose({0, 1, 2, 3}), _pose({0, 1, 4}), _pose({2, 3}), _pose({4})
+    cands = [A, B, C, D]
+
+    def together(views):
+        have = {id(v) for v in views}
+        return {5: None} if id(B) in have and id(C) in have else {}
+
+    chosen, complete = fewest_views(cands, 3)
+    assert complete and 5 not in {k for i in chosen for k in range(6) if cands[i].characteristics[k].decidable}
+    # Alone, A and B (or B and D with C) are chosen; together, B and C decide all six, A is needless.
+    assert fused_choice(cands, chosen, 3, together) == (1, 2)
+    # One view allowed: nothing is added, and the lone view is kept.
+    assert fused_choice(cands, (0,), 1, together) == (0,)
+    # Nothing decided by any view alone: the best-ranked view first, then its partner.
+    E, F = _pose(set()), _pose(set())
+    assert fused_choice([E, F], (), 2, lambda views: {0: None} if len(views) == 2 else {}) == (0, 1)
 
 
 def test_candidates_cover_a_full_turn_upright_and_upside_down():
