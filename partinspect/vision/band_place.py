@@ -298,6 +298,7 @@ def _rim_frame(center, axis, radius, theta):
 
 
 def _read(image, uv):
+    """Bilinear grey levels at ``uv`` (k, 2), px: ``image`` is float already (:func:`band_place` converts it once)."""
     return map_coordinates(np.asarray(image, float), [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
 
 
@@ -340,29 +341,86 @@ def _sections(rim, theta, shape):
     return P, N, wf, ww, p0, rh
 
 
-def _image_places(rim, image, cam, theta, light, shape, width):
-    """Per angle, the apparent place across the band, its rival and the image's own, px along the outward direction.
+@dataclass(frozen=True)
+class _SeenBand:
+    """One image's view of a rim's band for one shape: all that no light changes (internal).
 
-    Returns an array of shape (3, angles), NaN where the band is not seen.
+    Attributes
+    ----------
+    index : ndarray of int, shape (k,)
+        The angles (indices into ``theta``) at which the band is seen.
+    u : tuple of k ndarray, shape (m,) each
+        At each, the visible section samples' image places along the
+        outward direction, px, face's end first.
+    reads : ndarray, shape (k, 2)
+        The grey read beyond the face's end and past the band's visible end.
+    observed : ndarray, shape (k,)
+        The image's own steepest place there (:func:`_observed_place`), px.
+    w_face, w_wall : ndarray, shape (n,)
+        The section's normal weights (:func:`rim_section`).
+    """
+
+    index: np.ndarray
+    u: tuple
+    reads: np.ndarray
+    observed: np.ndarray
+    w_face: np.ndarray
+    w_wall: np.ndarray
+
+
+def _seen_band(rim, image, cam, theta, shape, width):
+    """The band of one shape as one image sees it round the rim (:class:`_SeenBand`).
+
+    At each angle the band is seen from its face's end up to where it turns
+    away from the camera (at least two section samples, all projecting);
+    the projection, that visibility and the grey levels read beside the
+    band depend on the shape alone, so :func:`_image_places` of every
+    light tried shares them.
     """
     K, D, R, t, C, _ = cam
     P, N, wf, ww, p0, rh = _sections(rim, theta, shape)
-    A, b1, b2, a = light
-    B = b1 * np.cos(theta) + b2 * np.sin(theta)
-    grey = np.maximum(wf[None] * A + ww[None] * B[:, None], 0.0) + a
     facing = np.einsum("amk,amk->am", C - P, N) > 0
     uv0, d = _outward(p0, rh, rim.side, K, D, R, t)
-    places = np.full((3, len(theta)), np.nan)
     uv_all = project_points(P.reshape(-1, 3), K, D, R, t).reshape(P.shape[0], P.shape[1], 2)
+    index, us, reads, observed = [], [], [], []
     for i in range(len(theta)):
         m = int(np.argmin(facing[i])) if not facing[i].all() else P.shape[1]
         if m < 2 or not np.isfinite(uv_all[i, :m]).all():
             continue
         u = (uv_all[i, :m] - uv0[i]) @ d[i]
         out = np.sign(u[0] - u[-1]) * READ_WIDTHS * width
-        g_face, g_past = _read(image, uv0[i] + np.array([u[0] + out, u[-1] - out])[:, None] * d[i])
-        places[:2, i] = apparent_place(u, grey[i, :m], g_face, g_past, width)
-        places[2, i] = _observed_place(image, uv0[i], d[i], min(u[0], u[-1]) - width, max(u[0], u[-1]) + width)
+        index.append(i)
+        us.append(u)
+        reads.append(_read(image, uv0[i] + np.array([u[0] + out, u[-1] - out])[:, None] * d[i]))
+        observed.append(_observed_place(image, uv0[i], d[i], min(u[0], u[-1]) - width, max(u[0], u[-1]) + width))
+    return _SeenBand(np.array(index, int), tuple(us), np.reshape(reads, (-1, 2)), np.array(observed, float), wf, ww)
+
+
+def _image_places(seen, theta, light, width):
+    """Per angle, the apparent place across the band, its rival and the image's own, px along the outward direction.
+
+    Parameters
+    ----------
+    seen : _SeenBand
+        The band of one shape in one image.
+    theta : ndarray, shape (angles,)
+    light : ndarray, shape (4,)
+        ``(A, b1, b2, a)`` (:func:`fit_light`).
+    width : float
+        The image's edge width, px.
+
+    Returns
+    -------
+    ndarray, shape (3, angles)
+        NaN where the band is not seen.
+    """
+    A, b1, b2, a = light
+    B = b1 * np.cos(theta) + b2 * np.sin(theta)
+    grey = np.maximum(seen.w_face[None] * A + seen.w_wall[None] * B[:, None], 0.0) + a
+    places = np.full((3, len(theta)), np.nan)
+    for i, u, (g_face, g_past), observed in zip(seen.index, seen.u, seen.reads, seen.observed):
+        places[:2, i] = apparent_place(u, grey[i, :len(u)], g_face, g_past, width)
+        places[2, i] = observed
     return places
 
 
@@ -399,9 +457,9 @@ def _light_samples(rim, images, cams, theta, width):
     return np.concatenate(th), np.concatenate(g), np.concatenate(kind)
 
 
-def _places(rim, images, cams, theta, light, shape, width):
-    """Per image, :func:`_image_places` of the rim for one shape and light."""
-    return [_image_places(rim, image, cam, theta, light, shape, w) for image, cam, w in zip(images, cams, width)]
+def _places(seen, theta, light, width):
+    """Per image, :func:`_image_places` of the rim's band as each sees it (one shape) under one light."""
+    return [_image_places(band, theta, light, w) for band, w in zip(seen, width)]
 
 
 def _band_px(rim, cam, p0, rh):
@@ -411,7 +469,42 @@ def _band_px(rim, cam, p0, rh):
                                      axis=1)
 
 
-def _fitted_place(rim, cams, theta, places):
+def _sharp_rim(rim, cams, theta, seen):
+    """The sharp rim's ideal image at the angles seen, per image, and the radius its two-view fit gives.
+
+    Parameters
+    ----------
+    seen : tuple of ndarray of bool, shape (angles,)
+        Per image, the angles at which the band is seen.
+
+    Returns
+    -------
+    per_image : list of (ok, uv0, d, sigma, P, band)
+        The angles seen; the sharp rim's ideal pixels (k, 2) and unit
+        outward directions (k, 2) there; the points' standard deviation,
+        px; the camera's rig matrix; the break's median width in the
+        image, px.
+    c_rig, n_rig : ndarray, shape (3,)
+        The rim's centre and axis in the rig frame: the fits' start.
+    r_sharp : float
+        The sharp rim's fitted radius, mm: the apparent rims' sizes are
+        read from it, so the fit's own small error cancels.
+    """
+    p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
+    per_image = []
+    for cam, ok in zip(cams, seen):
+        K, D, R, t, _, P = cam
+        uv0, d = _outward(p0[ok], rh[ok], rim.side, K, np.zeros(5), R, t)
+        per_image.append((ok, uv0, d, np.full(ok.sum(), 0.1), P,
+                          float(np.median(_band_px(rim, cam, p0[ok], rh[ok])))))
+    K, D, R, t, C, _ = cams[0]
+    c_rig, n_rig = R @ rim.center + t, R @ rim.axis
+    r_sharp = fit_circle_3d([View(uv0, sigma, P) for _, uv0, _, sigma, P, _ in per_image], c_rig, n_rig,
+                            rim.radius).radius
+    return per_image, c_rig, n_rig, r_sharp
+
+
+def _fitted_place(rim, cams, theta, places, sharp, rival=True):
     """The rim's band place from the apparent points of both images through the two-view circle fit.
 
     The fit takes ideal (undistorted) pixels: the places, read on the
@@ -421,37 +514,42 @@ def _fitted_place(rim, cams, theta, places):
     ----------
     places : list of ndarray, shape (3, angles)
         Per image, :func:`_image_places`.
+    sharp : dict
+        :func:`_sharp_rim` by the angles seen, filled here: every shape
+        and light with the same angles seen shares the sharp rim's fit.
+    rival : bool
+        Also the rivals' place and the misfit; else the place alone.
 
     Returns
     -------
-    (s, s_rival, misfit) or None
+    (s, s_rival, misfit), or s where ``rival`` is False, or None
         The place from the steepest steps, from their rivals, and the RMS
         of the predicted less the image's own steepest places round the
         rim, what a shift and a sinusoid (the pose's error and the size
         measured) leave, as a share of the band's width in the image.
+        None where an image sees fewer than 6 angles.
     """
-    views, rivals, sharp, misfit = [], [], [], []
-    p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
-    for cam, pl in zip(cams, places):
-        ok = np.isfinite(pl[0])
-        if ok.sum() < 6:
-            return None
-        K, D, R, t, _, P = cam
-        uv0, d = _outward(p0[ok], rh[ok], rim.side, K, np.zeros(5), R, t)
-        sigma = np.full(ok.sum(), 0.1)
-        views.append(View(uv0 + pl[0, ok, None] * d, sigma, P))
-        rivals.append(View(uv0 + pl[1, ok, None] * d, sigma, P))
-        sharp.append(View(uv0, sigma, P))
+    seen = tuple(np.isfinite(pl[0]) for pl in places)
+    if any(ok.sum() < 6 for ok in seen):
+        return None
+    key = b"".join(ok.tobytes() for ok in seen)
+    if key not in sharp:
+        sharp[key] = _sharp_rim(rim, cams, theta, seen)
+    per_image, c_rig, n_rig, r_sharp = sharp[key]
+
+    def size(row):
+        views = [View(uv0 + pl[row, ok, None] * d, sigma, P) for (ok, uv0, d, sigma, P, _), pl in zip(per_image, places)]
+        return rim.side * (fit_circle_3d(views, c_rig, n_rig, rim.radius).radius - r_sharp) / rim.size
+
+    if not rival:
+        return size(0)
+    misfit = []
+    for (ok, _, _, _, _, band), pl in zip(per_image, places):
         X = np.c_[np.ones(ok.sum()), np.cos(theta[ok]), np.sin(theta[ok])]
         e = pl[0, ok] - pl[2, ok]
         e = e - X @ np.linalg.lstsq(X, e, rcond=None)[0]
-        misfit.append(float(np.sqrt(np.mean(e * e))) / float(np.median(_band_px(rim, cam, p0[ok], rh[ok]))))
-    K, D, R, t, C, _ = cams[0]
-    c_rig, n_rig = R @ rim.center + t, R @ rim.axis
-    r_sharp = fit_circle_3d(sharp, c_rig, n_rig, rim.radius).radius
-    s, s_rival = (rim.side * (fit_circle_3d(v, c_rig, n_rig, rim.radius).radius - r_sharp) / rim.size
-                  for v in (views, rivals))
-    return s, s_rival, float(np.sqrt(np.mean(np.square(misfit))))
+        misfit.append(float(np.sqrt(np.mean(e * e))) / band)
+    return size(0), size(1), float(np.sqrt(np.mean(np.square(misfit))))
 
 
 def _point_places(rim, cams, theta, shapes):
@@ -493,6 +591,8 @@ def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, 
         little of the rim is seen in an image.
     """
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    # Read as float once (each reading would convert the whole image again).
+    images = tuple(np.asarray(image, float) for image in images)
     cams = _camera_views(calib, part_to_camera)
     rim = _Rim(np.asarray(center, float), axis, float(radius), 1 if hole else -1, float(size))
     theta = np.linspace(0.0, 2.0 * np.pi, ANGLES, endpoint=False)
@@ -501,17 +601,21 @@ def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, 
         return None
     light, cov, rms = fit_light(T, g, kind)
 
-    shapes = {shape: _places(rim, images, cams, theta, light, shape, width) for shape in ("fillet", "chamfer")}
-    fillet, chamfer = (_fitted_place(rim, cams, theta, shapes[k]) for k in ("fillet", "chamfer"))
+    # The bands as seen and the sharp rim's fits depend on the shape alone: once for every light.
+    seen = {shape: [_seen_band(rim, image, cam, theta, shape, w) for image, cam, w in zip(images, cams, width)]
+            for shape in ("fillet", "chamfer")}
+    sharp = {}
+    shapes = {shape: _places(seen[shape], theta, light, width) for shape in ("fillet", "chamfer")}
+    fillet, chamfer = (_fitted_place(rim, cams, theta, shapes[k], sharp) for k in ("fillet", "chamfer"))
     if fillet is None or chamfer is None:
         return None
     # Shape and rival steps: the place lies anywhere between the extremes they give.
     lo, hi = min(fillet[:2] + chamfer[:2]), max(fillet[:2] + chamfer[:2])
     s_mid, u_shape = 0.5 * (lo + hi), (hi - lo) / math.sqrt(12.0)
     w, V = np.linalg.eigh(cov)
-    moves = [_fitted_place(rim, cams, theta, _places(rim, images, cams, theta, light + math.sqrt(max(wi, 0.0)) * V[:, j],
-                                                      "fillet", width)) for j, wi in enumerate(w)]
-    u_light = math.sqrt(sum((m[0] - fillet[0]) ** 2 for m in moves if m is not None))
+    moves = [_fitted_place(rim, cams, theta, _places(seen["fillet"], theta, light + math.sqrt(max(wi, 0.0)) * V[:, j],
+                                                     width), sharp, rival=False) for j, wi in enumerate(w)]
+    u_light = math.sqrt(sum((m - fillet[0]) ** 2 for m in moves if m is not None))
     # What the model does not explain of the image's own steps round the rim (the better shape's).
     u_model = min(fillet[2], chamfer[2])
     u = min(UNIFORM_STD, math.sqrt(u_shape**2 + u_light**2 + u_model**2))

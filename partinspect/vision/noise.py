@@ -59,6 +59,59 @@ def _max3x3_at(a, step):
     return np.maximum(np.maximum(rows[:, 0:W - 2:step], rows[:, 1:W - 1:step]), rows[:, 2:W:step])
 
 
+MAX_LEVELS = 1 << 16
+"""Most lattice levels :func:`_levels` indexes (an 8-bit image's responses take 4081, its 3x3 means 2296)."""
+
+
+def _levels(x, scale):
+    """``x`` (1-D) as codes into its levels, ``levels[codes] == x`` exactly, or None.
+
+    An integer image's Immerkaer responses are integers and its 3 x 3 means
+    ninths of integers: ``rint(x * scale)`` indexes them, and medians and
+    bin lookups become counts and table lookups over a few thousand levels
+    instead of selections and binary searches over every sample, with the
+    very same results (the equality is checked, not assumed).
+
+    Parameters
+    ----------
+    x : ndarray, shape (N,)
+    scale : float
+        Lattice spacing's inverse: 1 for responses, 9 for 3 x 3 means.
+
+    Returns
+    -------
+    (codes, levels) or None
+        ``codes`` (N,) int, ``levels`` of ``x``'s dtype, increasing over the
+        codes present; None where ``x`` is not on the lattice (a float
+        image) or spans more than ``MAX_LEVELS`` levels.
+    """
+    if x.size == 0:
+        return None
+    c = np.rint(x * scale)
+    if not (c.min() >= 0 and c.max() < MAX_LEVELS):  # False for NaN too
+        return None
+    codes = c.astype(np.intp)
+    levels = np.zeros(int(codes.max()) + 1, x.dtype)
+    levels[codes] = x
+    # One level per code, so levels rise with the codes present: rint is monotone.
+    return (codes, levels) if np.array_equal(levels[codes], x) else None
+
+
+def _median(x, lattice=None):
+    """``np.median(x)``, the same number, from the counts of ``x``'s lattice levels where given (:func:`_levels`).
+
+    The median is the mean of the two middle order statistics (the same one
+    twice for an odd count), each read off the cumulative counts.
+    """
+    if lattice is None:
+        return np.median(x)
+    codes, levels = lattice
+    n = codes.size
+    middle = np.searchsorted(np.cumsum(np.bincount(codes, minlength=len(levels))), [(n - 1) // 2, n // 2],
+                             side="right")
+    return np.median(levels[middle])
+
+
 def _filtered(img):
     """The image as float32, its Immerkaer responses and its Sobel gradient magnitude, (H, W) each."""
     f = img.astype(np.float32)
@@ -146,14 +199,19 @@ def _grid(img, filtered, step):
     return resp, _max3x3_at(filtered[2], step), valid
 
 
-def _estimate_noise(img, filtered, clip=3.0, edge_k=4.0, iterations=3, grid=None):
+def _estimate_noise(img, filtered, clip=3.0, edge_k=4.0, iterations=3, grid=None, lattice=None):
+    """:func:`estimate_noise` of ``img`` from its :func:`_filtered` images (and their :func:`_grid`).
+
+    ``lattice``: :func:`_levels` of ``abs(resp)`` on the grid, if known.
+    """
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
     resp, grad_max, valid = _grid(img, filtered, _noise_step(img)) if grid is None else grid
     r = resp[valid]
     if r.size == 0:
         raise ValueError("no unsaturated pixels to estimate the noise from")
     # Start from the median absolute deviation, robust to the edge outliers.
-    sigma = float(np.median(np.abs(r))) / 0.6744897501960817 / _MASK_NORM
+    sigma = float(_median(np.abs(r), None if lattice is None else (lattice[0][valid.ravel()], lattice[1]))) \
+        / 0.6744897501960817 / _MASK_NORM
     if sigma == 0.0 and top is None:
         sigma = float(np.sqrt(np.mean(r * r))) / _MASK_NORM  # most responses exactly zero: start from the RMS
     # Both loops stop early once nothing can change any more, which gives
@@ -241,19 +299,27 @@ class NoiseLevel:
         return np.sqrt(np.maximum(self.b + self.a * grey + self.c * grey * grey, QUANTISATION_STD ** 2))
 
 
-def _bin_variances(resp, grey, n_bins):
+def _bin_variances(resp, grey, n_bins, resp_lattice=None, grey_lattice=None):
     """Per bin of local grey level: (mean grey, mean grey^2, noise variance, pixel count).
 
     Each bin's variance is the truncated second moment of the Immerkaer
     responses, as in :func:`estimate_noise` (robust to the few edge pixels
-    the mask let through).
+    the mask let through). ``resp_lattice``, ``grey_lattice``:
+    :func:`_levels` of ``abs(resp)`` and of ``grey``, where they lie on one;
+    the bins and medians are then read from counts (the same numbers).
     """
     edges = np.unique(np.quantile(grey, np.linspace(0.0, 1.0, n_bins + 1)))
-    idx = np.clip(np.searchsorted(edges, grey, side="right") - 1, 0, max(len(edges) - 2, 0))
+    last = max(len(edges) - 2, 0)
+    if grey_lattice is None:
+        idx = np.clip(np.searchsorted(edges, grey, side="right") - 1, 0, last)
+    else:  # each level's bin, looked up
+        idx = np.clip(np.searchsorted(edges, grey_lattice[1], side="right") - 1, 0, last)[grey_lattice[0]]
     # Each bin's pixels as one contiguous run of the bin-sorted order.
     # Bin numbers as bytes: numpy's stable sort of them is a radix sort.
     order = np.argsort(idx.astype(np.uint8) if len(edges) <= 256 else idx, kind="stable")
     bounds = np.searchsorted(idx[order], np.arange(max(len(edges) - 1, 1) + 1))
+    # The squared responses' levels (the sign squares away alike).
+    r2_levels = None if resp_lattice is None else (resp_lattice[1].astype(np.float64) / _MASK_NORM) ** 2
     out = []
     for k in range(max(len(edges) - 1, 1)):
         sel = order[bounds[k]:bounds[k + 1]]
@@ -261,7 +327,8 @@ def _bin_variances(resp, grey, n_bins):
         if n < NLF_MIN_PIXELS:
             continue
         r2 = (resp[sel].astype(np.float64) / _MASK_NORM) ** 2
-        var = float(np.median(r2)) / 0.4549364231195724  # median of chi-square(1)
+        lattice = None if r2_levels is None else (resp_lattice[0][sel], r2_levels)
+        var = float(_median(r2, lattice)) / 0.4549364231195724  # median of chi-square(1)
         for _ in range(5):
             below = r2 < 9.0 * var
             if not below.any():
@@ -312,12 +379,15 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
     img = _grey(image)
     filtered = _filtered(img)
     resp, grad_max, valid = grid = _grid(img, filtered, 3)
+    resp_lattice = _levels(np.abs(resp).ravel(), 1.0)
     if noise is None:
-        noise = _estimate_noise(img, filtered, grid=grid if _noise_step(img) == 3 else None)
+        noise = (_estimate_noise(img, filtered, grid=grid, lattice=resp_lattice) if _noise_step(img) == 3 else
+                 _estimate_noise(img, filtered))
     noise = float(noise)
     constant = NoiseLevel(noise * noise, 0.0, 0.0, noise, False)
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
     grey = cv2.blur(filtered[0], (3, 3), borderType=cv2.BORDER_REFLECT)[1:-1:3, 1:-1:3]
+    grey_lattice = _levels(grey.ravel(), 9.0)
     level = constant
     for _ in range(2):
         # The edge mask's threshold follows the noise at each pixel's grey:
@@ -326,7 +396,9 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
         if np.count_nonzero(keep) < 3 * NLF_MIN_PIXELS:
             return constant
         # Small images get fewer, fuller bins: each variance to about 8 %.
-        bins = _bin_variances(resp[keep], grey[keep], min(n_bins, np.count_nonzero(keep) // NLF_MIN_PIXELS))
+        flat = keep.ravel()
+        bins = _bin_variances(resp[keep], grey[keep], min(n_bins, np.count_nonzero(keep) // NLF_MIN_PIXELS),
+                              *(None if lat is None else (lat[0][flat], lat[1]) for lat in (resp_lattice, grey_lattice)))
         if len(bins) < 3:
             return constant
         m1, m2, v, n = bins.T

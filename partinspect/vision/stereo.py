@@ -381,13 +381,34 @@ def _smoothed_std(w, rho, std):
     return np.sqrt(np.maximum(var, 0.0))
 
 
+OPERATORS_KEPT = 64
+"""How many edges' :func:`smoothing_operators` are kept for a second call."""
+_operators = {}
+
+
 def smoothing_operators(xy, corr_length, length):
-    """Sparse (N, N): the row-normalised Gaussian weights along the edge and the noise's correlation."""
+    """Sparse (N, N): the row-normalised Gaussian weights along the edge and the noise's correlation.
+
+    Kept for the last ``OPERATORS_KEPT`` edges by their points' bytes and
+    the two lengths: a rim's image chain (:func:`smoothed_background`) and
+    its pair's 3D fit (:func:`coupled_noise`) ask for the same ones, and
+    building them is most of what either costs. The matrices returned are
+    shared: not to be changed in place.
+    """
+    xy = np.ascontiguousarray(xy, float)
+    key = (xy.shape, xy.tobytes(), float(corr_length), float(length))
+    if key not in _operators:
+        _operators[key] = _smoothing_operators(xy, corr_length, length)
+        while len(_operators) > OPERATORS_KEPT:
+            del _operators[next(iter(_operators))]  # the oldest
+    return _operators[key]
+
+
+def _smoothing_operators(xy, corr_length, length):
     # Imported here: these are all this module needs of them.
     from scipy import sparse
     from scipy.spatial import cKDTree
 
-    xy = np.asarray(xy, float)
     n = len(xy)
     # Both kernels are below exp(-40) ~ 4e-18 of their peak beyond this
     # distance: only pairs within it are kept (sparse), which changes the

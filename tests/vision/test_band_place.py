@@ -155,3 +155,28 @@ def test_the_predicted_band_place_is_where_the_images_show_the_rim(broken_pair):
         # Two steps (a chamfer's bevel, or a band darker than both faces under a side light): the
         # image's steps are not all where the model puts them, and the place is stated loosely.
         assert place.u > 0.5 / np.sqrt(12)
+
+
+def test_the_band_is_read_once_per_shape_for_every_light(broken_pair, monkeypatch):
+    from partinspect.vision import band_place as module
+
+    shape, light, calib, pose, images = broken_pair
+    calls = {"fit": 0, "observed": 0}
+    fit, observed = module.fit_circle_3d, module._observed_place
+
+    def counted(name, func):
+        def call(*args, **kwargs):
+            calls[name] += 1
+            return func(*args, **kwargs)
+        return call
+
+    monkeypatch.setattr(module, "fit_circle_3d", counted("fit", fit))
+    monkeypatch.setattr(module, "_observed_place", counted("observed", observed))
+    widths = tuple(float(np.median(edge_points(im, noise=0.5).width)) for im in images)
+    place = band_place(images, calib, pose, [HOLE[0], HOLE[1], PLATE[2]], [0, 0, 1.0], HOLE[2], True, BREAK, widths)
+    assert place is not None
+    # The sharp rim once per shape (twice at most), each shape's steepest and rival steps, one fit per
+    # light moved (four): not all of them for each of the six shape-and-light predictions (18).
+    assert calls["fit"] <= 2 + 2 * 2 + 4
+    # The image's own steps read once per shape, image and angle seen, not again for each light.
+    assert calls["observed"] <= 2 * 2 * module.ANGLES

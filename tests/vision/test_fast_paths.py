@@ -209,3 +209,59 @@ def test_pair_fits_shared_by_cost_not_by_turn():
     alternate = sorted((sum(costs[0::2]), sum(costs[1::2])))
     assert split[1] - split[0] <= max(costs[len(costs) // 2:])  # within one small job of even
     assert split[1] < alternate[1] - 10.0
+
+
+def test_median_from_lattice_counts_is_numpys():
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 10, 1001):
+        for scale, dtype in ((1.0, np.float32), (9.0, np.float32), (1.0, np.float64)):
+            x = (rng.integers(0, 300, n) / scale).astype(dtype)
+            lattice = noise._levels(x, scale)
+            assert lattice is not None and np.array_equal(lattice[1][lattice[0]], x)
+            got, ref = noise._median(x, lattice), np.median(x)
+            assert got == ref and got.dtype == ref.dtype
+    # Off the lattice (a float image), NaN, or too many levels: no lattice, numpy's own median.
+    assert noise._levels(rng.normal(size=100).astype(np.float32) + 10, 1.0) is None
+    assert noise._levels(np.array([1.0, np.nan]), 1.0) is None
+    assert noise._levels(np.array([0.0, float(noise.MAX_LEVELS)]), 1.0) is None
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_noise_level_read_from_counts_is_the_same(dtype, monkeypatch):
+    # The medians and grey bins read off the responses' and means' lattice
+    # give the noise level function bit for bit, grey-dependent noise,
+    # edges and saturation included; a float image takes the plain path.
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:600, 0:800]
+    clean = 20 + 0.25 * x + 120 * ((x - 400) ** 2 + (y - 300) ** 2 < 150 ** 2)
+    img = clean + rng.normal(size=clean.shape) * np.sqrt(1.0 + 0.05 * clean)
+    img[rng.random(img.shape) < 0.002] = 255
+    if dtype == np.uint16:
+        img = img * 7
+    img = np.clip(np.rint(img) if dtype != np.float32 else img, 0, None).astype(dtype)
+    filtered = noise._filtered(img)
+    resp = noise._grid(img, filtered, 3)[0]
+    assert (noise._levels(np.abs(resp).ravel(), 1.0) is None) == (dtype == np.float32)
+    fast = noise.noise_level_function(img)
+    assert fast.signal_dependent
+    monkeypatch.setattr(noise, "_levels", lambda x, scale: None)
+    assert noise.noise_level_function(img) == fast
+
+
+def test_smoothing_operators_are_built_once_per_edge():
+    from partinspect.vision import stereo
+
+    t = np.linspace(0.0, 5.0, 400)
+    xy = np.c_[300 + 80 * np.cos(t), 200 + 50 * np.sin(t)]
+    w, rho = stereo.smoothing_operators(xy, 1.0, stereo.BACKGROUND_SMOOTHING)
+    # The pair's fit asks again with its own copy of the points: the same matrices, not built again.
+    again = stereo.smoothing_operators(xy.copy(), 1.0, stereo.BACKGROUND_SMOOTHING)
+    assert again[0] is w and again[1] is rho
+    fresh = stereo._smoothing_operators(xy, 1.0, stereo.BACKGROUND_SMOOTHING)
+    assert all((a != b).nnz == 0 for a, b in zip((w, rho), fresh))
+    moved = xy + np.array([1e-9, 0.0])
+    assert stereo.smoothing_operators(moved, 1.0, stereo.BACKGROUND_SMOOTHING)[0] is not w
+    assert stereo.smoothing_operators(xy, 1.5, stereo.BACKGROUND_SMOOTHING)[0] is not w
+    for k in range(stereo.OPERATORS_KEPT + 5):
+        stereo.smoothing_operators(xy[: 50 + k], 1.0, 2.0)
+    assert len(stereo._operators) == stereo.OPERATORS_KEPT
