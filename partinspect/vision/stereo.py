@@ -61,7 +61,7 @@ from partinspect.vision.correspondences import correspond, deblurred
 from partinspect.vision.pointerrors import point_error_model, short_scale_ratio
 from partinspect.vision.edges import (BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FACTOR, background_shift_std,
                                       edge_points)
-from partinspect.vision.fitting import fit_ellipse
+from partinspect.vision.fitting import ellipse_geometry, fit_ellipse, information_matrices
 from partinspect.vision.forked import forked
 from partinspect.frames import orthonormal_frame, plane_basis
 from partinspect.vision.calibration_points import point_responses
@@ -76,7 +76,7 @@ from partinspect.vision.noise import noise_level_function
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
            "feature_views", "views_of", "type_b_scale", "edge_band", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
-           "as_fitted",
+           "as_fitted", "random_covariance",
            "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
 # Points of arcs: the corrections and the Type B component of the module
@@ -808,9 +808,18 @@ def as_fitted(f, view, corr_length):
     triangulated points (whose zone is the circularity) with it. Lines
     are returned as they are (their points are not corrected).
 
+    Each point is weighted by its whole standard uncertainty
+    (``view.total_sigma``: noise, the correction's noise and the Type B
+    rest), as the 3D fit weighs it. Where a second step lies within the
+    background reading's reach (the far wall's shadow seen through a hole,
+    a countersink's cone) the correction moves a stretch of the rim by
+    tenths of a pixel, and its Type B bound says so; weighted by the image
+    noise alone such a stretch bends the whole ellipse, and near the
+    epipolar tangents a partner moved along the ellipse moves its 3D point
+    tens of times as far (validation.md, "Rims' partner ellipse").
+
     Points farther from the refitted ellipse than Chauvenet's threshold
-    times their whole standard uncertainty (``view.total_sigma``: noise,
-    the correction's noise and the Type B rest) are left out of it, worst
+    times their whole standard uncertainty are left out of it, worst
     first and the ellipse refitted each time, at most
     ``MAX_OUTLIER_FRACTION`` of them; the feature keeps all its points
     (they still say where the right image sees the edge). Where a hole seen
@@ -818,9 +827,14 @@ def as_fitted(f, view, corr_length):
     on there through points off the rim by more than their whole standard
     uncertainty; the image fit, which judges residuals by the image
     noise alone and scales its threshold by their spread, keeps them, and
-    they bend the right ellipse on which every partner lies. The weights
-    stay the image noise's, so the fit's covariance stays the random part
-    the point errors' model (:mod:`partinspect.vision.pointerrors`) draws.
+    they bend the right ellipse on which every partner lies.
+
+    Returns
+    -------
+    EdgeFeature
+        Its ``fit.cov`` is the random part of the ellipse's covariance
+        (:func:`random_covariance`), what the point errors' model
+        (:mod:`partinspect.vision.pointerrors`) draws anew for every image.
     """
     if f.kind != "arc":
         return f
@@ -829,7 +843,7 @@ def as_fitted(f, view, corr_length):
     budget = int(MAX_OUTLIER_FRACTION * len(keep))
     start = f.fit.params
     while True:
-        fit = fit_ellipse(view.xy[keep], f.ideal.cov[keep], corr_length=corr_length, start=start)
+        fit = fit_ellipse(view.xy[keep], total[keep] ** 2, corr_length=corr_length, start=start)
         z = np.abs(fit.residuals) / total[keep]
         worst = int(np.argmax(z))
         if budget == 0 or z[worst] <= chauvenet_z(len(keep)):
@@ -837,7 +851,61 @@ def as_fitted(f, view, corr_length):
         keep = np.delete(keep, worst)
         budget -= 1
         start = fit.params
-    return replace(f, ideal=replace(f.ideal, xy=view.xy), fit=fit)
+    cov = random_covariance(fit, view, keep)
+    return replace(f, ideal=replace(f.ideal, xy=view.xy), fit=replace(fit, cov=cov))
+
+
+def random_covariance(fit, view, keep):
+    """The random part of the covariance of an ellipse fitted to ``view``'s points ``keep``, each weighted by its whole uncertainty.
+
+    The fit is a weighted regression, weights ``1 / t^2`` with ``t`` the
+    points' ``total_sigma``, whose random errors are the image noise
+    (``view.sigma``, correlated along the edge over ``view.corr_length``)
+    and the correction's noise (over ``view.correction_corr_length``),
+    independent of each other: their part of the estimate's covariance is
+    the sandwich ``S^-1 (H_w^T D R D H_w) S^-1`` summed over the two, with
+    ``H_w`` the rows ``h_i / t_i``, ``S = H_w^T H_w`` and ``D`` the errors'
+    standard uncertainties over ``t`` [1]_. The Type B rest is not in it:
+    it is fixed for the scene, and the weights already keep it out of the
+    ellipse as far as the other points allow.
+
+    Parameters
+    ----------
+    fit : EllipseFit
+        Of the points ``view.xy[keep]``, ideal px.
+    view : View
+    keep : ndarray of int
+        The points the fit used.
+
+    Returns
+    -------
+    ndarray, shape (5, 5)
+        px^2, px rad, rad^2 as ``EllipseFit.cov``; a circle's free angle
+        (``fit.cov`` infinite there) keeps its infinite variance.
+
+    References
+    ----------
+    .. [1] JCGM 100:2008, 5.2 (correlated input quantities); the sandwich
+           covariance of a weighted least-squares estimate.
+    """
+    n = len(view.xy)
+    xy = view.xy[keep]
+    t = (np.asarray(view.total_sigma, float) * np.ones(n))[keep]
+    _, _, h = ellipse_geometry(xy, fit.params, fit.phases)
+    hw = h / t[:, None]
+    M = np.zeros((5, 5))
+    for std, length in ((view.sigma, view.corr_length), (view.sigma_correction, view.correction_corr_length)):
+        if std is not None:
+            a = hw * ((np.asarray(std, float) * np.ones(n))[keep] / t)[:, None]
+            M += information_matrices(a, np.ones(len(a)), xy, length)[1]
+    Sinv = np.linalg.pinv(hw.T @ hw, rcond=1e-13, hermitian=True)
+    cov = Sinv @ M @ Sinv
+    cov = 0.5 * (cov + cov.T)
+    if fit.cov is not None and not np.isfinite(fit.cov[4, 4]):
+        # A circle: its axis angle is undetermined and moves no point.
+        cov[4, :] = cov[:, 4] = 0.0
+        cov[4, 4] = np.inf
+    return cov
 
 
 def _point_errors(fl, corr, view, calibration=None):

@@ -433,6 +433,7 @@ def test_the_partner_ellipse_of_a_clean_arc_keeps_every_point():
     xy = view.xy + rng.normal(0.0, 0.015, len(view.xy))[:, None] * f.ideal.normal
     view = replace(view, xy=xy)
     got = as_fitted(f, view, 1.0)
-    plain = fit_ellipse(xy, f.ideal.cov, corr_length=1.0, start=f.fit.params)
+    # Weighted by each point's whole uncertainty, as the 3D fit weighs it.
+    plain = fit_ellipse(xy, view.total_sigma ** 2, corr_length=1.0, start=f.fit.params)
     assert len(got.fit.residuals) == len(xy)
     assert np.array_equal(got.fit.params, plain.params)
