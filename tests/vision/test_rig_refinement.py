@@ -148,11 +148,11 @@ def test_a_held_parameter_keeps_the_checks_correction(plate, board):
 
 
 def test_the_posterior_does_not_grow_with_the_drift_corrected(plate, board):
-    """Rolled 1 and 2 px after a board session: the check corrects the roll, and the refinement starts from
-    the corrected rig with the correction's covariance as its prior's widening. What remains uncertain
-    does not depend on how far the rig had drifted, so the refined parameters' posterior u is about the same
-    at both (widened by the correction's whole size, it doubled with the drift), and the true rig lies within
-    3 u of the refined one."""
+    """Rolled 1 and 2 px after a board session: the check corrects the roll, and the parameters the
+    refinement holds keep the corrected values, their error the correction's covariance. What remains
+    uncertain does not depend on how far the rig had drifted, so the refined parameters' posterior u is about
+    the same at both (when the held ones carried the correction's whole size, tb2's doubled with the drift),
+    and the true rig lies within 3 u of the refined one."""
     true, left, right = plate
     refs = []
     for px in (1.0, 2.0):
