@@ -17,8 +17,12 @@ calibrating:
 For every drift level the benchmark prints, beside the exact calibration's
 row from the same run: features measured (of the CAD edges) and circles
 measured; the true epipolar residual (median over the visible edges of the
-true partners' band offset difference under the stated calibration) and
-the run's estimate with its u and verdict; per characteristic type the
+true partners' band offset difference under the stated calibration; and
+over the edges of the features the run measured, per pixel of their left
+image, as the check's edge points count) and the run's estimate with its u,
+the spread of its fitted residual field over the part's edges, and its
+verdict; the field (at the left principal point and its slope along the
+epipolar lines) against the true residual's least-squares line; per characteristic type the
 share of true values within +-U (the claim: 95.45 %) and the RMS of
 (measured - true) / u; and false accepts (a pass whose true value lies
 outside the limits). With ``--refine-rig`` every run re-estimates the rig
@@ -65,7 +69,7 @@ def stated_calibration(calib, kind, d):
     return replace(moved, std=calib.std, cov=calib.cov)
 
 
-def true_residual(true_calib, stated, truth):
+def true_residual(true_calib, stated, truth, ids=None):
     """Median over the visible edges of right minus left band offset of true partners under ``stated``, px.
 
     The partners are the edge points where the true rig records them
@@ -75,9 +79,37 @@ def true_residual(true_calib, stated, truth):
     by up to tenths of a pixel across the image; reading the true ideal
     pixels as the stated calibration's took a residual the run never sees.
     Points outside either image are left out.
+
+    ``ids``: only these features' edges (the ones a run measured: where its
+    check states the residual), each sample weighted by the length it
+    stands for in the left image (the check's edge points are pixels);
+    else every feature visible in both images, per sample (one per 0.25 mm
+    of edge, 24-400 per edge).
     """
+    r, _, w = true_samples(true_calib, stated, truth, ids)
+    if ids is None:
+        return float(np.median(r))
+    order = np.argsort(r)
+    c = np.cumsum(w[order])
+    return float(r[order][np.searchsorted(c, 0.5 * c[-1])])
+
+
+def true_field(true_calib, stated, truth, ids):
+    """The true residual fitted as the check fits it, ``a + b s`` (s along the epipolar lines), px and px per px.
+
+    Least squares over ``ids``' edges, each sample weighted by its length in
+    the left image (:func:`true_residual`).
+    """
+    r, s, w = true_samples(true_calib, stated, truth, ids)
+    A = np.c_[np.ones(len(s)), s] * np.sqrt(w)[:, None]
+    return np.linalg.lstsq(A, r * np.sqrt(w), rcond=None)[0]
+
+
+def true_samples(true_calib, stated, truth, ids=None):
+    """(residual px, place along the lines px, left-image length px) of the true partners on the edges (:func:`true_residual`)."""
     from partinspect.cad.edge_sampling import sample_edge
     from partinspect.vision.calibration import project_points
+    from partinspect.vision.epipolar_drift import along_lines
     from partinspect.vision.ideal import to_ideal
     from partinspect.vision.matching import epipolar_geometry
 
@@ -86,7 +118,7 @@ def true_residual(true_calib, stated, truth):
     size = np.asarray(true_calib.image_size, float)
     out = []
     for f in truth["features"]:
-        if not f["visible_both"]:
+        if not (f["visible_both"] if ids is None else f["id"] in ids):
             continue
         g = {k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in f["rendered"].items()}
         X = sample_edge(f["kind"], g)[0] @ P[:3, :3].T + P[:3, 3]
@@ -95,9 +127,12 @@ def true_residual(true_calib, stated, truth):
                            np.asarray(true_calib.T, float).ravel())
         ok = np.all((x >= 0) & (x <= size) & (y >= 0) & (y <= size), axis=1)
         if ok.any():
-            out.append(geo.band_right(to_ideal(y[ok], stated.K2, stated.D2))
-                       - geo.band_left(to_ideal(x[ok], stated.K1, stated.D1)))
-    return float(np.median(np.concatenate(out)))
+            xi = to_ideal(x[ok], stated.K1, stated.D1)
+            step = np.linalg.norm(np.diff(x, axis=0), axis=1)
+            w = (0.5 * (np.r_[step[:1], step] + np.r_[step, step[-1:]]))[ok] if len(x) > 1 else np.ones(1)
+            out.append((geo.band_right(to_ideal(y[ok], stated.K2, stated.D2)) - geo.band_left(xi),
+                        along_lines(geo, xi), w))
+    return tuple(np.concatenate(v) for v in zip(*out))
 
 
 NIST_VIEW = {"elevation": 45.0, "azimuth": 30.0, "roll": 10.0, "offset": [0.0, 0.0, 0.0], "noise": 2.0,
@@ -156,7 +191,11 @@ def row(report, truth, true_res):
     out["features"] = sum(f["measured"] is not None for f in feats)
     out["circles"] = sum(f["measured"] is not None and f["kind"] != "line" for f in feats)
     cc = report.get("calibration_check", {})
-    out.update(est=cc.get("epipolar_residual_px"), u=cc.get("standard_uncertainty_px"), verdict=cc.get("verdict"))
+    out.update(est=cc.get("epipolar_residual_px"), u=cc.get("standard_uncertainty_px"), verdict=cc.get("verdict"),
+               spread=cc.get("residual_spread_px"),
+               field=[cc.get(k) for k in ("residual_at_principal_point_px", "residual_at_principal_point_standard_uncertainty_px",
+                                          "residual_slope_px_per_1000px",
+                                          "residual_slope_standard_uncertainty_px_per_1000px")])
     rr = report.get("rig_refinement")
     if rr is not None:
         out["rig"] = (f"rig {rr['rotation_correction_deg']:.5f} deg, chi2 {rr['chi_square']:.1f}/{rr['dof']}"
@@ -186,6 +225,15 @@ def row(report, truth, true_res):
     return out
 
 
+def field_text(r):
+    """The check's residual field against the true one's (at the principal point, px; slope, px per 1000 px)."""
+    if None in r.get("field", [None]):
+        return ""
+    a, ua, b, ub = r["field"]
+    ta, tb = r["true_field"]
+    return f"; field: at pp {a:+.3f} +- {ua:.3f} (true {ta:+.3f}), slope {b:+.3f} +- {ub:.3f} (true {1000 * tb:+.3f})/1000 px"
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--parts", default="plate,bracket",
@@ -211,7 +259,8 @@ def main():
                 (f"draw {k}", simulated_calibration(calib, np.random.default_rng(k))) for k in range(args.draws)]
             for kind in args.kinds.split(","):
                 print(f"\n== {part}, drift {kind}")
-                print(f"{'drift px':>8} {'calibration':>11} {'true res':>9} {'estimate':>9} {'u':>7} {'verdict':>12} "
+                print(f"{'drift px':>8} {'calibration':>11} {'true res':>9} {'measured':>8} {'estimate':>9} {'u':>7} {'spread':>6} "
+                      f"{'verdict':>12} "
                       f"{'features':>8} {'circles':>7} {'false acc':>9} {'s':>5}  coverage / z RMS per type")
                 for d in levels:
                     for name, base in stated0:
@@ -220,6 +269,10 @@ def main():
                         report, message = inspect(step, images, stated, Path(tmp) / f"{part}-{kind}-{d}-{name}",
                                                   tolerances, args.refine_rig)
                         r = row(report, truth, true_residual(calib, stated, truth))
+                        if report is not None:
+                            ids = {f["id"] for f in report["features"] if f["measured"]}
+                            r["true_measured"] = true_residual(calib, stated, truth, ids)
+                            r["true_field"] = true_field(calib, stated, truth, ids)
                         dt = time.perf_counter() - t0
                         if report is None:
                             print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f}   run stopped: {message}")
@@ -227,9 +280,11 @@ def main():
                         types = ", ".join(f"{t} {a}/{n} ({r['z_rms'][t]:.2f})" for t, (a, n) in sorted(r["cover"].items()))
                         est = "-" if r["est"] is None else f"{r['est']:9.3f}"
                         u = "-" if r["u"] is None else f"{r['u']:7.3f}"
-                        print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f} {est:>9} {u:>7} {r['verdict'] or '-':>12} "
+                        spread = "-" if r["spread"] is None else f"{r['spread']:6.3f}"
+                        print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f} {r['true_measured']:8.3f} {est:>9} {u:>7} "
+                              f"{spread:>6} {r['verdict'] or '-':>12} "
                               f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types}"
-                              + (f"; {r['rig']}" if "rig" in r else ""),
+                              + (f"; {r['rig']}" if "rig" in r else "") + field_text(r),
                               flush=True)
                         if name != "exact":
                             for t, (a, n) in r["cover"].items():

@@ -262,12 +262,12 @@ def check_calibration(inputs, progress):
     loop's first round when the calibration stood, so it is not measured twice.
     """
     from partinspect.adaptive import DEFAULTS
-    from partinspect.vision.epipolar_drift import check_calibration as check, matched_arcs
+    from partinspect.vision.epipolar_drift import check_calibration as check, matched_arcs, matched_edge_points
 
     progress("checking the calibration against the images")
     stereo = _stereo_round(inputs, DEFAULTS, progress)
     with inputs.timings.stage("checking the calibration"):
-        result = check(inputs.calib, matched_arcs(stereo))
+        result = check(inputs.calib, matched_arcs(stereo), matched_edge_points(stereo))
     if result.verdict == "invalid":
         d = result.drift
         raise InputError(inputs.calib_file or inputs.images,

@@ -10,11 +10,16 @@ the epipolar lines, :class:`~partinspect.vision.matching.EpipolarGeometry`)
 is an epipolar residual of the stated calibration, in pixels, with an
 uncertainty from the two ellipse fits.
 
-The weighted mean of the residuals estimates the drift across the epipolar
-lines; its standard uncertainty is the weighted mean's, enlarged by the
-Birge ratio where the residuals scatter more than their fits say (the
-drift is then not one shift across the image). It is compared with what
-the stated calibration's own standard uncertainties let the residual be.
+A shift of the epipolar lines moves every tangency's residual alike, a
+roll of the right camera in proportion to its place along the lines. The
+residuals are therefore fitted as a field over the image, a constant plus
+a term linear along the epipolar lines, and the residual is stated where
+the part's edges are (the field's median over their points), with the
+standard uncertainty the fit's covariance gives there, enlarged by the
+Birge ratio where the residuals scatter about the field more than their
+fits say; the field's spread over the edges is stated beside it. It is
+compared with what the stated calibration's own covariance lets that
+estimate be.
 Two turns of the right camera about its centre move the epipolar lines
 across themselves: about the baseline, alike everywhere, and about its
 optical axis, in proportion to the distance along them. Fitted to the
@@ -35,7 +40,7 @@ References
 .. [3] JCGM 100:2008 (GUM), 4.2 (Type A) and 4.3 (Type B evaluation).
 """
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field as dataclass_field, replace
 
 import numpy as np
 
@@ -46,7 +51,8 @@ from partinspect.vision.stereo import EDGE_BIAS_FLOOR
 
 __all__ = ["TANGENT_REACH", "MIN_SIGNIFICANCE", "DriftEstimate", "tangent_offsets", "tangency_residuals",
            "estimate_drift", "drift_axes", "rotated_right_camera", "fit_drift", "predicted_residual_std",
-           "MAX_DRIFT", "OUTLIER_Z", "CalibrationCheck", "check_calibration", "consistent_tangencies", "matched_arcs"]
+           "MAX_DRIFT", "OUTLIER_Z", "CalibrationCheck", "check_calibration", "consistent_tangencies", "matched_arcs",
+           "matched_edge_points", "tangency_along", "along_lines"]
 
 TANGENT_REACH = 2.0
 """px: a tangency is read only where the feature's own edge points come
@@ -201,6 +207,40 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
     return np.array(res), _with_rim_disagreement(np.array(var), np.array(res), used), used
 
 
+def tangency_along(geo, pairs, select):
+    """Where the tangencies lie along the epipolar lines in the left image, px.
+
+    Parameters
+    ----------
+    geo : EpipolarGeometry
+    pairs : sequence of (ImageFeature, ImageFeature)
+    select : sequence of (int, int)
+        (pair, tangency) as :func:`tangency_residuals` returned them.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Each left tangent point's distance along the epipolar lines from the
+        left principal point (:func:`along_lines`), px.
+    """
+    out = []
+    for i, k in select:
+        params = pairs[i][0].fit.params
+        _, phases = tangent_offsets(geo.band_left, params)
+        out.append(_ellipse_points(params, phases[k:k + 1])[0])
+    return along_lines(geo, np.reshape(out, (-1, 2)))
+
+
+def along_lines(geo, points):
+    """Left ideal points' (N, 2) coordinate along the epipolar lines, px (N,).
+
+    The distance from the left principal point along ``geo.ref_left``: a
+    turn of the right camera about its optical axis moves the epipolar
+    lines across themselves in proportion to it.
+    """
+    return (np.asarray(points, float).reshape(-1, 2) - geo.center) @ geo.ref_left
+
+
 def _with_rim_disagreement(var, res, used):
     """Variances with each rim's own Type B: what its two tangencies disagree by beyond their noise.
 
@@ -228,18 +268,33 @@ class DriftEstimate:
     Attributes
     ----------
     shift : float
-        Weighted mean epipolar residual, px (0 when none was measured).
+        The epipolar residual at the part's edges, px (0 when none was
+        measured): the median over the edge points of the residual field
+        fitted to the tangencies (:func:`estimate_drift`).
     u : float
         Its standard uncertainty, px (inf when none was measured).
     n : int
         Tangencies it rests on.
     birge : float
-        sqrt(chi-square / (n - 1)) of the residuals about the mean (1 when
-        n < 2): above 1, they scatter more than their fits say.
+        sqrt(chi-square / dof) of the residuals about the fitted field (1
+        when nothing is left to judge): above 1, they scatter more than their
+        fits say.
     residuals : ndarray, shape (n,)
         px, every tangency read (the ones left out too).
     outliers : int
         Tangencies left out (:data:`OUTLIER_Z`).
+    slope : float
+        The field's change along the epipolar lines, px per px (0: a
+        constant field was fitted).
+    spread : float
+        Standard deviation of the fitted field over the part's edge points,
+        px: how much the residual varies across the image.
+    field : ndarray, shape (2,)
+        The field ``r(s) = a + b s``: ``a`` at the left principal point, px,
+        and ``b``, px per px (``s`` the place along the epipolar lines,
+        :func:`along_lines`).
+    field_cov : ndarray, shape (2, 2)
+        Its covariance (Birge-enlarged).
     """
 
     shift: float
@@ -248,15 +303,41 @@ class DriftEstimate:
     birge: float
     residuals: np.ndarray
     outliers: int = 0
+    slope: float = 0.0
+    spread: float = 0.0
+    field: np.ndarray = dataclass_field(default_factory=lambda: np.zeros(2))
+    field_cov: np.ndarray = dataclass_field(default_factory=lambda: np.zeros((2, 2)))
 
 
-def estimate_drift(residuals, variances):
-    """Weighted mean of the tangency residuals with its uncertainty (Birge-enlarged).
+def estimate_drift(residuals, variances, along=None, at=None):
+    """The epipolar residual at the part's edges: a field fitted to the tangencies, with its uncertainty.
+
+    A shift of the epipolar lines moves every tangency alike; a turn of the
+    right camera about its optical axis (a roll) moves them in proportion to
+    their place along the lines, so that the residual changes sign across
+    the image and the tangencies' mean says little of what the part's edges
+    see. The residual is therefore fitted as a field, ``r(s) = a + b s``
+    with ``s`` the place along the epipolar lines (weighted least squares,
+    the tangencies' variances as weights), and stated at the median of the
+    part's edge points, ``a + b median(s)`` (the median of a linear field
+    is the field at the median place), with the standard uncertainty that
+    the fit's covariance gives there, enlarged by the Birge ratio where the
+    tangencies scatter about the field more than their fits say. A
+    tangency that disagrees with the others (:func:`consistent_tangencies`)
+    is left out, judged again about the fitted field.
 
     Parameters
     ----------
     residuals, variances : array_like, shape (n,)
-        As :func:`tangency_residuals` returns.
+        As :func:`tangency_residuals` returns, px and px^2.
+    along : array_like, shape (n,), optional
+        The tangencies' place along the epipolar lines (:func:`tangency_along`),
+        px. Without it, or with fewer than ``MIN_ROLL_TANGENCIES`` kept, or
+        with the tangencies at one place, the field is a constant: the
+        weighted mean.
+    at : array_like, shape (m,), optional
+        The part's edge points' place along the lines (:func:`along_lines`),
+        px; default the tangencies'.
 
     Returns
     -------
@@ -266,12 +347,42 @@ def estimate_drift(residuals, variances):
     if len(r_all) == 0:
         return DriftEstimate(0.0, float("inf"), 0, 1.0, r_all)
     keep = consistent_tangencies(r_all, v_all)
-    r, v = r_all[keep], v_all[keep]
+    s_all = None if along is None else np.asarray(along, float)
+    at = (s_all if at is None else np.asarray(at, float)) if s_all is not None else None
+    linear = s_all is not None and keep.sum() >= MIN_ROLL_TANGENCIES and np.ptp(s_all[keep]) > _MIN_REACH
+    if linear:
+        again = keep.copy()
+        coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep])
+        again[keep] = consistent_tangencies(left, v_all[keep])
+        if not again.all() and again.sum() >= MIN_ROLL_TANGENCIES:
+            keep = again
+            coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep])
+        x = np.array([1.0, float(np.median(at))])
+        value, u2, spread = float(x @ coef), float(x @ cov @ x), abs(coef[1]) * float(np.std(at))
+    else:
+        w = 1.0 / v_all[keep]
+        value = float(np.sum(w * r_all[keep]) / np.sum(w))
+        u2, left, spread = 1.0 / float(np.sum(w)), r_all[keep] - value, 0.0
+        coef, cov = np.array([value, 0.0]), np.diag([u2, 0.0])
+    dof = int(keep.sum()) - (2 if linear else 1)
+    birge = float(np.sqrt(np.sum(left**2 / v_all[keep]) / dof)) if dof > 0 else 1.0
+    enlarge = max(1.0, birge)
+    return DriftEstimate(value, float(np.sqrt(u2)) * enlarge, int(keep.sum()), birge, r_all,
+                         int((~keep).sum()), float(coef[1]), spread, coef, cov * enlarge**2)
+
+
+_MIN_REACH = 50.0
+"""px: the tangencies must spread this far along the epipolar lines for a
+slope to be fitted; closer, it would be read from the rims' own scatter."""
+
+
+def _field_fit(r, v, s):
+    """Weighted least squares ``r = a + b s``: (a, b), their covariance, and what is left of ``r``."""
+    A = np.c_[np.ones(len(s)), s]
     w = 1.0 / v
-    mean = float(np.sum(w * r) / np.sum(w))
-    u = float(np.sqrt(1.0 / np.sum(w)))
-    birge = float(np.sqrt(np.sum(w * (r - mean) ** 2) / (len(r) - 1))) if len(r) > 1 else 1.0
-    return DriftEstimate(mean, u * max(1.0, birge), len(r), birge, r_all, int((~keep).sum()))
+    cov = np.linalg.inv((A * w[:, None]).T @ A)
+    coef = cov @ (A.T @ (w * r))
+    return coef, cov, r - A @ coef
 
 
 def consistent_tangencies(deviations, variances):
@@ -393,24 +504,26 @@ def _weighted_fit(J, r, w):
     return A, theta, r + J @ theta
 
 
-def predicted_residual_std(calib, pairs, tangencies=None):
-    """Standard deviation of the mean tangency residual that the calibration's stated uncertainties allow, px.
+def predicted_residual_std(calib, pairs, tangencies=None, along=None, at=None):
+    """Standard deviation of the estimated residual (:func:`estimate_drift`) that the calibration's stated uncertainties allow, px.
 
     The calibration is moved along each principal direction of its stated
     covariance in turn (first order; independent parameters where it
-    states only standard uncertainties); 0 when it states none.
-    ``tangencies`` as :func:`fit_drift`'s.
+    states only standard uncertainties), and the residual estimated as the
+    check estimates it (the same tangencies, places and edge points); 0
+    when it states none. ``tangencies`` as :func:`fit_drift`'s; ``along``,
+    ``at`` as :func:`estimate_drift`'s.
     """
     from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
 
     geo = epipolar_geometry(calib)
     r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
-    base = estimate_drift(r, v).shift
+    base = estimate_drift(r, v, along, at).shift
     total = 0.0
     for d in uncertainty_directions(calib):
         moved = perturbed_calibration(calib, d)
         r, v, _ = tangency_residuals(epipolar_geometry(moved), pairs, select, geo.ref_left)
-        total += (estimate_drift(r, v).shift - base) ** 2
+        total += (estimate_drift(r, v, along, at).shift - base) ** 2
     return float(np.sqrt(total))
 
 
@@ -467,12 +580,22 @@ class CalibrationCheck:
         bound = float(np.hypot(self.predicted, d.u)) if measured else None
         return {
             "verdict": self.verdict,
-            "method": "epipolar tangency of matched circles (right minus left band offset)",
+            "method": ("epipolar tangency of matched circles (right minus left band offset), fitted as a field "
+                       "(constant + linear along the epipolar lines) and stated at the median of the part's edges"
+                       if d.slope else "epipolar tangency of matched circles (right minus left band offset), "
+                       "weighted mean"),
             "tangencies": d.n,
             "tangencies_left_out": d.outliers,
             "epipolar_residual_px": round(d.shift, 4) if measured else None,
             "standard_uncertainty_px": round(d.u, 4) if measured else None,
             "birge_ratio": round(d.birge, 3) if measured else None,
+            "residual_slope_px_per_1000px": round(1000 * d.slope, 4) if measured else None,
+            "residual_slope_standard_uncertainty_px_per_1000px": (round(1000 * float(np.sqrt(d.field_cov[1, 1])), 4)
+                                                                  if measured else None),
+            "residual_at_principal_point_px": round(float(d.field[0]), 4) if measured else None,
+            "residual_at_principal_point_standard_uncertainty_px": (round(float(np.sqrt(d.field_cov[0, 0])), 4)
+                                                                    if measured else None),
+            "residual_spread_px": round(d.spread, 4) if measured else None,
             "predicted_std_px": round(self.predicted, 4),
             "ratio_to_allowed": round(abs(d.shift) / bound, 3) if measured and bound > 0 else None,
             "correction_deg": round(float(np.degrees(np.linalg.norm(self.correction))), 6),
@@ -488,6 +611,8 @@ class CalibrationCheck:
             return "calibration not checked: no circle's epipolar tangencies seen in both images"
         text = (f"calibration {self.verdict}: epipolar residual {d.shift:+.3f} px (u {d.u:.3f} px, "
                 f"{d.n} tangencies; stated calibration allows {self.predicted:.3f} px)")
+        if d.spread:
+            text += f", varying by {d.spread:.3f} px (SD) over the part's edges"
         if self.corrected:
             text += (f"; right camera turned {np.degrees(np.linalg.norm(self.correction)):.5f} deg "
                      f"(u {np.degrees(np.sqrt(np.trace(self.correction_cov))):.5f} deg, carried)")
@@ -516,7 +641,7 @@ def _within_stated(calib, rotation, cov, drift, predicted):
     return True
 
 
-def check_calibration(calib, pairs):
+def check_calibration(calib, pairs, edges=None):
     """Check the stated calibration against matched ellipse pairs, and correct a significant drift.
 
     Parameters
@@ -525,17 +650,26 @@ def check_calibration(calib, pairs):
         As stated.
     pairs : sequence of (ImageFeature, ImageFeature)
         Matched arcs of the pair, measured with ``calib``.
+    edges : array_like, shape (N, 2), optional
+        The part's matched edge points in the left image, ideal px
+        (:func:`matched_edge_points`): where the residual is stated (its
+        median over them); default the arcs' own.
 
     Returns
     -------
     CalibrationCheck
     """
-    tangencies = tangency_residuals(epipolar_geometry(calib), pairs)
-    drift = estimate_drift(*tangencies[:2])
+    geo = epipolar_geometry(calib)
+    tangencies = tangency_residuals(geo, pairs)
+    if edges is None:
+        edges = np.concatenate([np.reshape(fl.ideal.xy, (-1, 2)) for fl, _ in pairs]) if pairs else np.zeros((0, 2))
+    along = tangency_along(geo, pairs, tangencies[2])
+    at = along_lines(geo, edges) if len(edges) else None
+    drift = estimate_drift(*tangencies[:2], along, at)
     none = np.zeros(3), np.zeros((3, 3))
     if drift.n == 0:
         return CalibrationCheck("not checked", drift, 0.0, *none, 1.0, calib)
-    predicted = predicted_residual_std(calib, pairs, tangencies)
+    predicted = predicted_residual_std(calib, pairs, tangencies, along, at)
     # Beyond the matcher's reach on the whole (a roll may put a few tangents further).
     if abs(drift.shift) > MAX_DRIFT or np.percentile(np.abs(drift.residuals), 75) > MAX_DRIFT:
         return CalibrationCheck("invalid", drift, predicted, *none, 1.0, calib)
@@ -547,6 +681,13 @@ def check_calibration(calib, pairs):
         return CalibrationCheck("consistent", drift, predicted, *none, 1.0, calib)
     verdict = "consistent" if _within_stated(calib, rotation, cov, drift, predicted) else "drifted"
     return CalibrationCheck(verdict, drift, predicted, rotation, cov, birge, rotated_right_camera(calib, rotation, cov))
+
+
+def matched_edge_points(stereo):
+    """The left ideal edge points (N, 2), px, of every matched pair of a :class:`StereoResult`, lines and arcs."""
+    L = stereo.left.features
+    points = [np.reshape(L[m.left].ideal.xy, (-1, 2)) for m in stereo.matching.matches]
+    return np.concatenate(points) if points else np.zeros((0, 2))
 
 
 def matched_arcs(stereo):

@@ -228,7 +228,7 @@ def refine_rig(calib, observations, start=None, drifted=False):
         raise RefinementError(f"{len(observations)} circle(s) measured; the rig's refinement needs {MIN_CIRCLES}")
     start = calib if start is None else start
     Z, basis = rig_coordinates(calib)
-    C, Cp = _prior_covariances(calib, start, Z, basis, drifted)
+    C, Cp, Ce = _prior_covariances(calib, start, Z, basis, drifted)
     stated_var = np.diag(C)[:9]
     widened = np.diag(Cp)[:9] > stated_var * (1 + 1e-9)
     free = [k for k in range(9) if k < 5 or stated_var[k] > 0]
@@ -236,7 +236,7 @@ def refine_rig(calib, observations, start=None, drifted=False):
     s0, s, length = rig_vector(calib, basis), rig_vector(start, basis), float(np.linalg.norm(calib.T))
     s_start = s.copy()
     thetas = [np.r_[o.fit.center, 0.0, 0.0, o.fit.radius] for o in observations]
-    setting = (observations, start, s0, basis, length, C, Cp, np.linalg.inv(Z))
+    setting = (observations, start, s0, basis, length, C, Cp, Ce, np.linalg.inv(Z))
     while True:
         s, thetas, blocks, fc, cov, noise, K = _refine_free(setting, s, thetas, free)
         p = len(free)
@@ -262,7 +262,7 @@ def refine_rig(calib, observations, start=None, drifted=False):
     z, chi2, dof = _significance(s[free] - s0[free], K[:p] + np.eye(p, len(fc)), C[np.ix_(fc, fc)], noise[:p, :p])
     refined = rig_at(start, s, basis, length)
     return RigRefinement(
-        _with_posterior(refined, setting[-1], Cp, fc, cov[:p, :p], K[:p]), tuple(_NAMES[k] for k in free),
+        _with_posterior(refined, setting[-1], Ce, fc, cov[:p, :p], K[:p]), tuple(_NAMES[k] for k in free),
         s0[free], s[free], post_std, np.sqrt(stated_var[free]), widened[free], z, chi2, dof, fixed,
         len(observations), length, float(np.sqrt(C[9, 9])),
         float(np.sqrt(sum(b[0] @ b[0] for b in blocks) / max(n_res, 1))),
@@ -270,20 +270,26 @@ def refine_rig(calib, observations, start=None, drifted=False):
 
 
 def _prior_covariances(calib, start, Z, basis, drifted):
-    """The stated covariance in the rig's coordinates, and the prior's: widened by a drift's correction.
+    """The stated covariance in the rig's coordinates, the prior's, and that of the start's errors.
 
-    The correction ``d`` (``start`` against ``calib``) and its covariance are
-    added to the rig's block as a Type B independent of the calibration's
-    own errors, only where the calibration states an uncertainty.
+    The prior (centred on the stated values): the correction ``d``
+    (``start`` against ``calib``) and its covariance are added to the rig's
+    block as a Type B independent of the calibration's own errors, only
+    where the calibration states an uncertainty. The start's values (what
+    a held parameter keeps): the correction's covariance only, since the
+    correction itself is applied to them. Without a drift all three agree
+    but for the first's use as the null hypothesis.
     """
     C = Z @ full_covariance(calib) @ Z.T
-    Cp = C.copy()
+    Cp, Ce = C.copy(), C.copy()
     if drifted:
         stated = np.diag(C)[:9] > 0
+        both = np.outer(stated, stated)
         d = np.where(stated, rig_vector(start, basis) - rig_vector(calib, basis), 0.0)
-        W = np.outer(d, d) + (Z @ full_covariance(start) @ Z.T - C)[:9, :9]
-        Cp[:9, :9] += np.where(np.outer(stated, stated), W, 0.0)
-    return C, Cp
+        W = (Z @ full_covariance(start) @ Z.T - C)[:9, :9]
+        Ce[:9, :9] += np.where(both, W, 0.0)
+        Cp[:9, :9] += np.where(both, W + np.outer(d, d), 0.0)
+    return C, Cp, Ce
 
 
 def _refine_free(setting, s, thetas, free):
@@ -292,7 +298,7 @@ def _refine_free(setting, s, thetas, free):
     Returns the solution, the circles', the last linearisation's blocks,
     the order ``fc`` (free, then held) and :func:`~partinspect.vision.rig_adjustment.posterior`'s results.
     """
-    observations, start, s0, basis, length, C, Cp, Zinv = setting
+    observations, start, s0, basis, length, C, Cp, Ce, Zinv = setting
     info = _prior_information(Cp[:9, :9], free)
     s, thetas, blocks, _ = adjust(observations, start, s0, s, thetas, free, info, basis, length)
     # Every other parameter with a stated uncertainty: held at its value, its error carried.
@@ -300,7 +306,10 @@ def _refine_free(setting, s, thetas, free):
     fc = free + consider
     Jc = consider_jacobians(observations, rig_at(start, s, basis, length), thetas, Zinv, consider,
                              np.sqrt(np.diag(C)[consider]))
-    return (s, thetas, blocks, fc, *posterior(blocks, len(free), info, Jc, Cp[np.ix_(fc, fc)]))
+    # The prior's errors of the refined parameters (weighted by its information), the start's of the held ones.
+    Cu = Ce[np.ix_(fc, fc)]
+    Cu[: len(free), : len(free)] = Cp[np.ix_(free, free)]
+    return (s, thetas, blocks, fc, *posterior(blocks, len(free), info, Jc, Cu))
 
 
 def _prior_information(C9, free):

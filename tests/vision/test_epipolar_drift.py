@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from partinspect.vision.calibration import read_calibration
-from partinspect.vision.epipolar_drift import check_calibration, matched_arcs, tangency_residuals
+from partinspect.vision.epipolar_drift import check_calibration, matched_arcs, matched_edge_points, tangency_residuals
 from partinspect.vision.images import read_pair
 from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.stereo import measure_stereo
@@ -17,12 +17,19 @@ IMAGES = Path(__file__).resolve().parents[2] / "examples" / "plate" / "images"
 
 
 @pytest.fixture(scope="module")
-def plate():
-    """The exact rig and the matched arcs of its pair (ideal pixels do not depend on K without distortion)."""
+def plate_stereo():
+    """The exact rig and the stereo result of its pair (ideal pixels do not depend on K without distortion)."""
     calib = read_calibration(IMAGES)
     assert not np.any(calib.D1) and not np.any(calib.D2)
     left, right, _ = read_pair(IMAGES, calib)
-    return calib, matched_arcs(measure_stereo(left, right, calib))
+    return calib, measure_stereo(left, right, calib)
+
+
+@pytest.fixture(scope="module")
+def plate(plate_stereo):
+    """The exact rig and the matched arcs of its pair."""
+    calib, stereo = plate_stereo
+    return calib, matched_arcs(stereo)
 
 
 def _shifted(calib, dy):
@@ -67,6 +74,41 @@ def test_a_roll_of_the_right_camera_is_corrected_too(plate):
     check = check_calibration(stated, pairs)
     assert check.verdict == "drifted" and check.corrected
     assert _left_over(check, pairs) < 0.25 * float(np.sqrt(np.mean(r**2)))
+
+
+def _true_residual(true, stated):
+    """Median over the plate's visible CAD edges of the true partners' epipolar residual under ``stated``, px."""
+    import json
+
+    from partinspect.cad.edge_sampling import sample_edge
+    from partinspect.vision.calibration import project_points
+
+    truth = json.loads((IMAGES.parent / "truth.json").read_text())
+    geo, P = epipolar_geometry(stated), np.asarray(truth["part_to_camera"], float)
+    out = []
+    for f in truth["features"]:
+        if f["visible_both"]:
+            g = {k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in f["rendered"].items()}
+            X = sample_edge(f["kind"], g)[0] @ P[:3, :3].T + P[:3, 3]
+            x = project_points(X, true.K1, true.D1, np.eye(3), np.zeros(3))
+            y = project_points(X, true.K2, true.D2, np.asarray(true.R, float), np.ravel(true.T))
+            out.append(geo.band_right(y) - geo.band_left(x))
+    return float(np.median(np.concatenate(out)))
+
+
+@pytest.mark.parametrize("px", [1.0, 2.0])
+def test_under_a_roll_the_residual_is_stated_at_the_parts_edges(plate_stereo, px):
+    """A roll makes the residual a field across the image: the check states it at the part's edges
+    (their median), not the tangencies' mean, with a u that covers the truth, and says how much it varies."""
+    calib, stereo = plate_stereo
+    stated = _rolled(calib, px)
+    check = check_calibration(stated, matched_arcs(stereo), matched_edge_points(stereo))
+    true = _true_residual(calib, stated)
+    assert abs(check.drift.shift - true) < max(0.02, 2 * check.drift.u), (check.drift, true)
+    assert check.drift.u < 0.05 * px
+    # The field's slope is the roll's: the lines move px at the image's side edges, half its width away.
+    assert check.drift.slope * np.sign(check.drift.slope) == pytest.approx(px / (0.5 * calib.image_size[0]), rel=0.25)
+    assert check.drift.spread > 0.1 * px
 
 
 def test_a_drift_beyond_correction_is_invalid(plate):

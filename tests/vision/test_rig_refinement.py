@@ -145,3 +145,22 @@ def test_a_held_parameter_keeps_the_checks_correction(plate, board):
     assert abs(turn) > 0.05 and abs(miss) < 0.2 * abs(turn), (miss, turn)
     rx = cv2.Rodrigues(ref.calib.R)[0].ravel()[0]
     assert rx == pytest.approx(cv2.Rodrigues(check.calib.R)[0].ravel()[0], abs=1e-12)
+
+
+def test_the_posterior_does_not_grow_with_the_drift_corrected(plate, board):
+    """Rolled 1 and 2 px after a board session: the check corrects the roll, and the parameters the
+    refinement holds keep the corrected values, their error the correction's covariance. What remains
+    uncertain does not depend on how far the rig had drifted, so the refined parameters' posterior u is about
+    the same at both (when the held ones carried the correction's whole size, tb2's doubled with the drift),
+    and the true rig lies within 3 u of the refined one."""
+    true, left, right = plate
+    refs = []
+    for px in (1.0, 2.0):
+        stated = replace(drifted_rig(board, "roll", px), std=board.std, cov=board.cov)
+        check, ref, _ = _refined(stated, left, right)
+        assert check.verdict == "drifted" and {"rz", "tb2"} <= set(ref.names)
+        err = _rig_errors(ref.calib, true, ref.names)
+        assert np.all(np.abs(err / ref.std) < 3.0), (err / ref.std)
+        refs.append(dict(zip(ref.names, ref.std)))
+    for name in ("rz", "tb2"):
+        assert refs[1][name] < 1.3 * refs[0][name], (name, refs)
