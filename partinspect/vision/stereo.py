@@ -110,11 +110,11 @@ RIM_DETECTOR_ERROR = 0.005
 point beside flat shading, which no shading reading sees: the floor of a
 rim point's Type B in its 3D fit (:func:`rim_type_b`), in quadrature, and
 the least Type B a rim's residuals may size its centre's share down to
-(:func:`type_b_scale`). What the curvature correction leaves on exact discs
-under Gaussian, disc and digital-Gaussian blurs is at most 0.003 px at a
-15 px radius, and rim points beside flat shading lie 0.003-0.004 px off on
-noiseless renders (docs/validation.md); without a floor the fit leans on
-those points as if they were exact."""
+(:func:`type_b_scale`). It is set above what the curvature correction
+leaves on exact discs under several blur shapes and what rim points beside
+flat shading show on noiseless renders (docs/validation.md,
+bench_psf_shape); without a floor the fit leans on those points as if they
+were exact."""
 RIM_BOUND_READING = 1.0 / np.sqrt(3.0)
 """Type B standard uncertainty of a rim point in its 3D fit per px of the
 shading bound (:func:`rim_type_b`): the correction's remainder is taken to
