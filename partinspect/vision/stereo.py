@@ -1200,11 +1200,15 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
         views = views_under(calib)
         fit = fit_feature(fl, fr, views, corr.points, geo)
         if fl.kind == "arc":
-            delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
-            if p < MISMATCH_P and uncertainty_directions(calib):
-                # One circle seen through a calibration its stated uncertainty allows?
-                r0, J, D, _ = residual_changes(fit, "arc", views_under, calib)
-                delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params), (r0, J, D))
+            delta, p = _one_circle(fl, fr, views_under, calib, fit)
+            if p < MISMATCH_P:
+                # The test asks whether single points of both images lie on
+                # one circle: judged again, before refusing the pair, with
+                # the single points' Type B (the form's, _form_view), which
+                # the fit's averaged level understates for it.
+                points_under = _form_views_of(views_under, fl, fr)
+                delta, p = _one_circle(fl, fr, points_under, calib,
+                                       fit_feature(fl, fr, points_under(calib), corr.points, geo))
             if p < MISMATCH_P:
                 hint = ("" if band is not None else "; a rounded or chamfered rim shows each camera its step at "
                         "a different place: if the part's edges are broken, state edge_break in the tolerance spec")
@@ -1221,6 +1225,31 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
     # rim, not only moves it): the form's Monte Carlo draws it.
     P = point_responses(corr, calib) if G.shape[1] else None
     return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band), scale, P), None
+
+
+def _one_circle(fl, fr, views_under, calib, fit):
+    """:func:`~partinspect.vision.fit3d.circle_consistency` of an arc pair's fit: (delta, p).
+
+    Where the stated calibration makes the arcs inconsistent, they are
+    asked again to be one circle seen through a calibration its stated
+    uncertainty allows.
+    """
+    views = views_under(calib)
+    starts = (fl.fit.params, fr.fit.params)
+    delta, p = circle_consistency(views, fit, starts)
+    if p < MISMATCH_P and uncertainty_directions(calib):
+        r0, J, D, _ = residual_changes(fit, "arc", views_under, calib)
+        delta, p = circle_consistency(views, fit, starts, (r0, J, D))
+    return delta, p
+
+
+def _form_views_of(views_under, fl, fr):
+    """``views_under`` (:func:`views_of`) with each view's Type B at the single points' level (:func:`_form_view`)."""
+    def views(calib, remap=False):
+        left, right = views_under(calib, remap=remap)
+        return [_form_view(left, fl), _form_view(right, fr)]
+
+    return views
 
 
 def _form_view(view, f):
