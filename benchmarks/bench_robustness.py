@@ -130,8 +130,12 @@ def stages(stderr, total):
 
 
 def _key(argv):
-    """A command's arguments with the repository's path left out, so a result is reused wherever the repository lies."""
-    return [str(a).replace(str(ROOT), "<repository>") for a in argv]
+    """A command's arguments with the repository's and the results folder's paths left out.
+
+    A result is then reused wherever the repository lies and wherever the
+    ``--dir`` folder was moved or copied to (its ``parts/`` and ``runs/``).
+    """
+    return [re.sub(r"^.*?/(parts|runs)/", r"<dir>/\1/", str(a).replace(str(ROOT), "<repository>")) for a in argv]
 
 
 def run_command(argv, folder, timeout, stdout_json=None):
@@ -140,7 +144,7 @@ def run_command(argv, folder, timeout, stdout_json=None):
     done = folder / "result.json"
     if done.is_file():
         res = json.loads(done.read_text())
-        if res["argv"] == _key(argv):
+        if _key(res["argv"]) == _key(argv):
             return res
     folder.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PARTINSPECT_PROGRESS": "1", "PYTHONPATH": str(ROOT)}
