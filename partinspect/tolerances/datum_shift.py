@@ -226,8 +226,84 @@ def _rot(theta):
     return np.array([[c, -s], [s, c]])
 
 
+class _Placement:
+    """The datum reference frame placed within its shift, as a function of x.
+
+    ``x = (a, b, w)``: the first datum feature's axis moved by ``rho_0 (a,
+    b)`` (|(a, b)| <= 1), and the frame turned by ``w / reach`` rad about it.
+    The rotation as an arc length over the pattern's reach keeps the
+    solver's variables alike in scale (mm). Shapes and frames as
+    :func:`best_shift`'s arguments.
+    """
+
+    def __init__(self, P, C, D, M, rho, rotation):
+        self.P, self.C, self.D, self.rho, self.rotation = P, C, D, rho, rotation
+        self.M1 = M[1] if len(M) > 1 else None
+        self.s0 = M[0] - D[0]  # the simulator on the first datum feature's own axis
+        self.theta0, self.v = 0.0, None
+        if rotation == "clocked":
+            L = float(np.linalg.norm(D[1] - D[0]))
+            self.v = np.array([-(D[1] - D[0])[1], (D[1] - D[0])[0]]) / L
+            self.theta0 = math.asin(max(-1.0, min(1.0, float(self.v @ (M[1] - D[0] - self.s0)) / L)))
+        self.reach = max(float(np.max(np.linalg.norm(np.r_[P, D] - D[0], axis=1))), 1.0)
+        self.turns = rotation != "fixed"
+
+    def theta(self, x):
+        return self.theta0 + (x[2] / self.reach if self.turns else 0.0)
+
+    def frame(self, x):
+        return self.D[0] + self.s0 + self.rho[0] * x[:2], _rot(self.theta(x))
+
+    def residuals(self, x):
+        """Each centre's offset from its true position in the placed frame, its smoothed length, the arms."""
+        origin, R = self.frame(x)
+        arms = (self.P - self.D[0]) @ R.T
+        r = self.C - (origin + arms)
+        return r, np.sqrt(np.einsum("ij,ij->i", r, r) + _EPS2), arms
+
+    def excess_jac(self, y):
+        """d/dy of z - (2 |r_i| - b_i - t_i), y = (a, b, w, z)."""
+        r, norm, arms = self.residuals(y[:3])
+        u = r / norm[:, None]
+        out = np.empty((len(r), 4))
+        out[:, :2] = 2.0 * self.rho[0] * u
+        out[:, 2] = 2.0 * (u[:, 0] * -arms[:, 1] + u[:, 1] * arms[:, 0]) / self.reach if self.turns else 0.0
+        out[:, 3] = 1.0
+        return out
+
+    def clock(self, x):
+        """The second datum feature's offset across its clocking direction from the placed frame, mm."""
+        origin, R = self.frame(x)
+        return float(self.v @ (self.M1 - origin - R @ (self.D[1] - self.D[0])))
+
+    def clock_jac(self, y):
+        _, R = self.frame(y[:3])
+        arm = R @ (self.D[1] - self.D[0])
+        return np.r_[-self.rho[0] * self.v, -float(self.v @ np.array([-arm[1], arm[0]])) / self.reach, 0.0]
+
+
+def _constraints(place, values, t):
+    """SLSQP's constraints on y = (a, b, w, z): every excess under z, the shift on its disc, the clocking held."""
+    cons = [{"type": "ineq", "fun": lambda y: y[3] - (values(y[:3]) - t), "jac": place.excess_jac},
+            {"type": "ineq", "fun": lambda y: 1.0 - y[0] ** 2 - y[1] ** 2,
+             "jac": lambda y: np.array([-2.0 * y[0], -2.0 * y[1], 0.0, 0.0])}]
+    rho = place.rho
+    if place.rotation == "clocked" and rho[1] > 0:
+        cons += [{"type": "ineq", "fun": lambda y: rho[1] - place.clock(y[:3]), "jac": lambda y: -place.clock_jac(y)},
+                 {"type": "ineq", "fun": lambda y: rho[1] + place.clock(y[:3]), "jac": place.clock_jac}]
+    elif place.rotation == "clocked":
+        cons.append({"type": "eq", "fun": lambda y: place.clock(y[:3]), "jac": place.clock_jac})
+    return cons
+
+
 def best_shift(nominal, measured, bonus, tolerance, datum_nominal, datum_measured, rho, rotation="clocked"):
     """The frame placement within the datum shift that fits the pattern best.
+
+    The placement minimises the largest excess of a feature's position
+    value over its tolerance (a minimax, solved as SLSQP over the placement
+    and a bound z on the excesses), within the first datum feature's
+    allowance and, clocked, the second's. A placement that does not improve
+    on the unshifted frame is not taken.
 
     Parameters
     ----------
@@ -250,78 +326,29 @@ def best_shift(nominal, measured, bonus, tolerance, datum_nominal, datum_measure
     -------
     ShiftResult
     """
-    P, C = np.asarray(nominal, float), np.asarray(measured, float)
     b, t = np.asarray(bonus, float), np.asarray(tolerance, float)
-    D, M, rho = np.asarray(datum_nominal, float), np.asarray(datum_measured, float), np.asarray(rho, float)
-    s0 = M[0] - D[0]  # the simulator on the first datum feature's own axis
-    theta0 = 0.0
-    if rotation == "clocked":
-        L = float(np.linalg.norm(D[1] - D[0]))
-        v = np.array([-(D[1] - D[0])[1], (D[1] - D[0])[0]]) / L
-        theta0 = math.asin(max(-1.0, min(1.0, float(v @ (M[1] - D[0] - s0)) / L)))
-
-    # The rotation as an arc length over the pattern's reach keeps the
-    # solver's variables alike in scale (mm).
-    reach = max(float(np.max(np.linalg.norm(np.r_[P, D] - D[0], axis=1))), 1.0)
-
-    def theta_of(x):
-        return theta0 + (x[2] / reach if rotation != "fixed" else 0.0)
-
-    def frame(x):
-        return D[0] + s0 + rho[0] * x[:2], _rot(theta_of(x))
-
-    def residuals(x):
-        origin, R = frame(x)
-        arms = (P - D[0]) @ R.T
-        r = C - (origin + arms)
-        return r, np.sqrt(np.einsum("ij,ij->i", r, r) + _EPS2), arms
+    rho = np.asarray(rho, float)
+    place = _Placement(np.asarray(nominal, float), np.asarray(measured, float), np.asarray(datum_nominal, float),
+                       np.asarray(datum_measured, float), rho, rotation)
 
     def values(x):
-        return 2.0 * residuals(x)[1] - b
-
-    def excess_jac(y):
-        # d/dy of z - (2 |r_i| - b_i - t_i); d r_i / d a = -rho_0, d r_i / d w = -J R (n_i - n_0) / reach
-        r, norm, arms = residuals(y[:3])
-        u = r / norm[:, None]
-        out = np.empty((len(r), 4))
-        out[:, :2] = 2.0 * rho[0] * u
-        turns = rotation != "fixed"
-        out[:, 2] = 2.0 * (u[:, 0] * -arms[:, 1] + u[:, 1] * arms[:, 0]) / reach if turns else 0.0
-        out[:, 3] = 1.0
-        return out
-
-    def clock(x):
-        origin, R = frame(x)
-        return float(v @ (M[1] - origin - R @ (D[1] - D[0])))
-
-    def clock_jac(y):
-        _, R = frame(y[:3])
-        arm = R @ (D[1] - D[0])
-        return np.r_[-rho[0] * v, -float(v @ np.array([-arm[1], arm[0]])) / reach, 0.0]
+        return 2.0 * place.residuals(x)[1] - b
 
     x0 = np.zeros(3)
     z0 = float(np.max(values(x0) - t))
-    cons = [{"type": "ineq", "fun": lambda y: y[3] - (values(y[:3]) - t), "jac": excess_jac},
-            {"type": "ineq", "fun": lambda y: 1.0 - y[0] ** 2 - y[1] ** 2,
-             "jac": lambda y: np.array([-2.0 * y[0], -2.0 * y[1], 0.0, 0.0])}]
-    if rotation == "clocked" and rho[1] > 0:
-        cons += [{"type": "ineq", "fun": lambda y: rho[1] - clock(y[:3]), "jac": lambda y: -clock_jac(y)},
-                 {"type": "ineq", "fun": lambda y: rho[1] + clock(y[:3]), "jac": clock_jac}]
-    elif rotation == "clocked":
-        cons.append({"type": "eq", "fun": lambda y: clock(y[:3]), "jac": clock_jac})
     best = x0
     if rho[0] > 0 or (rotation == "clocked" and rho[1] > 0) or rotation == "free":
         res = minimize(lambda y: y[3], np.r_[x0, z0], jac=lambda y: np.array([0.0, 0.0, 0.0, 1.0]), method="SLSQP",
-                       constraints=cons, options={"ftol": 1e-10, "maxiter": 100})
+                       constraints=_constraints(place, values, t), options={"ftol": 1e-10, "maxiter": 100})
         y = res.x[:3].copy()
         y[:2] /= max(1.0, float(np.hypot(y[0], y[1])))  # on the disc, not a rounding outside it
-        held = rotation != "clocked" or abs(clock(y)) <= rho[1] + _FEASIBLE
+        held = rotation != "clocked" or abs(place.clock(y)) <= rho[1] + _FEASIBLE
         if held and np.max(values(y) - t) < z0:
             best = y
-    r = residuals(best)[0]
+    r = place.residuals(best)[0]
     norm = np.linalg.norm(r, axis=1)  # the smoothing was for the solver only
-    return ShiftResult(2.0 * norm - b, 2.0 * norm, 2.0 * np.linalg.norm(residuals(x0)[0], axis=1) - b,
-                       rho[0] * best[:2], float(theta_of(best) - theta0), r)
+    return ShiftResult(2.0 * norm - b, 2.0 * norm, 2.0 * np.linalg.norm(place.residuals(x0)[0], axis=1) - b,
+                       rho[0] * best[:2], float(place.theta(best) - place.theta0), r)
 
 
 def shift_monte_carlo(x, cov, unpack, rng, n, at=None):
