@@ -171,7 +171,7 @@ def fewest_views(candidates, max_views):
 
 def _decided_by_set(candidates, chosen, together):
     """Indices of the characteristics the views ``chosen`` decide, alone or together."""
-    views = [candidates[i] for i in chosen]
+    views = [candidates[i] for i in sorted(chosen)]
     alone = {k for k in range(len(candidates[0].characteristics)) if any(_decides(p, k) for p in views)}
     return alone | (set(together(views)) if len(views) > 1 else set())
 
@@ -325,13 +325,22 @@ def plan_views(predict, start, center, max_views, *, step=30.0, tilts=(0.0, FLIP
         if progress:
             progress(f"predicting candidate view {k} of {len(poses)}: {fp.label}")
         candidates.append(predict(fixture_pose(start, center, fp), fp))
+    memo = {}
+
+    def together(views):
+        # The same set is predicted by the choice's trials and again for the plan: fuse it once.
+        key = tuple(map(id, views))
+        if key not in memo:
+            memo[key] = decided_together(views, inventory)
+        return memo[key]
+
     chosen, complete = fewest_views(candidates, max_views)
     if inventory is not None and max_views > 1:
         if progress:
             progress("choosing the views by what they decide together")
-        chosen = fused_choice(candidates, chosen, max_views, lambda views: decided_together(views, inventory))
+        chosen = fused_choice(candidates, chosen, max_views, together)
     views = [candidates[i] for i in chosen]
-    combined = decided_together(views, inventory) if inventory is not None else {}
+    combined = together(views) if inventory is not None else {}
     decided_by, undecided, out_of_view, together = {}, [], [], {}
     for k, cid in enumerate(c.id for c in candidates[0].characteristics):
         by = [v for v, p in enumerate(views) if _decides(p, k)]
