@@ -350,20 +350,18 @@ def estimate_drift(residuals, variances, along=None, at=None):
     s_all = None if along is None else np.asarray(along, float)
     at = (s_all if at is None else np.asarray(at, float)) if s_all is not None else None
     linear = s_all is not None and keep.sum() >= MIN_ROLL_TANGENCIES and np.ptp(s_all[keep]) > _MIN_REACH
+    coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep] if linear else None)
     if linear:
         again = keep.copy()
-        coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep])
         again[keep] = consistent_tangencies(left, v_all[keep])
         if not again.all() and again.sum() >= MIN_ROLL_TANGENCIES:
             keep = again
             coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep])
-        x = np.array([1.0, float(np.median(at))])
-        value, u2, spread = float(x @ coef), float(x @ cov @ x), abs(coef[1]) * float(np.std(at))
-    else:
-        w = 1.0 / v_all[keep]
-        value = float(np.sum(w * r_all[keep]) / np.sum(w))
-        u2, left, spread = 1.0 / float(np.sum(w)), r_all[keep] - value, 0.0
-        coef, cov = np.array([value, 0.0]), np.diag([u2, 0.0])
+    x = np.array([1.0, float(np.median(at))]) if linear else np.array([1.0])
+    value, u2 = float(x @ coef), float(x @ cov @ x)
+    spread = abs(coef[1]) * float(np.std(at)) if linear else 0.0
+    if not linear:
+        coef, cov = np.r_[coef, 0.0], np.diag([cov[0, 0], 0.0])
     dof = int(keep.sum()) - (2 if linear else 1)
     birge = float(np.sqrt(np.sum(left**2 / v_all[keep]) / dof)) if dof > 0 else 1.0
     enlarge = max(1.0, birge)
@@ -376,9 +374,9 @@ _MIN_REACH = 50.0
 slope to be fitted; closer, it would be read from the rims' own scatter."""
 
 
-def _field_fit(r, v, s):
-    """Weighted least squares ``r = a + b s``: (a, b), their covariance, and what is left of ``r``."""
-    A = np.c_[np.ones(len(s)), s]
+def _field_fit(r, v, s=None):
+    """Weighted least squares ``r = a + b s`` (``r = a`` without ``s``): coefficients, covariance, what is left."""
+    A = np.ones((len(r), 1)) if s is None else np.c_[np.ones(len(s)), s]
     w = 1.0 / v
     cov = np.linalg.inv((A * w[:, None]).T @ A)
     coef = cov @ (A.T @ (w * r))
