@@ -838,7 +838,7 @@ def _view_angle(calib, part_to_camera, geometry):
     return max(out)
 
 
-def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shading=None):
+def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shading=None, form=True):
     """Run one CAD feature through the measurement chain's covariance code.
 
     Parameters
@@ -851,12 +851,18 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     geo : EpipolarGeometry, optional
         Of ``calib`` (computed when not given).
     shading : Shading, optional
+    form : bool
+        Whether a form is judged on the feature's points: then the points'
+        responses to the calibration's uncertainty are computed for the
+        form's Monte Carlo, as the run does (24 re-triangulations of every
+        point where the calibration states its uncertainty).
 
     Returns
     -------
     FeaturePrediction
     """
     from partinspect.cad.edge_sampling import feature_geometry
+    from partinspect.vision.calibration_points import point_responses
     from partinspect.vision.calibration_uncertainty import calibration_responses
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
@@ -930,7 +936,10 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
         # figure holds it per scene (evaluate_characteristic's one_scene).
         fit = dataclasses.replace(fit, param_cov=fit.param_cov - fit.param_cov_systematic,
                                   param_cov_systematic=np.zeros_like(fit.param_cov_systematic))
-    f3 = make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0])
+    # The calibration bends a rim, not only moves it: the form's Monte Carlo
+    # draws the points' responses, as the run's does.
+    P = point_responses(corr, calib) if form and cal.shape[1] else None
+    f3 = make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0], point_response=P)
     return FeaturePrediction(status="measured", record=f3, **base)
 
 
@@ -1059,7 +1068,8 @@ def predict_pose(inventory, scene, calib, part_to_camera, characteristics, *, mo
         wanted |= set(datums)
     # Every non-smooth feature takes part in the registration, as in a real run.
     todo = [f for f in inventory.features if f.id in wanted or not f.smooth]
-    features = {f.id: predict_feature(f, scene, calib, P, model, geo, shading) for f in todo}
+    formed = {fid for c in characteristics if c.type in ("straightness", "circularity", "profile") for fid in c.features}
+    features = {f.id: predict_feature(f, scene, calib, P, model, geo, shading, f.id in formed) for f in todo}
     measured = [fp for fp in features.values() if fp.measured]
     circles = [fp for fp in measured if fp.kind != "line"]
     lines = [fp for fp in measured if fp.kind == "line"]

@@ -197,3 +197,30 @@ def test_rim_ends_where_a_third_edge_meets_it(plate, rig, radiance):
     # Three junctions per image, and two more gaps in all where points lie beside another edge's image
     # (predict._clear_of_others), each found in the chain's points as well.
     assert n_gaps == 2 * 3 + 2, n_gaps
+
+
+def test_form_prediction_draws_the_calibrations_bend_as_the_run_does(plate, rig):
+    """A stated calibration bends a rim, not only moves it: the run's form
+    Monte Carlo draws each point's response to it, and the plan's
+    prediction of the same rim carries the same responses (it carried none,
+    so a plan under a calibration with stated uncertainty predicted forms
+    from the noise and the rim's Type B alone)."""
+    from partinspect.planning.predict import predict_feature
+    from partinspect.simulate.calibration import simulated_calibration
+    from partinspect.vision.calibration_points import point_responses
+
+    stated = simulated_calibration(rig, np.random.default_rng(0))
+    f = next(f for f in plate.inv.features if f.id == "circle-4")
+    rec = predict_feature(f, plate.scene, stated, plate.pose(rig), DetectorModel()).record
+    P = rec.point_errors.calibration
+    assert P is not None and P.shape == (len(rec.correspondences.points), 3, 24)
+    assert np.allclose(P, point_responses(rec.correspondences, stated))
+    # Mostly a common motion of the rim (the fit's parameters carry it); what
+    # varies from point to point (about 16 um RMS here) is what the form sees.
+    whole, varying = (float(np.sqrt(np.mean(np.sum(x**2, axis=(1, 2))))) for x in (P, P - P.mean(axis=0)))
+    assert 1e-3 < varying < 0.1 * whole
+    # Only where a form is judged (the cost is 24 re-triangulations per point).
+    lean = predict_feature(f, plate.scene, stated, plate.pose(rig), DetectorModel(), form=False).record
+    assert lean.point_errors.calibration is None
+    exact = predict_feature(f, plate.scene, rig, plate.pose(rig), DetectorModel()).record
+    assert exact.point_errors.calibration is None
