@@ -23,7 +23,8 @@ What it prints, as tables that can be quoted:
 
 - internal errors: an exit code other than 0, 1, 2 or 3, or a traceback or
   ``internal error`` on stderr; exit 2 with one clear line is a handled
-  outcome and is listed with its line;
+  outcome and is listed with its line; a command stopped from outside
+  (killed, interrupted) is named, not counted, and run again next time;
 - non-finite numbers in any JSON output (the features' ``--json``,
   ``plan.json``, ``best_pose.json``, ``truth.json``, ``report.json``), read
   by a strict parser that takes ``NaN``/``Infinity`` as a finding, with
@@ -79,6 +80,9 @@ PLATE = ROOT / "examples" / "plate" / "part.step"
 NIST_DIRS = [Path("/work/shared/data/step"), ROOT / "tests" / "data" / "step"]
 NOISE = 2.0
 HANDLED = {0, 1, 2, 3}
+# Exit statuses of a command stopped from outside (kill, a terminal's
+# interrupt): not the command's own fault, and not kept for reuse.
+STOPPED = {-9, -15, -2}
 
 
 # ------------------------------------------------------------------- JSON
@@ -144,7 +148,7 @@ def run_command(argv, folder, timeout, stdout_json=None):
     done = folder / "result.json"
     if done.is_file():
         res = json.loads(done.read_text())
-        if _key(res["argv"]) == _key(argv):
+        if _key(res["argv"]) == _key(argv) and res["rc"] not in STOPPED:
             return res
     folder.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PARTINSPECT_PROGRESS": "1", "PYTHONPATH": str(ROOT)}
@@ -159,13 +163,15 @@ def run_command(argv, folder, timeout, stdout_json=None):
         out, err = (out.decode() if isinstance(out, bytes) else out), (err.decode() if isinstance(err, bytes) else err)
     seconds = time.perf_counter() - t0
     lines = [ln for ln in err.splitlines() if not _STAGE.match(ln)]
-    internal = rc is not None and (rc not in HANDLED or "Traceback" in err or "internal error" in err)
-    res = {"argv": _key(argv), "rc": rc, "seconds": seconds, "timeout": rc is None,
+    stopped = rc in STOPPED
+    internal = rc is not None and not stopped and (rc not in HANDLED or "Traceback" in err or "internal error" in err)
+    res = {"argv": _key(argv), "rc": rc, "seconds": seconds, "timeout": rc is None, "stopped": stopped,
            "internal": internal, "stderr": "\n".join(lines[-30:]), "stages": stages(err, seconds),
            "nonfinite": [], "bad_json": []}
     if stdout_json is not None and rc == 0:
         (folder / stdout_json).write_text(out)
-    (folder / "result.json").write_text(json.dumps(res, indent=1))
+    if not stopped:
+        (folder / "result.json").write_text(json.dumps(res, indent=1))
     return res
 
 
@@ -379,6 +385,8 @@ def summarise(results):
     """Print the tables; return the number of findings (internal errors, non-finite numbers, silent characteristics)."""
     by_cmd = {}
     for r in results:
+        if r["rc"] in STOPPED:  # results kept before stopped commands were told apart
+            r["stopped"], r["internal"] = True, False
         by_cmd.setdefault((r["kind"] == "nist", r["command"]), []).append(r)
     print(f"\n=== partinspect robustness run: {len({r['part'] for r in results})} parts, {len(results)} commands ===\n")
     rows = []
@@ -411,6 +419,10 @@ def summarise(results):
     timeouts = [r for r in results if r["timeout"]]
     for r in timeouts:
         print(f"TIMEOUT {r['part']} {r['command']} after {r['seconds']:.0f} s")
+    for r in results:
+        if r.get("stopped"):
+            print(f"STOPPED FROM OUTSIDE {r['part']} {r['command']} (exit {r['rc']}) after {r['seconds']:.0f} s: "
+                  "not counted, run again next time")
     print()
 
     # The slowest stage of each part.
