@@ -478,13 +478,15 @@ def evaluate(inputs, m, progress):
 
 
 def _at_band_places(characteristics, inputs, m, progress):
-    """Broken rims measured at their predicted band places (:mod:`.vision.band_place`), registered again.
+    """Broken rims and lines measured at their predicted band places (:mod:`.vision.band_place`,
+    :mod:`.vision.line_band`), registered again.
 
     Only where the spec states an edge break. A rim refitted with its
     points moved onto the sharp rim's image measures the wall; one that
     could not be keeps its fit and has its size corrected by the place
     (``Characteristic.band_place``); one whose place cannot be predicted
-    keeps the uniform band.
+    keeps the uniform band. Lines alike: moved onto the sharp edge's image
+    where their place is predicted better than the uniform band.
 
     Returns
     -------
@@ -495,25 +497,69 @@ def _at_band_places(characteristics, inputs, m, progress):
     from partinspect.vision.band_place import band_place, rims_at_sharp_edge
 
     rims = broken_rims(characteristics, inputs.inv, m.registration.part_to_camera)
-    if not rims:
+    if not rims and m.stereo.edge_break is None:
         return characteristics, m
-    progress(f"predicting where {len(rims)} broken rim(s) show their edge")
     widths = tuple(float(np.median(side.edges.width)) for side in (m.stereo.left, m.stereo.right))
-    with inputs.timings.stage("edge-break band places"):
-        places = {fid: band_place((inputs.left, inputs.right), inputs.calib, m.registration.part_to_camera, *rim,
-                                  width=widths) for fid, rim in rims.items()}
-        places = {fid: p for fid, p in places.items() if p is not None}
-        arcs = m.registration.cad_ids(m.stereo.features, "circle")
-        stereo, refitted = rims_at_sharp_edge(m.stereo, inputs.calib, m.registration.part_to_camera, arcs,
-                                              {fid: (p, rims[fid]) for fid, p in places.items()})
-    if refitted:
-        progress(f"{len(refitted)} broken rim(s) measured at their predicted place")
+    stereo, refitted, places = m.stereo, set(), {}
+    if rims:
+        progress(f"predicting where {len(rims)} broken rim(s) show their edge")
+        with inputs.timings.stage("edge-break band places"):
+            places = {fid: band_place((inputs.left, inputs.right), inputs.calib, m.registration.part_to_camera, *rim,
+                                      width=widths) for fid, rim in rims.items()}
+            places = {fid: p for fid, p in places.items() if p is not None}
+            arcs = m.registration.cad_ids(stereo.features, "circle")
+            stereo, refitted = rims_at_sharp_edge(stereo, inputs.calib, m.registration.part_to_camera, arcs,
+                                                  {fid: (p, rims[fid]) for fid, p in places.items()})
+        if refitted:
+            progress(f"{len(refitted)} broken rim(s) measured at their predicted place")
+    stereo, lines = _lines_at_band_places(stereo, inputs, m.registration, widths, progress)
+    if refitted or lines:
         try:
             with inputs.timings.stage("registering"):
                 m = replace(m, stereo=stereo, registration=_register(stereo, inputs, m.registration.poses))
         except InputError:
             pass
     return with_band_places(characteristics, places), m
+
+
+def _lines_at_band_places(stereo, inputs, registration, widths, progress):
+    """The measured broken lines moved onto their sharp edges' images (:mod:`.vision.line_band`), where predicted."""
+    from partinspect.tolerances.edge_break import broken_lines
+    from partinspect.vision.line_band import BrokenLine, line_places, lines_at_sharp_edge
+
+    eb = inputs.resolved.spec.edge_break
+    if eb is None or stereo.edge_break is None:
+        return stereo, set()
+    matched = registration.cad_ids(stereo.features, "line")
+    lines = {cid: BrokenLine(*t) for cid, t in broken_lines(inputs.inv, inputs.model.mesh, set(matched.values()),
+                                                             eb.min, eb.max).items()}
+    if not lines:
+        return stereo, set()
+    progress(f"predicting where {len(lines)} broken line(s) show their edge")
+    uv = {cid: (stereo.left.features[stereo.features[k].left].uv, stereo.right.features[stereo.features[k].right].uv)
+          for k, cid in matched.items() if cid in lines}
+    images = (inputs.left, inputs.right)
+    with inputs.timings.stage("edge-break line places"):
+        # First at the pose registered on the apparent steps, without the misfit that pose's own
+        # displacement would put in; then the misfit read at the pose registered on the moved lines.
+        places = line_places(images, inputs.calib, registration.part_to_camera, lines, widths, uv, misfit=False)
+        moved, refitted = lines_at_sharp_edge(stereo, inputs.calib, registration.part_to_camera, matched, lines,
+                                              places, stereo.edge_break)
+    if not refitted:
+        return stereo, refitted
+    try:
+        with inputs.timings.stage("registering"):
+            registration = _register(moved, inputs, registration.poses)
+    except InputError:
+        return stereo, set()
+    matched = registration.cad_ids(stereo.features, "line")
+    with inputs.timings.stage("edge-break line places"):
+        places = line_places(images, inputs.calib, registration.part_to_camera, lines, widths, uv)
+        stereo, refitted = lines_at_sharp_edge(stereo, inputs.calib, registration.part_to_camera, matched, lines,
+                                               places, stereo.edge_break)
+    if refitted:
+        progress(f"{len(refitted)} broken line(s) measured at their predicted place")
+    return stereo, refitted
 
 
 def _judged_across_poses(characteristics, decisions, registration, inputs, progress):

@@ -467,4 +467,6 @@ def test_a_stated_edge_break_has_its_band_place_predicted_on_the_rims_seen_from_
             assert eb["standard_uncertainty"] == pytest.approx(0.0, abs=1e-6) and eb["correction"] == 0.0
             assert U[f] < 0.5 * 0.2 / np.sqrt(3)
     assert "circle-3" not in placed  # the bottom rim, seen through its hole: the wall's own silhouette
-    assert "edge-break band places" in {t["stage"] for t in report["timings"]["stages"]}
+    stages = {t["stage"] for t in report["timings"]["stages"]}
+    assert "edge-break band places" in stages
+    assert "edge-break line places" in stages  # the lines' places too (vision.line_band)

@@ -37,8 +37,8 @@ from dataclasses import replace
 
 import numpy as np
 
-__all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms", "broken_rims", "with_band_places",
-           "cylinder_side", "seen_from_its_face"]
+__all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms", "broken_rims", "broken_lines",
+           "with_band_places", "cylinder_side", "seen_from_its_face"]
 
 
 def band_offset(b_min, b_max, place=None):
@@ -171,6 +171,73 @@ def broken_rims(characteristics, inventory, part_to_camera):
             if len(planes) == 1 and len(walls) == 1 and seen_from_its_face(inventory, s.features[0], part_to_camera):
                 out[s.features[0]] = (np.asarray(f.center, float), np.asarray(planes[0].normal, float),
                                       float(f.radius), not walls[0].convex, 0.5 * sum(s.edge_break))
+    return out
+
+
+def _inward(mesh, label, start, end):
+    """Unit vector from a straight edge into one of its faces, perpendicular to it: None if the mesh has no such triangle.
+
+    The face's triangles with two vertices on the edge have their third on
+    the face's side of it.
+    """
+    e = (end - start) / np.linalg.norm(end - start)
+    tri = mesh.faces[np.asarray(mesh.face_attributes["cad_face"]) == label]
+    if not len(tri):
+        return None
+    v = np.asarray(mesh.vertices)[tri]  # (T, 3, 3)
+    rel = v - start
+    off = rel - np.einsum("tvk,k->tv", rel, e)[..., None] * e
+    on = np.linalg.norm(off, axis=2) < 1e-6 * max(1.0, float(np.linalg.norm(end - start)))
+    pick = on.sum(axis=1) == 2
+    if not pick.any():
+        return None
+    t = off[pick][~on[pick]]
+    t = t / np.linalg.norm(t, axis=1, keepdims=True)
+    mean = t.mean(axis=0)
+    return mean / np.linalg.norm(mean)
+
+
+def broken_lines(inventory, mesh, line_ids, b_min, b_max):
+    """The straight edges whose break :mod:`partinspect.vision.line_band` can predict: convex, between two planes.
+
+    Parameters
+    ----------
+    inventory : partinspect.cad.features.Inventory
+    mesh : trimesh.Trimesh
+        The part's mesh with ``face_attributes["cad_face"]``
+        (:func:`partinspect.cad.mesh.tessellate`).
+    line_ids : iterable of str
+        The CAD lines wanted (those measured).
+    b_min, b_max : float
+        The stated edge break, mm.
+
+    Returns
+    -------
+    dict of str to tuple
+        Line id -> ``(start, end, (face1, face2), (n1, n2), (t1, t2),
+        size)``: end points, the faces' ids, their outward unit normals and
+        the unit vectors from the edge into each face (part frame), the
+        break's expected size ``(min + max) / 2``, mm. Only edges whose
+        faces meet at a crease and turn away from each other (``t1 . n2 <
+        0``: an external edge, which ISO 13715 breaks by removing material).
+    """
+    labels = {f.id: i for i, f in enumerate(inventory.faces)}
+    out = {}
+    for cid in line_ids:
+        f = inventory[cid]
+        if f.kind != "line" or f.smooth or len(f.faces) != 2:
+            continue
+        planes = [inventory[fid] for fid in f.faces if fid in inventory]
+        if len(planes) != 2 or any(p.surface != "plane" for p in planes):
+            continue
+        start, end = np.asarray(f.start, float), np.asarray(f.end, float)
+        inward = [_inward(mesh, labels[p.id], start, end) for p in planes]
+        if any(t is None for t in inward):
+            continue
+        n1, n2 = (np.asarray(p.normal, float) for p in planes)
+        if not (inward[0] @ n2 < -0.05 and inward[1] @ n1 < -0.05):
+            continue
+        out[cid] = (start, end, tuple(p.id for p in planes), (n1, n2), tuple(inward), 0.5 * (b_min + b_max))
     return out
 
 

@@ -78,7 +78,8 @@ from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.matching import Match
 from partinspect.vision.stereo import measure_pair_feature
 
-__all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "band_place", "rims_at_sharp_edge"]
+__all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "observed_place", "band_place",
+           "rims_at_sharp_edge"]
 
 FINE_ANGLES = 720
 """Angles at which the sharp rim's image is sampled to give each edge point its angle."""
@@ -355,7 +356,7 @@ class _SeenBand:
     reads : ndarray, shape (k, 2)
         The grey read beyond the face's end and past the band's visible end.
     observed : ndarray, shape (k,)
-        The image's own steepest place there (:func:`_observed_place`), px.
+        The image's own steepest place there (:func:`observed_place`), px.
     w_face, w_wall : ndarray, shape (n,)
         The section's normal weights (:func:`rim_section`).
     """
@@ -392,7 +393,7 @@ def _seen_band(rim, image, cam, theta, shape, width):
         index.append(i)
         us.append(u)
         reads.append(_read(image, uv0[i] + np.array([u[0] + out, u[-1] - out])[:, None] * d[i]))
-        observed.append(_observed_place(image, uv0[i], d[i], min(u[0], u[-1]) - width, max(u[0], u[-1]) + width))
+        observed.append(observed_place(image, uv0[i], d[i], min(u[0], u[-1]) - width, max(u[0], u[-1]) + width))
     return _SeenBand(np.array(index, int), tuple(us), np.reshape(reads, (-1, 2)), np.array(observed, float), wf, ww)
 
 
@@ -424,12 +425,28 @@ def _image_places(seen, theta, light, width):
     return places
 
 
-def _observed_place(image, origin, direction, lo, hi, step=0.05):
+def observed_place(image, origin, direction, lo, hi, step=0.05):
     """The steepest place of the image's own profile between ``lo`` and ``hi`` px along ``direction``.
 
     The profile is read at ``step`` px and smoothed by the detector's
     derivative filter (a Gaussian of 1 px): where the detector finds the
     step, read without its chaining, to check the prediction against.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+        Grey levels, float.
+    origin : ndarray, shape (2,)
+        The sharp edge's image point, distorted px.
+    direction : ndarray, shape (2,)
+        Unit image direction across the edge.
+    lo, hi : float
+        The window along ``direction``, px from ``origin``.
+
+    Returns
+    -------
+    float
+        px from ``origin`` along ``direction``.
     """
     x = np.arange(lo - 4.0, hi + 4.0, step)
     prof = gaussian_filter1d(_read(image, origin + x[:, None] * direction), 1.0 / step, mode="nearest")

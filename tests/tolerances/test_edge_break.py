@@ -138,3 +138,30 @@ def test_a_predicted_band_place_reaches_the_size_and_its_bonus_and_narrows_it(pl
     assert abs(uniform.measured - 12.0) > 0.03  # the uniform band's mean, s = 0.5, is 0.04 mm off here
     assert predicted.details["edge_break"]["standard_uncertainty"] < 0.3 * uniform.details["edge_break"]["standard_uncertainty"]
     assert predicted.details["edge_break"]["band_place"] == "predicted from the light on the part"
+
+
+def test_only_external_straight_edges_between_planes_are_broken_lines():
+    import cadquery as cq
+
+    from partinspect.cad.features import inventory
+    from partinspect.cad.mesh import tessellate
+    from partinspect.tolerances.edge_break import broken_lines
+
+    # An L-shaped block, a hole notching one corner: a step cut out of another leaves one internal
+    # (concave) edge, along y at x = 5, z = 5; the notch's straight edges bound a cylinder.
+    shape = cq.Workplane("XY").box(10, 10, 10, centered=False).cut(
+        cq.Workplane("XY").box(5, 10, 5, centered=False).translate((5, 0, 5))).faces("<Z").workplane().hole(2).val()
+    inv = inventory(shape)
+    lines = broken_lines(inv, tessellate(shape, inventory=inv), [f.id for f in inv.features], 0.1, 0.3)
+    all_lines = [f for f in inv.features if f.kind == "line"]
+    internal = [f.id for f in all_lines if np.allclose(f.start[[0, 2]], 5.0) and np.allclose(f.end[[0, 2]], 5.0)]
+    assert len(internal) == 1 and internal[0] not in lines
+    planar = {f.id for f in all_lines if all(inv[x].surface == "plane" for x in f.faces)}
+    assert len(planar) == len(all_lines) - 2
+    assert set(lines) == planar - set(internal)
+    for start, end, faces, (n1, n2), (t1, t2), size in lines.values():
+        # the inward directions lie in their faces, across the edge, each turned from the other face
+        e = end - start
+        assert abs(t1 @ e) < 1e-9 and abs(t1 @ n1) < 1e-9 and t1 @ n2 < 0
+        assert abs(t2 @ e) < 1e-9 and abs(t2 @ n2) < 1e-9 and t2 @ n1 < 0
+        assert size == pytest.approx(0.2)

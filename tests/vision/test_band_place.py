@@ -162,7 +162,7 @@ def test_the_band_is_read_once_per_shape_for_every_light(broken_pair, monkeypatc
 
     shape, light, calib, pose, images = broken_pair
     calls = {"fit": 0, "observed": 0}
-    fit, observed = module.fit_circle_3d, module._observed_place
+    fit, observed = module.fit_circle_3d, module.observed_place
 
     def counted(name, func):
         def call(*args, **kwargs):
@@ -171,7 +171,7 @@ def test_the_band_is_read_once_per_shape_for_every_light(broken_pair, monkeypatc
         return call
 
     monkeypatch.setattr(module, "fit_circle_3d", counted("fit", fit))
-    monkeypatch.setattr(module, "_observed_place", counted("observed", observed))
+    monkeypatch.setattr(module, "observed_place", counted("observed", observed))
     widths = tuple(float(np.median(edge_points(im, noise=0.5).width)) for im in images)
     place = band_place(images, calib, pose, [HOLE[0], HOLE[1], PLATE[2]], [0, 0, 1.0], HOLE[2], True, BREAK, widths)
     assert place is not None
