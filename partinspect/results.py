@@ -56,6 +56,7 @@ def registration_entry(reg, datum_reference=None):
         "outliers": [{"feature": fid, "chi2": round(float(c2), 3), "residuals": int(n)}
                      for fid, (c2, n) in sorted(reg.outliers.items())],
         "pose_covariance": mat(reg.pose_cov),
+        "pose_covariance_scale": round(float(reg.pose_cov_scale), 6),
         "rotation_std_deg": vec(np.degrees(std[:3]), 9),
         "translation_std": vec(std[3:], 9),
         "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
