@@ -213,6 +213,7 @@ def view_entry(name, folder, registration, fused, index, problem=None):
         translation_std=vec(registration.pose_std[3:], 9),
         rms=round(float(registration.rms), 9),
         weighted_rms=round(float(registration.weighted_rms), 6),
+        pose_covariance_scale=round(float(registration.pose_cov_scale), 6),
         features_measured=len(set(ids)),
         features=sorted(set(ids)),
         features_combined=sorted(fid for fid, f in fused.items() if index in f.views),

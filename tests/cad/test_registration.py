@@ -324,6 +324,9 @@ def test_pose_covariance_carries_a_misfit_beyond_chance(scene):
         d2.append(e @ np.linalg.solve(reg.pose_cov, e))
         scales.append(reg.pose_cov_scale)
     assert np.all(np.array(scales) > 30)
+    from partinspect.results import registration_entry
+
+    assert registration_entry(reg)["pose_covariance_scale"] == pytest.approx(reg.weighted_rms ** 2, rel=1e-5)
     coverage = np.mean(np.array(d2) <= stats.chi2.ppf(0.95, 6))
     assert coverage >= 0.8 and np.mean(d2) < 12, (coverage, np.mean(d2))
     honest = measure_features(inv, T, ids, np.random.default_rng(22), n_points=0)
