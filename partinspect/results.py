@@ -56,6 +56,7 @@ def registration_entry(reg, datum_reference=None):
         "outliers": [{"feature": fid, "chi2": round(float(c2), 3), "residuals": int(n)}
                      for fid, (c2, n) in sorted(reg.outliers.items())],
         "pose_covariance": mat(reg.pose_cov),
+        "pose_covariance_scale": round(float(reg.pose_cov_scale), 6),
         "rotation_std_deg": vec(np.degrees(std[:3]), 9),
         "translation_std": vec(std[3:], 9),
         "frame": "pose error xi = (rotation vector [rad], translation [mm]) in the part frame",
@@ -212,6 +213,7 @@ def view_entry(name, folder, registration, fused, index, problem=None):
         translation_std=vec(registration.pose_std[3:], 9),
         rms=round(float(registration.rms), 9),
         weighted_rms=round(float(registration.weighted_rms), 6),
+        pose_covariance_scale=round(float(registration.pose_cov_scale), 6),
         features_measured=len(set(ids)),
         features=sorted(set(ids)),
         features_combined=sorted(fid for fid, f in fused.items() if index in f.views),

@@ -14,9 +14,16 @@ Radii carry no pose information. Pose: ``T_hat = T_true @ D(xi)``,
 ``D(xi) = [[Rot(w), v], [0, 1]]``, ``xi = (w, v)``: a rotation vector (rad)
 and a translation (mm) in the part frame. Its covariance is ``(J^T J)^-1``
 with ``J`` the whitened Jacobian, i.e. ``(J^T Sigma^-1 J)^-1`` [1]_ (plus
-the calibration's part, below), first order and not scaled by the
-chi-square, which is reported instead so that a model mismatch is seen
-rather than hidden in an inflated covariance.
+the calibration's part, below), first order. The chi-square is reported,
+so that a model mismatch is seen; when it is beyond what its degrees of
+freedom allow by chance (``MISFIT_P``), the features scatter about the
+model more than their covariances say, and the pose's covariance from
+them, ``(J^T J)^-1``, is multiplied by ``chi2 / dof``, the Birge ratio
+squared [3]_ (the GUM's Type A practice of taking the spread from the
+residuals [2]_): a pose fitted to features that disagree beyond their
+stated covariances is not known as well as those covariances alone say.
+Within chance it is left as it is, so the misfit's own sampling spread
+does not move an honest registration's uncertainty.
 Without named datums, features whose residuals are beyond chance
 (``OUTLIER_P``) are left out, worst first, at most a quarter of them (a
 robust best fit).
@@ -47,7 +54,13 @@ References
 .. [1] Hartley, R., & Zisserman, A. (2004). Multiple View Geometry in
        Computer Vision, 2nd ed., section 5.2 (covariance by
        back-propagation, ``(J^T Sigma^-1 J)^-1``).
-.. [2] JCGM 100:2008 (GUM), section 5.2: correlated input quantities.
+.. [2] JCGM 100:2008 (GUM), section 5.2: correlated input quantities;
+       section 4.2: Type A evaluation from the observed scatter.
+.. [3] Birge, R. T. (1932). The calculation of errors by the method of
+       least squares. Phys. Rev. 40, 207-227; as applied by CODATA:
+       Mohr, P. J., Newell, D. B., Taylor, B. N. (2016). CODATA
+       recommended values of the fundamental physical constants: 2014.
+       Rev. Mod. Phys. 88, 035009, appendix E.
 """
 
 from __future__ import annotations
@@ -66,7 +79,9 @@ __all__ = [
     "solve_pose",
     "pose_error",
     "pose_matrix",
+    "misfit_scale",
     "OUTLIER_P",
+    "MISFIT_P",
     "COST_TOL",
 ]
 
@@ -80,6 +95,13 @@ still assigned and measured against the pose the others give. Such a
 feature (one edge paired with a different edge in the other image, or a
 hole moved on the part) would otherwise pull the pose and with it every
 other feature."""
+MISFIT_P = 1e-3
+"""A registration's chi-square whose chance on its degrees of freedom is
+below this is a misfit beyond chance, and the pose covariance carries it
+(:func:`misfit_scale`). The same level as the fusion's view test
+(:data:`partinspect.tolerances.fusion.VIEW_P`): a view whose features
+misfit its own pose this much would be refused there if its pose's
+covariance ignored it."""
 COST_TOL = 1e-10
 """The pose refinement has converged when a Gauss-Newton step would lower
 the chi-square by less than this fraction of it (``|J step|^2``; the
@@ -347,6 +369,41 @@ def _refine(T, circles, lines, meas, cad, datum_set, left_out):
     return T, circ, lin, fc, fl, problem, J, r
 
 
+def misfit_scale(chi2, dof, p=MISFIT_P):
+    """The factor the pose covariance's feature part is multiplied by: ``chi2 / dof`` beyond chance, else 1.
+
+    Parameters
+    ----------
+    chi2 : float
+        The registration's chi-square, against the whitened residuals'
+        covariance (:func:`calibration_left`).
+    dof : int
+        Its degrees of freedom (residuals less the pose's 6).
+    p : float
+        Chance below which the chi-square is a misfit (``MISFIT_P``).
+
+    Returns
+    -------
+    float
+        ``chi2 / dof`` (the Birge ratio squared) when the chi-square's
+        upper tail probability is below ``p``; 1 otherwise, and with no
+        degrees of freedom (nothing to judge the fit by).
+
+    Notes
+    -----
+    Birge's ratio ``sqrt(chi2 / dof)`` scales a least-squares estimate's
+    standard uncertainties when the data scatter beyond their stated
+    uncertainties by a common factor; the test keeps it from moving a fit
+    whose chi-square is within chance, where ``chi2 / dof`` scatters about
+    1 by ``sqrt(2 / dof)``.
+    """
+    from scipy.special import chdtrc
+
+    if dof < 1 or not np.isfinite(chi2) or chdtrc(dof, chi2) >= p:
+        return 1.0
+    return max(1.0, float(chi2) / dof)
+
+
 def calibration_left(J, U):
     """``V = (I - J (J^T J)^-1 J^T) U``: the calibration's shared error in the whitened residuals that the pose cannot take up."""
     if U.shape[1] == 0:
@@ -397,7 +454,8 @@ def solve_pose(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
     -------
     dict
         ``T`` (refined pose), ``cov`` (6x6 pose covariance, the calibration's
-        part included), ``J`` (whitened Jacobian), ``JA`` (``J (J^T J)^-1``:
+        part included, the features' part times ``cov_scale``,
+        :func:`misfit_scale`), ``J`` (whitened Jacobian), ``JA`` (``J (J^T J)^-1``:
         the pose's sensitivity to the whitened residuals is ``-JA^T``),
         ``U`` (the whitened residuals' calibration part, rows of J by q),
         ``rows`` ((kind, index) -> (rows of J, M, L)), ``chi2`` (against the
@@ -432,9 +490,12 @@ def solve_pose(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
     A = np.linalg.inv(J.T @ J)
     A = 0.5 * (A + A.T)
     H = -A @ (J.T @ problem.U)
-    cov = A + H @ H.T
     V = calibration_left(J, problem.U)
     chi2 = float(np.sum(decorrelator(V)(r) ** 2))
+    dof = int(r.size - 6)
+    # The calibration's part leaves no residual to judge it by: only the features' own part is scaled.
+    scale = misfit_scale(chi2, dof)
+    cov = scale * A + H @ H.T
     rows, start = {}, 0
     for kind, index, n, M, L, _ in problem.items:
         rows[(kind, index)] = (slice(start, start + n), M, L)
@@ -449,7 +510,8 @@ def solve_pose(T, circles, lines, meas, cad, datum_set, exclude_outliers=False):
         "U": problem.U,
         "rows": rows,
         "chi2": chi2,
-        "dof": int(r.size - 6),
+        "dof": dof,
+        "cov_scale": scale,
         "rms": float(np.sqrt(np.mean(raw**2))) if raw.size else 0.0,
         "circ": circ,
         "lin": lin,

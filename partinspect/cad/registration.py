@@ -146,6 +146,11 @@ class Registration:
     chi2 : float
     dof : int
         Number of scalar residuals minus 6.
+    pose_cov_scale : float
+        The factor the features' part of ``pose_cov`` carries for a misfit
+        beyond chance: ``chi2 / dof`` (``weighted_rms`` squared, the Birge
+        ratio squared) when ``chi2`` is beyond chance on ``dof``, else 1
+        (:func:`partinspect.cad.pose_refine.misfit_scale`).
     n_hypotheses : int
         Pose hypotheses scored.
     outliers : dict
@@ -177,6 +182,7 @@ class Registration:
     chi2: float
     dof: int
     n_hypotheses: int = 0
+    pose_cov_scale: float = 1.0
     outliers: dict = field(default_factory=dict)
     symmetry: str = ""
     competing: tuple = ()
@@ -517,6 +523,7 @@ def _registration(r, cad, circles, lines, n_hypotheses, symmetry="", competing=(
         chi2=r["chi2"],
         dof=r["dof"],
         n_hypotheses=n_hypotheses,
+        pose_cov_scale=r["cov_scale"],
         outliers=r["outliers"],
         symmetry=symmetry,
         competing=competing,

@@ -215,7 +215,8 @@ def registration_summary(reg):
            "outliers": [o for o in reg.get("outliers") or [] if isinstance(o, dict)], "translation": None,
            "rotation_deg": None, "axis": None, "translation_std": _vec3(reg.get("translation_std")),
            "rotation_std_deg": _vec3(reg.get("rotation_std_deg")),
-           "datum_reference": _datum_reference(reg.get("datum_reference"))}
+           "datum_reference": _datum_reference(reg.get("datum_reference")),
+           "pose_covariance_scale": reg.get("pose_covariance_scale")}
     T = reg.get("part_to_camera")
     try:
         R = [[float(T[i][j]) for j in range(3)] for i in range(3)]
@@ -227,7 +228,7 @@ def registration_summary(reg):
         out["axis"] = [v / n for v in ax] if n > 1e-12 else None
     except (TypeError, IndexError, ValueError):
         pass
-    for k in ("rms", "weighted_rms", "chi2", "dof"):
+    for k in ("rms", "weighted_rms", "chi2", "dof", "pose_covariance_scale"):
         if not _finite(out[k]):
             out[k] = None
     return out

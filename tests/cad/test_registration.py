@@ -305,6 +305,35 @@ def test_refinement_converges_when_the_features_scatter_beyond_their_covariances
     assert e @ np.linalg.solve(s2 * reg.pose_cov, e) < 25.7  # chi-square(6), p = 2e-4
 
 
+def test_pose_covariance_carries_a_misfit_beyond_chance(scene):
+    # Features scattered 10 times as far as their covariances say, all named
+    # datums (none left out): the pose error is some 10 of the unscaled
+    # covariance's standard deviations. The Birge ratio carried in the
+    # covariance covers it; an honest draw's covariance is not scaled.
+    _, inv, T, ids = scene
+    rng = np.random.default_rng(21)
+    d2, scales = [], []
+    for _ in range(20):
+        m = measure_features(inv, T, ids, rng, n_points=0, lateral=0.02, depth=0.08)
+        circles = [replace(c, covariance=c.covariance / 100, normal_cov=c.normal_cov / 100, radius_std=c.radius_std / 10)
+                   for c in m.circles]
+        lines = [replace(ln, covariance=ln.covariance / 100, direction_cov=ln.direction_cov / 100) for ln in m.lines]
+        reg = register(circles, lines, inv, datums=ids, pose_hint=T)
+        assert reg.pose_cov_scale == pytest.approx(reg.weighted_rms ** 2)
+        e = pose_error(reg.part_to_camera, T)
+        d2.append(e @ np.linalg.solve(reg.pose_cov, e))
+        scales.append(reg.pose_cov_scale)
+    assert np.all(np.array(scales) > 30)
+    from partinspect.results import registration_entry
+
+    assert registration_entry(reg)["pose_covariance_scale"] == pytest.approx(reg.weighted_rms ** 2, rel=1e-5)
+    coverage = np.mean(np.array(d2) <= stats.chi2.ppf(0.95, 6))
+    assert coverage >= 0.8 and np.mean(d2) < 12, (coverage, np.mean(d2))
+    honest = measure_features(inv, T, ids, np.random.default_rng(22), n_points=0)
+    reg = register(honest.circles, honest.lines, inv, datums=ids, pose_hint=T)
+    assert reg.pose_cov_scale == 1.0 and reg.weighted_rms < 1.6
+
+
 def _datum_line_off(inv, ids):
     """The scene's first line and a shift of 0.3 mm across it, mm."""
     lid = next(i for i in ids if inv[i].kind == "line")
