@@ -485,6 +485,73 @@ def clear_arc_ends(stereo, calib, arcs, images, *, meets=None, min_points=12):
                    features=tuple(feats)), cleared
 
 
+def rims_along(stereo, unmatched, rims, images):
+    """Unmatched measured arcs that lie along a CAD rim's image in both images: index -> that rim's CAD id.
+
+    A rim crowded by another edge near the ends of its visible arc is
+    pushed off there (:func:`clear_arc_ends`), and a short arc's centre and
+    radius follow its ends: the circle can come out further from its CAD
+    rim than the registration's gates allow, so it is left unmatched and
+    never cleared. Its image points still lie on the rim's image, within
+    the crowding's fraction of a px. An arc is taken as a rim's when, in
+    each image, more than half of its points have that rim's image as the
+    nearest of all the edges' images and the median distance of all its
+    points to it is within ``MAX_DISTANCE`` px (what makes a point an
+    edge's, :func:`stretch_along`); the same rim in both images, and each
+    rim taken by one arc at most (the nearest). By position alone: the
+    arc is then cleared and refitted, and the registration judges it
+    again with its unchanged gates.
+
+    Parameters
+    ----------
+    stereo : StereoResult
+    unmatched : sequence of int
+        Indices into ``stereo.features`` of the measured circles the
+        registration left unmatched.
+    rims : set of str
+        CAD ids of the round edges (circles and arcs) no measured feature
+        was matched to.
+    images : dict of str to (ndarray (M, 2), ndarray (M, 2))
+        Every edge's whole image in the left and the right image (distorted
+        px), as :func:`clear_arc_ends` takes them; the candidates among
+        them are ``rims``.
+
+    Returns
+    -------
+    dict of int to str
+    """
+    rims = [cid for cid in rims if cid in images]
+    if not rims or not len(unmatched):
+        return {}
+    crowds = [_Crowd(images, 0), _Crowd(images, 1)]
+    best = {}
+    for k in unmatched:
+        f3 = stereo.features[k]
+        if f3.kind != "arc":
+            continue
+        found = []
+        for side, res in enumerate((stereo.left, stereo.right)):
+            uv = res.features[f3.left if side == 0 else f3.right].uv
+            if crowds[side].tree is None or len(uv) == 0:
+                break
+            _, j = crowds[side].tree.query(uv)
+            owner = np.bincount(crowds[side].owner[j], minlength=len(crowds[side].ids))
+            cid = crowds[side].ids[int(owner.argmax())]
+            if cid not in rims or owner.max() * 2 <= len(uv):
+                break
+            poly = np.asarray(images[cid][side], float)
+            poly = poly[np.isfinite(poly).all(axis=1)]
+            d = np.median(np.min(np.linalg.norm(uv[:, None] - poly[None], axis=2), axis=1))
+            if d > MAX_DISTANCE:
+                break
+            found.append((cid, d))
+        if len(found) == 2 and found[0][0] == found[1][0]:
+            cid, d = found[0][0], max(found[0][1], found[1][1])
+            if cid not in best or d < best[cid][1]:
+                best[cid] = (k, d)
+    return {k: cid for cid, (k, _) in best.items()}
+
+
 def _concat(features, positions):
     """One line feature of the points at ``positions`` of each of ``features`` (its fit the first's: refit it)."""
     first = features[0]

@@ -8,7 +8,9 @@ things the blind pass cannot do become possible:
 - a registered line's or arc's end points near another edge's image are
   left out and the feature refitted (a faint edge displaces a neighbour's
   points without giving points of its own; a rim running into the edge
-  that hides it is pushed off by it);
+  that hides it is pushed off by it), a rim the registration left
+  unmatched too when its image lies along an unmatched CAD rim's (its
+  crowded ends can push its circle past the registration's gates);
 - a registered line all of whose points in one image lie on another edge's
   image, and that disagrees with the pose, is taken out with the reason;
 - collinear CAD edges, one straight line in each image, are measured on
@@ -79,7 +81,12 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     too, whose grey step displaces a line's end points without giving edge
     points of its own (:func:`partinspect.vision.guided.clear_line_ends`),
     and the occluding edge a rim runs into where it passes out of sight
-    (:func:`partinspect.vision.guided.clear_arc_ends`).
+    (:func:`partinspect.vision.guided.clear_arc_ends`). A measured rim the
+    registration left unmatched is cleared as the CAD rim whose image it
+    lies along, if that rim is unmatched too
+    (:func:`partinspect.vision.guided.rims_along`): a short arc's circle
+    follows its ends, and crowded ends can push it past the registration's
+    gates, which judge it again once it is cleared.
     ``seen``: the visibility of each CAD feature, to take in each image
     only the edges it sees; None to take every edge (more points left out
     near hidden edges' images, never fewer). ``polylines``: every CAD
@@ -104,7 +111,7 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     """
     from dataclasses import replace
 
-    from partinspect.vision.guided import clear_arc_ends, clear_line_ends
+    from partinspect.vision.guided import clear_arc_ends, clear_line_ends, rims_along
 
     lines = registration.cad_ids(stereo.features, "line")
     arcs = registration.cad_ids(stereo.features, "circle")
@@ -118,6 +125,11 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
             images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(polylines[f.id], shown))
     # A smooth edge (tangent faces) shows no grey step of its own: it crowds no rim.
     steps = {fid: uv for fid, uv in images.items() if not by_id[fid].smooth or fid in arcs.values()}
+    # A rim whose crowded ends pushed its circle past the registration's
+    # gates is cleared too: the registration judges it again.
+    at = [k for k, f in enumerate(stereo.features) if f.kind != "line"]
+    free = {f.id for f in inv.features if f.kind != "line" and f.id not in arcs.values()}
+    arcs = {**arcs, **rims_along(stereo, [at[i] for i in registration.unmatched["circle"]], free, steps)}
     stereo, arc_cleared = clear_arc_ends(stereo, calib, arcs, steps,
                                          meets={cid: meeting(by_id[cid], inv.features) for cid in arcs.values()})
     stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)

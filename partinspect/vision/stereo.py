@@ -24,10 +24,13 @@ which a real camera sees too (``BACKGROUND_CORRECTION`` times the
 first-order shift read beside each point,
 :func:`partinspect.vision.edges.background_gradients`). As GUM asks for a
 recognised systematic effect, the rest is a Type B standard uncertainty
-per point (JCGM 100, 4.3.1: ``EDGE_BIAS_FACTOR`` times the shading's bound,
-``EDGE_BIAS_FLOOR`` in quadrature), correlated along the rim over
-``EDGE_BIAS_CORR_ANGLE`` (neighbouring points are displaced alike); the
-fit weights and propagates it with the random part. The correction's own
+per point, correlated along the rim over ``EDGE_BIAS_CORR_ANGLE``
+(neighbouring points are displaced alike): in the 3D fit, which weights and
+propagates it with the random part into the centre, normal and radius, the
+shading's bound read as a rectangular distribution's half-width with the
+detector's own error in quadrature (:func:`rim_type_b`, JCGM 100 4.3.7); in
+the form's point errors, whose zone single points set, ``EDGE_BIAS_FACTOR``
+times the bound with ``EDGE_BIAS_FLOOR`` (:func:`make_feature3d`). The correction's own
 noise is random, correlated over :func:`correction_corr_length`, and drawn
 by the Monte Carlo (:mod:`partinspect.vision.montecarlo`); the Type B part
 is not. How large that Type B really is depends on the optics and the
@@ -75,7 +78,7 @@ from partinspect.vision.matching import arc_circle, epipolar_geometry, match_fea
 from partinspect.vision.noise import noise_level_function
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "views_of", "type_b_scale", "edge_band", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
+           "feature_views", "views_of", "rim_type_b", "type_b_scale", "edge_band", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
            "as_fitted", "random_covariance",
            "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
@@ -103,19 +106,31 @@ EDGE_BIAS_CORR_ANGLE = 0.2
 """Correlation length of that remainder along the edge, rad of the ellipse
 (times its semi-major axis gives px)."""
 RIM_DETECTOR_ERROR = 0.005
-"""px: RMS error of rim points beside flat shading on noiseless renders (the
-detector's and the curvature correction's own error, half
-``EDGE_BIAS_FLOOR``); the least Type B a rim's residuals may size its
-centre's share down to (:func:`type_b_scale`)."""
+"""px: the detector's and the curvature correction's own error on a rim
+point beside flat shading, which no shading reading sees: the floor of a
+rim point's Type B in its 3D fit (:func:`rim_type_b`), in quadrature, and
+the least Type B a rim's residuals may size its centre's share down to
+(:func:`type_b_scale`). It is set above what the curvature correction
+leaves on exact discs under several blur shapes and what rim points beside
+flat shading show on noiseless renders (docs/validation.md,
+bench_psf_shape); without a floor the fit leans on those points as if they
+were exact."""
+RIM_BOUND_READING = 1.0 / np.sqrt(3.0)
+"""Type B standard uncertainty of a rim point in its 3D fit per px of the
+shading bound (:func:`rim_type_b`): the correction's remainder is taken to
+lie anywhere within +-bound, no value likelier than another, a rectangular
+distribution of half-width a with u = a / sqrt(3) (JCGM 100, 4.3.7). The
+fit's centre and radius are averages of the remainders round the rim (the
+radius their mean, the centre their first harmonic), which that reading
+states; ``EDGE_BIAS_FACTOR`` (0.75) is the single points' spread the form
+is judged with."""
 EDGE_BIAS_FLOOR = 0.01
-"""px: Type B standard uncertainty of every rim point however flat the
-shading beside it, added in quadrature to ``EDGE_BIAS_FACTOR`` times the
-bound and correlated along the edge as that. It stands for the detector's
-and the curvature correction's own error, which no shading reading sees;
-without it the fit leans on the points beside flat shading as if they were
-exact. It is twice those points' RMS error because it was set on the fits,
-where these errors average out along the rim less than the correlation
-says."""
+"""px: the floor, in quadrature, of a rim point's Type B in the form's
+point errors (``EDGE_BIAS_FACTOR`` times the bound, :func:`make_feature3d`)
+and in the calibration check (:mod:`partinspect.vision.epipolar_drift`): a
+form zone is set by single points' extremes, where these errors average out
+along the rim less than the correlation says. The 3D fit takes
+``RIM_DETECTOR_ERROR``."""
 
 
 @dataclass(frozen=True)
@@ -529,10 +544,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
     along the edge over :func:`correction_corr_length`, the share it takes
     from the points' own noise included as :func:`coupled_noise` models it,
     and each point
-    carries the Type B standard uncertainty
-    ``EDGE_BIAS_FACTOR * background_bound`` of what remains, correlated
-    along the edge over ``EDGE_BIAS_CORR_ANGLE`` times the ellipse's
-    semi-major axis. Lines are used as found.
+    carries the Type B standard uncertainty :func:`rim_type_b` of what
+    remains, correlated along the edge over ``EDGE_BIAS_CORR_ANGLE`` times
+    the ellipse's semi-major axis. Lines are used as found.
 
     ``correction_std``: the two features' :func:`correction_std`, if
     already computed (they depend on neither the calibration nor ``uv``).
@@ -562,13 +576,41 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
         if arc:
             xy = deblurred(xy, f.fit, f.blur)
         if offset is not None:
-            bias = np.hypot(EDGE_BIAS_FACTOR * f.background_bound, EDGE_BIAS_FLOOR)
+            bias = rim_type_b(f.background_bound)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
         if band is not None:
             b = band[len(views)]
             bias = np.full(len(xy), b) if bias is None else np.hypot(bias, b)
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))
     return views
+
+
+def rim_type_b(bound):
+    """Type B standard uncertainty of rim points in their 3D fit, px, from their shading bounds.
+
+    ``RIM_BOUND_READING`` times the bound (what the shading correction may
+    have left, read as a rectangular distribution over +-bound, JCGM 100
+    4.3.7), with ``RIM_DETECTOR_ERROR`` in quadrature (the detector's own
+    error on a curved edge). Correlated along the rim over
+    ``EDGE_BIAS_CORR_ANGLE``, it sets the fit's weights and the systematic
+    part of its centre, normal and radius.
+
+    Parameters
+    ----------
+    bound : ndarray, shape (N,)
+        ``EdgeFeature.background_bound`` of each point, px.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        px.
+
+    References
+    ----------
+    .. [1] JCGM 100:2008 (GUM), 4.3.7 (a quantity known only to lie within
+           bounds: rectangular distribution, u = a / sqrt(3)).
+    """
+    return np.hypot(RIM_BOUND_READING * np.asarray(bound, float), RIM_DETECTOR_ERROR)
 
 
 def type_b_scale(views, fit):
@@ -787,7 +829,9 @@ def _on_plane(xy, K, R, T, center, normal):
 def corrected_correspondences(fl, fr, views, corr, geo, corr_length):
     """An arc's correspondences redone on its points as the 3D fit uses them (:func:`as_fitted`).
 
-    Those are the triangulated points the form is judged on. The 3D fit
+    Those are the triangulated points the form is judged on, the right
+    ellipse's outlier screen judging each point by the form's point-level
+    Type B (:func:`_form_view`). The 3D fit
     itself is started from the correspondences as found (``corr``): a
     start from the corrected ones can send a short arc to another local
     minimum. Lines, and arcs left with fewer than 6 corrected
@@ -795,7 +839,9 @@ def corrected_correspondences(fl, fr, views, corr, geo, corr_length):
     """
     if fl.kind != "arc":
         return corr
-    new = correspond(fl, as_fitted(fr, views[1], corr_length), geo, xy=views[0].xy)
+    # The partner ellipse's outlier screen judges single points: by the
+    # single points' Type B, as the form they are judged on (_form_view).
+    new = correspond(fl, as_fitted(fr, _form_view(views[1], fr), corr_length), geo, xy=views[0].xy)
     return new if len(new) >= 6 else corr
 
 
@@ -983,7 +1029,7 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_sca
     G = np.asarray(cal_response, float)
     cal_cov = G @ G.T
     total = img_cov + cal_cov + sys_cov
-    errors = _point_errors(fl, corr, view, point_response)
+    errors = _point_errors(fl, corr, _form_view(view, fl), point_response)
     if kind == "line":
         t = (corr.points - fit.point) @ fit.direction
         return Feature3D("line", match.left, match.right, fit.point, fit.direction,
@@ -1154,11 +1200,15 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
         views = views_under(calib)
         fit = fit_feature(fl, fr, views, corr.points, geo)
         if fl.kind == "arc":
-            delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params))
-            if p < MISMATCH_P and uncertainty_directions(calib):
-                # One circle seen through a calibration its stated uncertainty allows?
-                r0, J, D, _ = residual_changes(fit, "arc", views_under, calib)
-                delta, p = circle_consistency(views, fit, (fl.fit.params, fr.fit.params), (r0, J, D))
+            delta, p = _one_circle(fl, fr, views_under, calib, fit)
+            if p < MISMATCH_P:
+                # The test asks whether single points of both images lie on
+                # one circle: judged again, before refusing the pair, with
+                # the single points' Type B (the form's, _form_view), which
+                # the fit's averaged level understates for it.
+                points_under = _form_views_of(views_under, fl, fr)
+                delta, p = _one_circle(fl, fr, points_under, calib,
+                                       fit_feature(fl, fr, points_under(calib), corr.points, geo))
             if p < MISMATCH_P:
                 hint = ("" if band is not None else "; a rounded or chamfered rim shows each camera its step at "
                         "a different place: if the part's edges are broken, state edge_break in the tolerance spec")
@@ -1175,6 +1225,49 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
     # rim, not only moves it): the form's Monte Carlo draws it.
     P = point_responses(corr, calib) if G.shape[1] else None
     return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band), scale, P), None
+
+
+def _one_circle(fl, fr, views_under, calib, fit):
+    """:func:`~partinspect.vision.fit3d.circle_consistency` of an arc pair's fit: (delta, p).
+
+    Where the stated calibration makes the arcs inconsistent, they are
+    asked again to be one circle seen through a calibration its stated
+    uncertainty allows.
+    """
+    views = views_under(calib)
+    starts = (fl.fit.params, fr.fit.params)
+    delta, p = circle_consistency(views, fit, starts)
+    if p < MISMATCH_P and uncertainty_directions(calib):
+        r0, J, D, _ = residual_changes(fit, "arc", views_under, calib)
+        delta, p = circle_consistency(views, fit, starts, (r0, J, D))
+    return delta, p
+
+
+def _form_views_of(views_under, fl, fr):
+    """``views_under`` (:func:`views_of`) with each view's Type B at the single points' level (:func:`_form_view`)."""
+    def views(calib, remap=False):
+        left, right = views_under(calib, remap=remap)
+        return [_form_view(left, fl), _form_view(right, fr)]
+
+    return views
+
+
+def _form_view(view, f):
+    """The view with the Type B the form's point errors draw.
+
+    A rim's points carry ``EDGE_BIAS_FACTOR`` times their shading bound with
+    ``EDGE_BIAS_FLOOR`` in quadrature there, the single points' spread of
+    what the correction leaves, since a form zone is set by its points'
+    extremes; the 3D fit's centre and radius, averages round the rim, take
+    :func:`rim_type_b`. What the view carries beyond that (a broken edge's
+    band, :func:`edge_band`) is kept. Lines, and arcs without shading
+    readings, are returned as they are.
+    """
+    if view.bias is None or f.kind != "arc" or getattr(f, "background_bound", None) is None:
+        return view
+    bound = np.asarray(f.background_bound, float)
+    other = np.maximum(np.square(view.bias) - np.square(rim_type_b(bound)), 0.0)
+    return replace(view, bias=np.sqrt(np.square(np.hypot(EDGE_BIAS_FACTOR * bound, EDGE_BIAS_FLOOR)) + other))
 
 
 def _without_band(view, band):

@@ -40,3 +40,38 @@ def test_an_ignored_edge_does_not_crowd():
     assert not crowd.clear_of_others(uv, "rim", 3.0).any()
     assert crowd.clear_of_others(uv, "rim", 3.0, ("side",)).all()
     assert crowd.clear_of_others(uv, "rim", 1.5).all()
+
+
+def _arc_scene(offsets):
+    """Two CAD rims' images (concentric circles r 40 and 60 px) and measured arcs off rim "A" by ``offsets`` (px, (left, right))."""
+    from types import SimpleNamespace
+
+    t = np.linspace(0, 2 * np.pi, 1600)
+    ring = lambda r: np.c_[100 + r * np.cos(t), 100 + r * np.sin(t)]  # noqa: E731
+    images = {"A": (ring(40), ring(40)), "B": (ring(60), ring(60))}
+    s = np.linspace(0.2, 2.4, 60)  # a 35 % arc
+    arc = lambda r: SimpleNamespace(uv=np.c_[100 + r * np.cos(s), 100 + r * np.sin(s)])  # noqa: E731
+    left = [arc(40 + dl) for dl, _ in offsets]
+    right = [arc(40 + dr) for _, dr in offsets]
+    feats = tuple(SimpleNamespace(kind="arc", left=k, right=k) for k in range(len(offsets)))
+    stereo = SimpleNamespace(features=feats, left=SimpleNamespace(features=left), right=SimpleNamespace(features=right))
+    return stereo, images
+
+
+def test_an_unmatched_arc_along_a_free_rims_image_is_taken_as_that_rim():
+    from partinspect.vision.guided import MAX_DISTANCE, rims_along
+
+    # 0.6 px off (as a crowded rim's ends push it) in both images: rim A's.
+    stereo, images = _arc_scene([(0.6, -0.6)])
+    assert rims_along(stereo, [0], {"A", "B"}, images) == {0: "A"}
+    # A already has its measured feature: nothing to take.
+    assert rims_along(stereo, [0], {"B"}, images) == {}
+    # Farther off than a point may lie from its edge's image, in one image only: not A's.
+    stereo, images = _arc_scene([(0.3, MAX_DISTANCE + 0.5)])
+    assert rims_along(stereo, [0], {"A", "B"}, images) == {}
+    # Nearer B than A in the right image: not one rim's in both.
+    stereo, images = _arc_scene([(0.3, 12.0)])
+    assert rims_along(stereo, [0], {"A", "B"}, images) == {}
+    # Two arcs along A: the nearer one takes it.
+    stereo, images = _arc_scene([(1.2, 1.2), (0.2, -0.3)])
+    assert rims_along(stereo, [0, 1], {"A", "B"}, images) == {1: "A"}
