@@ -1028,7 +1028,8 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         Passed to :func:`measure_images` for both images.
     parallel : bool
         Measure the right image in a forked child process while this one
-        measures the left, and half of the matched pairs' 3D fits likewise
+        measures the left, then about half of the matched pairs' 3D fits
+        (by cost) in that same child
         (:func:`partinspect.vision.forked.forked`; made here where no child
         can run). The results are the same either way, bit for bit; False
         runs everything one after the other.
