@@ -16,6 +16,14 @@ a resource limit) or its outcome cannot come back (the child was killed,
 the result does not pickle), the parent makes the call itself: only
 slower, never different.
 
+The child can be given one more call after the first (``result.then``): it
+receives the first call's value as the child holds it, so that what the
+child computed need not be sent back to it, and the parent starts no
+second process, which would cost a fork and the copy-on-write faults of
+two processes writing to memory they share again. The follow-up's function
+and arguments are pickled on the way in (plain module-level functions and
+data).
+
 Fork safety: a forked child inherits the library worker threads' mutexes
 and condition variables in whatever state they were, but not the threads.
 OpenBLAS shuts its workers down around a fork itself; OpenCV's pthreads
@@ -97,36 +105,32 @@ def forked(func, *args, **kwargs):
         ``result()`` waits for the child and returns the call's value, or
         raises its exception. Where no child was started, or its outcome
         did not come back (see the module notes), the call is made in this
-        process when ``result()`` is first called.
+        process when ``result()`` is first called. ``result.forked`` says
+        whether a child was started. ``result.then(func2, *args2,
+        **kwargs2)`` (once, after ``result()``) runs ``func2(value, *args2,
+        **kwargs2)`` in the same child, ``value`` being the child's own copy
+        of the first call's value, and returns a callable like ``result``;
+        made here where the child cannot (none started, it died, the
+        arguments do not pickle).
 
     Notes
     -----
     Leaving the block before ``result()`` has collected the child (an
     exception, a KeyboardInterrupt, or simply not calling it) kills and
-    reaps the child: none is ever left behind.
+    reaps the child: none is ever left behind. A child that has sent its
+    outcome waits for a follow-up until the block is left.
 
     Examples
     --------
     >>> with forked(sum, [1, 2, 3]) as total:
     ...     here = sum([4, 5])
     ...     there = total()
-    >>> here, there
-    (9, 6)
+    ...     doubled = total.then(pow, 2)()
+    >>> here, there, doubled
+    (9, 6, 36)
     """
-    child, threads, blas, outcome = None, None, None, []
-
-    def result():
-        if not outcome:
-            got = _collect(child) if child is not None else None
-            # No child, or its outcome is lost: the same call, here.
-            outcome.append(got if got is not None else (True, func(*args, **kwargs), ()))
-        ok, value, caught = outcome[0]
-        if not ok:
-            raise value
-        for message, category, filename, lineno in caught:
-            warnings.warn_explicit(message, category, filename, lineno)
-        return value
-
+    child, threads, blas = None, None, None
+    result = _Result(lambda: child, func, args, kwargs)
     try:
         if can_fork():
             threads = cv2.getNumThreads()
@@ -144,6 +148,7 @@ def forked(func, *args, **kwargs):
                 threads = None
                 blas.restore_original_limits()
                 blas = None
+        result.forked = child is not None
         yield result
     finally:
         if child is not None:
@@ -154,14 +159,66 @@ def forked(func, *args, **kwargs):
             blas.restore_original_limits()
 
 
+class _Result:
+    """The callable :func:`forked` yields: the first call's outcome, and its follow-up (``then``)."""
+
+    def __init__(self, child, func, args, kwargs):
+        self._child, self._call, self._outcome = child, (func, args, kwargs), []
+        self.forked = False
+
+    def __call__(self):
+        if not self._outcome:
+            child = self._child()
+            got = _collect(child, "out") if child is not None else None
+            if got is None and child is not None:
+                child["lost"] = True
+            func, args, kwargs = self._call
+            # No child, or its outcome is lost: the same call, here.
+            self._outcome.append(got if got is not None else (True, func(*args, **kwargs), ()))
+        return _unpack(self._outcome[0])
+
+    def then(self, func, *args, **kwargs):
+        """``func(value, *args, **kwargs)`` in the child that made the first call; a callable for its outcome."""
+        value = self()
+        child, outcome = self._child(), []
+        sent = child is not None and not child.get("lost") and _send(child, (func, args, kwargs))
+
+        def result():
+            if not outcome:
+                got = _collect(child, "then") if sent else None
+                outcome.append(got if got is not None else (True, func(value, *args, **kwargs), ()))
+            return _unpack(outcome[0])
+
+        return result
+
+
+def _unpack(outcome):
+    ok, value, caught = outcome
+    if not ok:
+        raise value
+    for message, category, filename, lineno in caught:
+        warnings.warn_explicit(message, category, filename, lineno)
+    return value
+
+
 def _start(func, args, kwargs):
-    """Fork a child that runs the call and writes its pickled outcome to a pipe; its state, or None if none started."""
+    """Fork a child that runs the call and writes its pickled outcome to a pipe; its state, or None if none started.
+
+    Three pipes: the first outcome (child to parent), a follow-up call
+    (parent to child) and its outcome (child to parent). Each message is
+    sent with its length, so that its end is known even where another
+    process forked meanwhile holds a copy of the pipe's writing end.
+    """
     prctl = _pdeathsig_setter()
     parent = os.getpid()
+    pipes = []
     try:
-        r, w = os.pipe()
+        for _ in range(3):
+            pipes.append(os.pipe())
     except OSError:
+        _close(fd for pair in pipes for fd in pair)
         return None
+    (out_r, out_w), (cmd_r, cmd_w), (then_r, then_w) = pipes
     try:
         with warnings.catch_warnings():
             # Python 3.12+ warns on fork() in a process with threads; the
@@ -169,28 +226,39 @@ def _start(func, args, kwargs):
             warnings.simplefilter("ignore", DeprecationWarning)
             pid = os.fork()
     except OSError:  # EAGAIN, ENOMEM: a process or memory limit
-        os.close(r)
-        os.close(w)
+        _close(fd for pair in pipes for fd in pair)
         return None
     if pid == 0:
         # The child: whatever happens, it must never return into the
         # parent's code, so every way out is os._exit.
         try:
-            os.close(r)
-            _run_child(w, parent, prctl, func, args, kwargs)
+            _close((out_r, cmd_w, then_r))
+            _run_child(out_w, cmd_r, then_w, parent, prctl, func, args, kwargs)
         finally:
             os._exit(0)
-    os.close(w)
-    return {"pid": pid, "fd": r, "reaped": False}
+    _close((out_w, cmd_r, then_w))
+    return {"pid": pid, "out": out_r, "cmd": cmd_w, "then": then_r, "reaped": False}
 
 
-def _run_child(w, parent, prctl, func, args, kwargs):
+def _run_child(out, cmd, then, parent, prctl, func, args, kwargs):
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     if prctl is not None:
         prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     if os.getppid() != parent:  # the parent died before that was set
         return
+    ok, value = _call_and_send(out, func, args, kwargs)
+    if not ok:
+        return
+    data = _read_message(cmd)  # None when the parent leaves the block without a follow-up
+    if data:
+        func2, args2, kwargs2 = pickle.loads(data)
+        _call_and_send(then, func2, (value,) + tuple(args2), kwargs2)
+
+
+def _call_and_send(w, func, args, kwargs):
+    """Make the call, write its pickled outcome to the pipe ``w`` and close it; (ok, value)."""
+    value = None
     try:
         with warnings.catch_warnings(record=True) as caught:
             value = func(*args, **kwargs)
@@ -207,15 +275,25 @@ def _run_child(w, parent, prctl, func, args, kwargs):
             pickle.loads(data)
     except BaseException:
         data = b""
-    with open(w, "wb") as pipe:
-        pipe.write(data)
+    _write_message(w, data)
+    return outcome[0] and bool(data), value
 
 
-def _collect(child):
-    """The child's outcome (ok, value, warnings), or None when it sent none; reaps the child."""
-    with open(child["fd"], "rb", closefd=False) as pipe:
-        data = pipe.read()
-    _reap(child)
+def _send(child, call):
+    """Write a follow-up call to the child and close the pipe; whether it went."""
+    try:
+        _write_message(child["cmd"], pickle.dumps(call, protocol=pickle.HIGHEST_PROTOCOL))
+    except Exception:  # does not pickle, or the child is gone (EPIPE)
+        return False
+    finally:
+        _close((child["cmd"],))
+        child["cmd"] = None
+    return True
+
+
+def _collect(child, which):
+    """The child's outcome (ok, value, warnings) from pipe ``which``, or None when it sent none."""
+    data = _read_message(child[which])
     try:
         return pickle.loads(data) if data else None
     except Exception:
@@ -223,14 +301,39 @@ def _collect(child):
 
 
 def _stop(child):
-    """Kill the child unless it has been reaped (its pid may be another process's by then), reap it, close the pipe."""
+    """Kill the child unless it has been reaped (its pid may be another process's by then), reap it, close the pipes."""
     if not child["reaped"]:
         try:
             os.kill(child["pid"], signal.SIGKILL)
         except ProcessLookupError:
             pass
         _reap(child)
-    os.close(child["fd"])
+    _close(child[k] for k in ("out", "cmd", "then"))
+
+
+def _write_message(fd, data):
+    with open(fd, "wb", closefd=False) as pipe:
+        pipe.write(len(data).to_bytes(8, "little") + data)
+
+
+def _read_message(fd):
+    """The bytes of one message, or None if the pipe ended first (the writer died or left)."""
+    with open(fd, "rb", closefd=False) as pipe:
+        head = pipe.read(8)
+        if len(head) < 8:
+            return None
+        size = int.from_bytes(head, "little")
+        data = pipe.read(size)
+    return data if len(data) == size else None
+
+
+def _close(fds):
+    for fd in fds:
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
 
 
 def _reap(child):

@@ -308,7 +308,15 @@ def _bin_variances(resp, grey, n_bins, resp_lattice=None, grey_lattice=None):
     :func:`_levels` of ``abs(resp)`` and of ``grey``, where they lie on one;
     the bins and medians are then read from counts (the same numbers).
     """
-    edges = np.unique(np.quantile(grey, np.linspace(0.0, 1.0, n_bins + 1)))
+    q = np.linspace(0.0, 1.0, n_bins + 1)
+    if grey_lattice is None:
+        edges = np.unique(np.quantile(grey, q))
+    else:
+        # The same quantiles from the levels laid out in order by their
+        # counts: a quantile depends on the order statistics only, and the
+        # selection is cheap on sorted data.
+        codes, levels = grey_lattice
+        edges = np.unique(np.quantile(np.repeat(levels, np.bincount(codes, minlength=len(levels))), q))
     last = max(len(edges) - 2, 0)
     if grey_lattice is None:
         idx = np.clip(np.searchsorted(edges, grey, side="right") - 1, 0, last)
@@ -317,7 +325,7 @@ def _bin_variances(resp, grey, n_bins, resp_lattice=None, grey_lattice=None):
     # Each bin's pixels as one contiguous run of the bin-sorted order.
     # Bin numbers as bytes: numpy's stable sort of them is a radix sort.
     order = np.argsort(idx.astype(np.uint8) if len(edges) <= 256 else idx, kind="stable")
-    bounds = np.searchsorted(idx[order], np.arange(max(len(edges) - 1, 1) + 1))
+    bounds = np.r_[0, np.cumsum(np.bincount(idx, minlength=max(len(edges) - 1, 1)))]
     # The squared responses' levels (the sign squares away alike).
     r2_levels = None if resp_lattice is None else (resp_lattice[1].astype(np.float64) / _MASK_NORM) ** 2
     out = []

@@ -1074,7 +1074,8 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         Passed to :func:`measure_images` for both images.
     parallel : bool
         Measure the right image in a forked child process while this one
-        measures the left, and half of the matched pairs' 3D fits likewise
+        measures the left, then about half of the matched pairs' 3D fits
+        (by cost) in that same child
         (:func:`partinspect.vision.forked.forked`; made here where no child
         can run). The results are the same either way, bit for bit; False
         runs everything one after the other.
@@ -1090,38 +1091,54 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     say = progress or (lambda message: None)
     options = dict(sigma=sigma, edge_options=edge_options, segment_options=segment_options)
     say("edges and segments: left image")
-    if parallel:
-        # The two 2D chains are independent and mostly Python: a second
-        # process, not a thread, runs one alongside the other. The compiled
-        # fit kernel is loaded first, or each process would load it.
-        from partinspect.vision._kernels import warm
-
-        warm()
-        with forked(measure_images, right, calib.K2, calib.D2, **options) as right_result:
-            L = measure_images(left, calib.K1, calib.D1, **options)
-            say("edges and segments: right image")
-            R = right_result()
-    else:
+    if not parallel:
         L = measure_images(left, calib.K1, calib.D1, **options)
         say("edges and segments: right image")
         R = measure_images(right, calib.K2, calib.D2, **options)
+        geo, matching = _matched(L, R, calib, match_options, say)
+        return _stereo_result(L, R, geo, matching, _measure_pairs(list(matching.matches), L, R, calib, geo,
+                                                                  edge_break), calib, edge_break)
+    # The two 2D chains are independent and mostly Python: a second
+    # process, not a thread, runs one alongside the other. The compiled
+    # fit kernel is loaded first, or each process would load it.
+    from partinspect.vision._kernels import warm
+
+    warm()
+    with forked(measure_images, right, calib.K2, calib.D2, **options) as right_result:
+        L = measure_images(left, calib.K1, calib.D1, **options)
+        say("edges and segments: right image")
+        R = right_result()
+        geo, matching = _matched(L, R, calib, match_options, say)
+        matches = list(matching.matches)
+        if not right_result.forked or len(matches) < 2:
+            fitted = _measure_pairs(matches, L, R, calib, geo, edge_break)
+        else:
+            # Independent fits, shared out between the two processes by
+            # their cost; the child that measured the right image makes its
+            # share with its own copy of it (no second process started).
+            here, there = _halves([_fit_cost(L.features[m.left], R.features[m.right]) for m in matches])
+            theirs = [matches[i] for i in there]
+            second = right_result.then(_measure_pairs_right, theirs, [L.features[m.left] for m in theirs],
+                                       calib, geo, L.edges.sigma, edge_break)
+            fitted = list(matches)
+            for i, f in zip(here, _measure_pairs([matches[i] for i in here], L, R, calib, geo, edge_break)):
+                fitted[i] = f
+            for i, f in zip(there, second()):
+                fitted[i] = f
+    return _stereo_result(L, R, geo, matching, fitted, calib, edge_break)
+
+
+def _matched(L, R, calib, match_options, say):
+    """The pair's epipolar geometry and its image features matched."""
     geo = epipolar_geometry(calib)
     say("matching")
     matching = match_features(L.features, R.features, geo, **(match_options or {}))
     say(f"3D fits of {len(matching.matches)} matched features")
-    matches = list(matching.matches)
-    args = (L, R, calib, geo, edge_break)
-    if parallel and len(matches) > 1:
-        # Independent fits, shared out between two processes by their cost.
-        here, there = _halves([_fit_cost(L.features[m.left], R.features[m.right]) for m in matches])
-        fitted = list(matches)
-        with forked(_measure_pairs, [matches[i] for i in there], *args) as second:
-            for i, f in zip(here, _measure_pairs([matches[i] for i in here], *args)):
-                fitted[i] = f
-            for i, f in zip(there, second()):
-                fitted[i] = f
-    else:
-        fitted = _measure_pairs(matches, *args)
+    return geo, matching
+
+
+def _stereo_result(L, R, geo, matching, fitted, calib, edge_break):
+    matches = matching.matches
     feats = [f3 for f3, _ in fitted if f3 is not None]
     failed = [(m, why) for m, (f3, why) in zip(matches, fitted) if f3 is None]
     return StereoResult(L, R, geo, matching, tuple(feats), tuple(failed), bool(uncertainty_directions(calib)),
@@ -1163,6 +1180,12 @@ def _measure_pairs(matches, L, R, calib, geo, edge_break):
     """`measure_pair_feature` of each match, in order: a list of (Feature3D or None, reason)."""
     return [measure_pair_feature(m, L.features[m.left], R.features[m.right], calib, geo, L.edges.sigma, edge_break)
             for m in matches]
+
+
+def _measure_pairs_right(R, matches, lefts, calib, geo, corr_length, edge_break):
+    """`_measure_pairs` given the right image's result and the matches' left features (``lefts``, in order)."""
+    return [measure_pair_feature(m, fl, R.features[m.right], calib, geo, corr_length, edge_break)
+            for m, fl in zip(matches, lefts)]
 
 
 def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None):

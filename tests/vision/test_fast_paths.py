@@ -265,3 +265,21 @@ def test_smoothing_operators_are_built_once_per_edge():
     for k in range(stereo.OPERATORS_KEPT + 5):
         stereo.smoothing_operators(xy[: 50 + k], 1.0, 2.0)
     assert len(stereo._operators) == stereo.OPERATORS_KEPT
+
+
+def test_grey_bins_from_counts_select_on_sorted_levels(monkeypatch):
+    # The bins' quantiles are read from the grey levels laid out in order by
+    # their counts (selection on sorted data): the same bins and variances
+    # as numpy's quantile of the unsorted means, bit for bit.
+    rng = np.random.default_rng(3)
+    grey = (rng.integers(0, 2296, 40000) / 9.0).astype(np.float32)
+    grey[:9000] = grey[0]  # a level that fills more than one bin: fewer, merged bins
+    resp = rng.integers(-60, 61, grey.size).astype(np.float32)
+    lattices = noise._levels(np.abs(resp), 1.0), noise._levels(grey, 9.0)
+    plain = noise._bin_variances(resp, grey, 12)
+    seen = []
+    quantile = np.quantile
+    monkeypatch.setattr(np, "quantile", lambda a, q: seen.append(bool(np.all(np.diff(a) >= 0))) or quantile(a, q))
+    fast = noise._bin_variances(resp, grey, 12, *lattices)
+    assert seen == [True]
+    assert fast.shape == plain.shape and fast.shape[0] < 12 and fast.tobytes() == plain.tobytes()

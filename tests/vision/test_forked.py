@@ -93,6 +93,63 @@ def test_warnings_of_the_child_are_issued_here():
             assert result() == 1
 
 
+STATE = {}
+
+
+def remember(value):
+    STATE["value"] = value  # in the process that makes the call only
+    return os.getpid()
+
+
+def recall(pid, extra):
+    return pid, os.getpid(), STATE.get("value"), extra
+
+
+@needs_fork
+def test_a_follow_up_runs_in_the_same_child_with_its_value(monkeypatch):
+    fork, forks = os.fork, []
+    monkeypatch.setattr(os, "fork", lambda: forks.append(1) or fork())
+    with F.forked(remember, "child's") as result:
+        assert result.forked
+        pid = result()
+        then = result.then(recall, [1.5, 2])
+        assert then() == (pid, pid, "child's", [1.5, 2])
+    assert pid != os.getpid() and len(forks) == 1
+    assert "value" not in STATE
+
+
+@needs_fork
+def test_a_follow_up_raises_as_made_here():
+    with pytest.raises(Odd, match="then"):
+        with F.forked(whose) as result:
+            result.then(raise_after, Odd, "then")()
+
+
+def raise_after(pid, kind, message):
+    raise kind(message)
+
+
+def test_a_follow_up_without_a_child_is_made_here(monkeypatch):
+    monkeypatch.setattr(F, "ENABLED", False)
+    with F.forked(remember, "here") as result:
+        assert not result.forked
+        assert result.then(recall, 3)() == (os.getpid(), os.getpid(), "here", 3)
+    STATE.clear()
+
+
+@needs_fork
+def test_a_follow_up_after_the_child_died_is_made_here():
+    with F.forked(whose) as result:
+        pid = result()
+        assert result.then(die_unless_in, os.getpid())() == ("made here", pid)
+
+
+def die_unless_in(pid, parent):
+    if os.getpid() != parent:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return "made here", pid
+
+
 @pytest.mark.parametrize("how", ["disabled", "one cpu", "fork refused"])
 def test_no_child_means_the_call_is_made_here(monkeypatch, how):
     if how == "disabled":

@@ -1,6 +1,7 @@
 """The whole stereo chain on rendered sample parts, against the truth."""
 
 import dataclasses
+import os
 import struct
 from dataclasses import replace
 
@@ -381,13 +382,17 @@ def first_difference(a, b, path="result"):
 
 
 @pytest.mark.skipif(not can_fork(), reason="no os.fork or fewer than 2 CPUs: both paths are serial")
-def test_parallel_and_serial_results_are_identical():
-    # The right image measured in a forked child: the same bits as measured
+def test_parallel_and_serial_results_are_identical(monkeypatch):
+    # The right image measured in a forked child, and that child kept for
+    # its share of the 3D fits (one fork a pair): the same bits as measured
     # here, the edges, segments and features of both images and everything
     # built on them.
     rig, pose, L, R = S.render("plate", 2.0, 0, True)
     serial = measure_stereo(L, R, rig, parallel=False)
+    fork, forks = os.fork, []
+    monkeypatch.setattr(os, "fork", lambda: forks.append(1) or fork())
     parallel = measure_stereo(L, R, rig, parallel=True)
+    assert len(forks) == 1
     assert len(parallel.right.segments) > 10 and len(parallel.features) >= 15
     assert first_difference(serial, parallel) is None, first_difference(serial, parallel)
 
