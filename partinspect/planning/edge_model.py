@@ -43,6 +43,7 @@ __all__ = [
     "profile_width",
     "edge_point_std",
     "detector_parameters",
+    "near_image",
     "stated_std_pattern",
 ]
 
@@ -162,7 +163,7 @@ def edge_point_std(contrast, noise, blur=0.6, sigma=1.0):
     return out if out.ndim else float(out)
 
 
-def detector_parameters(t, uv, spacing=1.0):
+def detector_parameters(t, uv, spacing=1.0, valid=None):
     """Where along an edge the detector puts its points: one per pixel of the dominant axis.
 
     The detector keeps one maximum per pixel along the image axis closest
@@ -180,6 +181,10 @@ def detector_parameters(t, uv, spacing=1.0):
         The image positions of those samples, px (finite).
     spacing : float
         Dominant-axis pixels between points.
+    valid : ndarray of bool, shape (M,), optional
+        Samples whose image position means something; a piece of the curve
+        with an end not valid has no length and gets no point (see
+        :func:`near_image`).
 
     Returns
     -------
@@ -188,12 +193,35 @@ def detector_parameters(t, uv, spacing=1.0):
         on an end).
     """
     step = np.abs(np.diff(uv, axis=0)).max(axis=1)
+    if valid is not None:
+        step[~(valid[:-1] & valid[1:])] = 0.0
     ell = np.r_[0.0, np.cumsum(step)]
     n = int(np.floor(ell[-1] / spacing))
     if n < 1:
         return np.zeros(0)
     targets = (np.arange(n) + 0.5) * (ell[-1] / n)
     return np.interp(targets, ell, t)
+
+
+def near_image(uv, size):
+    """Which image positions lie within one image size of the image, boolean (M,).
+
+    Far outside the field a calibration was made in, its distortion
+    polynomial describes no lens: a point there can be thrown millions of
+    pixels away, and an edge passing there would seem to run across them.
+    Within one image width and height of the image the model still holds
+    roughly, and the detector's points (in the image) are all there.
+
+    Parameters
+    ----------
+    uv : ndarray, shape (M, 2)
+        Projected positions, px.
+    size : (int, int)
+        The image's width and height, px.
+    """
+    w, h = size
+    u, v = uv[:, 0], uv[:, 1]
+    return np.isfinite(uv).all(axis=1) & (u > -w) & (u < 2 * w) & (v > -h) & (v < 2 * h)
 
 
 def stated_std_pattern(uv, normal, contrast, model, rng=None):

@@ -46,7 +46,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from partinspect.planning.edge_model import (
-    DetectorModel, detector_parameters, profile_width, stated_std_pattern)
+    DetectorModel, detector_parameters, near_image, profile_width, stated_std_pattern)
 from partinspect.vision.matching import (
     MIN_EPIPOLAR_ANGLE, RADIUS_COVERAGE, RADIUS_WIDENING_MAX, match_features)
 
@@ -626,9 +626,15 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     if not np.isfinite(uvc).all():
         return ViewSamples(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), 0,
                            {"in_image": 0.0, "unoccluded": 0.0, "contrast": 0.0, "visible": 0.0})
-    length = float(np.abs(np.diff(uvc, axis=0)).max(axis=1).sum())
+    size = calib.image_size
+    # A piece of the edge thrown far off by the distortion polynomial
+    # (near_image) counts at most the image's diagonal in the sampling
+    # and gets no detector points: it would otherwise ask for millions.
+    cap = float(np.hypot(*size)) if size is not None else np.inf
+    length = float(np.minimum(np.abs(np.diff(uvc, axis=0)).max(axis=1), cap).sum())
     dense = np.linspace(t0, t1, max(int(_DENSE_PER_PX * length) + 2, 16))
-    tp = detector_parameters(dense, project_points(X(dense), K, D, R, t))
+    uvd = project_points(X(dense), K, D, R, t)
+    tp = detector_parameters(dense, uvd, valid=near_image(uvd, size) if size is not None else None)
     if len(tp) == 0:
         return ViewSamples(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), 0,
                            {"in_image": 0.0, "unoccluded": 0.0, "contrast": 0.0, "visible": 0.0})

@@ -66,6 +66,25 @@ def test_one_point_per_pixel_of_the_dominant_axis():
     assert np.allclose(np.diff(tp), 1 / np.cos(ang), rtol=0.01)
 
 
+def test_a_piece_thrown_off_by_the_distortion_polynomial_gets_no_points():
+    """Far outside the image the distortion polynomial throws a projected
+    edge millions of px away (NIST ctc_02's plan asked for 186 million
+    samples of one arc, 23 GB, and was killed); only the part near the
+    image counts."""
+    from partinspect.planning.edge_model import near_image
+
+    t = np.linspace(0.0, 300.0, 3001)
+    uv = np.c_[t + 50.0, np.full_like(t, 40.0)]
+    wild = (t > 100.0) & (t < 200.0)
+    uv[wild, 0] = 1e8 * (t[wild] - 100.0)
+    valid = near_image(uv, (400, 300))
+    assert not valid[wild].any() and valid[~wild].all()
+    tp = detector_parameters(t, uv, valid=valid)
+    assert len(tp) == 200 and not ((tp > 100.0) & (tp < 200.0)).any()
+    assert np.abs(np.diff(uv[:, 0])).sum() > 1e9  # the points it would have been asked for
+    assert not near_image(np.array([[np.nan, 0.0], [-401.0, 0.0], [0.0, 601.0]]), (400, 300)).any()
+
+
 @pytest.mark.parametrize("deg", [3.0, 20.0, 44.0])
 def test_stated_std_pattern_states_what_the_detector_states(deg):
     """Per point, the uncertainty the detector gives a noise-free edge at the
