@@ -79,7 +79,7 @@ from partinspect.vision.matching import Match
 from partinspect.vision.stereo import measure_pair_feature
 
 __all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "observed_place", "band_place",
-           "rims_at_sharp_edge"]
+           "rims_at_sharp_edge", "camera_views", "read_grey"]
 
 FINE_ANGLES = 720
 """Angles at which the sharp rim's image is sampled to give each edge point its angle."""
@@ -298,7 +298,7 @@ def _rim_frame(center, axis, radius, theta):
     return center + radius * rh, rh
 
 
-def _read(image, uv):
+def read_grey(image, uv):
     """Bilinear grey levels at ``uv`` (k, 2), px: ``image`` is float already (:func:`band_place` converts it once)."""
     return map_coordinates(np.asarray(image, float), [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
 
@@ -314,7 +314,7 @@ class _Rim:
     size: float
 
 
-def _camera_views(calib, part_to_camera):
+def camera_views(calib, part_to_camera):
     """Per camera: K, D, the part-to-camera rotation and translation, its centre in the part frame, its rig P."""
     T = np.asarray(part_to_camera, float)
     out = []
@@ -392,7 +392,7 @@ def _seen_band(rim, image, cam, theta, shape, width):
         out = np.sign(u[0] - u[-1]) * READ_WIDTHS * width
         index.append(i)
         us.append(u)
-        reads.append(_read(image, uv0[i] + np.array([u[0] + out, u[-1] - out])[:, None] * d[i]))
+        reads.append(read_grey(image, uv0[i] + np.array([u[0] + out, u[-1] - out])[:, None] * d[i]))
         observed.append(observed_place(image, uv0[i], d[i], min(u[0], u[-1]) - width, max(u[0], u[-1]) + width))
     return _SeenBand(np.array(index, int), tuple(us), np.reshape(reads, (-1, 2)), np.array(observed, float), wf, ww)
 
@@ -449,7 +449,7 @@ def observed_place(image, origin, direction, lo, hi, step=0.05):
         px from ``origin`` along ``direction``.
     """
     x = np.arange(lo - 4.0, hi + 4.0, step)
-    prof = gaussian_filter1d(_read(image, origin + x[:, None] * direction), 1.0 / step, mode="nearest")
+    prof = gaussian_filter1d(read_grey(image, origin + x[:, None] * direction), 1.0 / step, mode="nearest")
     slope = np.abs(np.gradient(prof))
     inside = (x >= lo) & (x <= hi)
     return float(x[inside][np.argmax(slope[inside])])
@@ -469,7 +469,7 @@ def _light_samples(rim, images, cams, theta, width):
         wall = uv0 - out_px * d
         ok = np.isfinite(face).all(1)
         th += [theta[ok], theta[ok & wall_seen]]
-        g += [_read(image, face[ok]), _read(image, wall[ok & wall_seen])]
+        g += [read_grey(image, face[ok]), read_grey(image, wall[ok & wall_seen])]
         kind += [np.zeros(ok.sum(), int), np.ones((ok & wall_seen).sum(), int)]
     return np.concatenate(th), np.concatenate(g), np.concatenate(kind)
 
@@ -610,7 +610,7 @@ def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, 
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     # Read as float once (each reading would convert the whole image again).
     images = tuple(np.asarray(image, float) for image in images)
-    cams = _camera_views(calib, part_to_camera)
+    cams = camera_views(calib, part_to_camera)
     rim = _Rim(np.asarray(center, float), axis, float(radius), 1 if hole else -1, float(size))
     theta = np.linspace(0.0, 2.0 * np.pi, ANGLES, endpoint=False)
     T, g, kind = _light_samples(rim, images, cams, theta, float(np.mean(width)))
@@ -702,7 +702,7 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
     refitted : set of str
     """
     L, R, geo = stereo.left, stereo.right, stereo.geometry
-    cams = _camera_views(calib, part_to_camera)
+    cams = camera_views(calib, part_to_camera)
     lefts, rights, feats = list(L.features), list(R.features), list(stereo.features)
     refitted = set()
     for k, cid in arcs.items():

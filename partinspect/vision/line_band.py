@@ -67,9 +67,9 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
-from partinspect.vision.band_place import READ_WIDTHS, SECTION_SAMPLES, apparent_place, observed_place
+from partinspect.vision.band_place import (READ_WIDTHS, SECTION_SAMPLES, apparent_place, camera_views, observed_place,
+                                           read_grey)
 from partinspect.vision.calibration import project_points
 from partinspect.vision.fitting import fit_line
 from partinspect.vision.matching import Match
@@ -187,24 +187,9 @@ def edge_section(normals, inward, shape, n=SECTION_SAMPLES):
     return (t1 - r * n1)[None] + r * (w1[:, None] * n1 + w2[:, None] * n2), w1, w2
 
 
-def _cameras(calib, part_to_camera):
-    """Per camera: K, D, part-to-camera rotation and translation, centre in the part frame."""
-    T = np.asarray(part_to_camera, float)
-    out = []
-    for i in (0, 1):
-        K, D, R, t = calib.camera(i)
-        Rp, tp = R @ T[:3, :3], R @ T[:3, 3] + np.ravel(t)
-        out.append((K, D, Rp, tp, -Rp.T @ tp))
-    return out
-
-
-def _read(image, uv):
-    return map_coordinates(image, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
-
-
 def _frame(cam, p, edge_dir, t1):
     """The sharp edge's pixels at points ``p`` (k, 3) and unit image normals towards the first face (k, 2)."""
-    K, D, R, t, _ = cam
+    K, D, R, t, _, _ = cam
     uv0 = project_points(p, K, D, R, t)
     along = project_points(p + 0.01 * edge_dir, K, D, R, t) - uv0
     d = np.c_[-along[:, 1], along[:, 0]]
@@ -215,7 +200,7 @@ def _frame(cam, p, edge_dir, t1):
 
 def _face_reads(line, cam, image, p, width):
     """Grey levels of each face read beside the band (READ_WIDTHS edge widths past it), where the camera sees it."""
-    K, D, R, t, C = cam
+    K, D, R, t, C, _ = cam
     out = []
     for n_f, t_f in zip(line.normals, line.inward):
         seen = (C - p) @ n_f > 0
@@ -225,7 +210,7 @@ def _face_reads(line, cam, image, p, width):
         reach = line.size + READ_WIDTHS * width / np.where(ok, px_per_mm, 1.0)
         uv = project_points(p + reach[:, None] * t_f, K, D, R, t)
         ok &= np.isfinite(uv).all(1)
-        out.append(_read(image, uv[ok]))
+        out.append(read_grey(image, uv[ok]))
     return out
 
 
@@ -270,7 +255,7 @@ def _seen_profile(cam, image, p, uv0, d, points, normal_w, normals, size, width)
     where it turns away (its occluding contour); None if neither end faces
     the camera or fewer than two samples are seen.
     """
-    K, D, R, t, C = cam
+    K, D, R, t, C, _ = cam
     w1, w2 = normal_w
     P = p + size * points
     N = w1[:, None] * normals[0] + w2[:, None] * normals[1]
@@ -289,7 +274,7 @@ def _seen_profile(cam, image, p, uv0, d, points, normal_w, normals, size, width)
         return None
     u = (uv - uv0) @ d
     out = math.copysign(READ_WIDTHS * width, u[0] - u[-1])
-    g_face, g_past = _read(image, uv0 + np.array([u[0] + out, u[-1] - out])[:, None] * d)
+    g_face, g_past = read_grey(image, uv0 + np.array([u[0] + out, u[-1] - out])[:, None] * d)
     observed = observed_place(image, uv0, d, min(u[0], u[-1]) - width, max(u[0], u[-1]) + width)
     return index, u, float(g_face), float(g_past), observed
 
@@ -316,7 +301,7 @@ def _image_place(line, cam, image, stations, lights, width, near):
                 lo, hi = min(lo, place, other), max(hi, place, other)
         if np.isfinite(lo):
             mid[i], rng[i], obs[i] = 0.5 * (lo + hi), hi - lo, seen_obs
-    K, D, R, t, _ = cam
+    K, D, R, t, _, _ = cam
     depth = float(np.median((p_all @ R.T + t)[:, 2]))
     return mid, rng, obs, d, depth
 
@@ -365,7 +350,7 @@ def line_place(images, calib, part_to_camera, line, lights, width, uv=None, misf
         None where an image sees fewer than ``MIN_STATIONS`` stations.
     """
     stations = np.linspace(0.05, 0.95, STATIONS)
-    cams = _cameras(calib, part_to_camera)
+    cams = camera_views(calib, part_to_camera)
     e = line.end - line.start
     offsets, dirs, seen, u_px, u_shape, u_model, u_mm = [], [], [], [], [], [], []
     for i, (image, cam) in enumerate(zip(images, cams)):
@@ -414,7 +399,7 @@ def line_places(images, calib, part_to_camera, lines, width, uv=None, misfit=Tru
         The lines whose place could be predicted.
     """
     images = tuple(np.asarray(image, float) for image in images)
-    cams = _cameras(calib, part_to_camera)
+    cams = camera_views(calib, part_to_camera)
     reads, normals = {}, {}
     for line in lines.values():
         p = line.start + np.linspace(0.05, 0.95, STATIONS)[:, None] * (line.end - line.start)
@@ -482,7 +467,7 @@ def lines_at_sharp_edge(stereo, calib, part_to_camera, matched, lines, places, b
     refitted : set of str
     """
     L, R, geo = stereo.left, stereo.right, stereo.geometry
-    cams = _cameras(calib, part_to_camera)
+    cams = camera_views(calib, part_to_camera)
     lefts, rights, feats = list(L.features), list(R.features), list(stereo.features)
     refitted = set()
     for k, cid in matched.items():

@@ -425,3 +425,17 @@ def ellipse_draws(n_draws, noise=2.0, contrast=80.0, seed0=0):
     kcr_ind = np.sqrt(np.diag(ellipse_kcr_bound(truth, xy, s_emp)))
     kcr_cor = np.sqrt(np.diag(ellipse_kcr_bound(truth, xy, s_emp, corr_length=1.0)))
     return np.array(errs), np.array(preds), kcr_ind, kcr_cor, np.array(resid_mean), s_emp, np.all(conv)
+
+
+def toed_in_rig(size, f=4000.0, baseline=60.0, distance=300.0):
+    """A distortion-free stereo rig: the right camera ``baseline`` mm along x, both aimed at (0, 0, ``distance``) mm."""
+    from partinspect.vision.calibration import StereoCalibration
+
+    K = np.array([[f, 0, size[0] / 2 - 0.5], [0, f, size[1] / 2 - 0.5], [0, 0, 1.0]])
+    C = np.array([baseline, 0.0, 0.0])
+    z = np.array([0.0, 0.0, distance]) - C
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return StereoCalibration(size, K, np.zeros(5), K.copy(), np.zeros(5), R, -R @ C)

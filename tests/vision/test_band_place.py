@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from partinspect.vision.band_place import apparent_place, band_place, fit_light, rim_section
-from partinspect.vision.calibration import StereoCalibration, project_points
+from partinspect.vision.calibration import project_points
 from partinspect.vision.edges import edge_points
 from partinspect.vision.fit3d import View, fit_circle_3d
+from tests.vision.synthetic import toed_in_rig
 
 PLATE = (30.0, 30.0, 6.0)
 HOLE = (15.0, 15.0, 3.0)  # x, y, radius, mm
@@ -61,18 +62,6 @@ def test_a_dark_band_between_lit_faces_has_a_rival_step():
     assert other == pytest.approx(4.0, abs=0.1)  # the face's, nearly as large: either may be the edge found
 
 
-def _rig():
-    f = 4000.0
-    K = np.array([[f, 0, SIZE[0] / 2 - 0.5], [0, f, SIZE[1] / 2 - 0.5], [0, 0, 1.0]])
-    C = np.array([60.0, 0.0, 0.0])
-    z = np.array([0.0, 0.0, 300.0]) - C
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return StereoCalibration(SIZE, K, np.zeros(5), K.copy(), np.zeros(5), R, -R @ C)
-
-
 def _pose():
     a = np.deg2rad(215.0)  # the plate's top turned towards the cameras, 35 degrees off their axis
     R = np.array([[1.0, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
@@ -106,7 +95,7 @@ def _render(shape, light):
     spec = EdgeBreak(shape, BREAK)
     mesh = tessellate(break_edges(plate, spec)[0], RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE,
                       min_size=mesh_min_size(spec))
-    calib, pose = _rig(), _pose()
+    calib, pose = toed_in_rig(SIZE), _pose()
     images, _ = scene_radiance_pair(mesh, calib, pose, blur_sigma=0.6, shading=Shading(light=LIGHTS[light]))
     return shape, light, calib, pose, tuple(np.asarray(im, float) for im in images)
 

@@ -10,9 +10,10 @@ the sharp CAD edges and their faces: it reads the light itself.
 import numpy as np
 import pytest
 
-from partinspect.vision.calibration import StereoCalibration, project_points
+from partinspect.vision.calibration import project_points
 from partinspect.vision.edges import edge_points
 from partinspect.vision.line_band import BrokenLine, edge_section, face_light, line_places
+from tests.vision.synthetic import toed_in_rig
 
 BLOCK = (12.0, 12.0, 6.0)
 SIZE = (320, 240)
@@ -58,18 +59,6 @@ def test_a_face_no_camera_sees_takes_the_parts_light():
     assert face_light({f: greys[f] for f in ("top", "front")}, normals)[0][1]["back"] is None
 
 
-def _rig():
-    f = 4000.0
-    K = np.array([[f, 0, SIZE[0] / 2 - 0.5], [0, f, SIZE[1] / 2 - 0.5], [0, 0, 1.0]])
-    C = np.array([60.0, 0.0, 0.0])
-    z = np.array([0.0, 0.0, 300.0]) - C
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return StereoCalibration(SIZE, K, np.zeros(5), K.copy(), np.zeros(5), R, -R @ C)
-
-
 def _pose():
     a = np.deg2rad(215.0)  # the block's top turned towards the cameras, 35 degrees off their axis
     R = np.array([[1.0, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
@@ -103,7 +92,7 @@ def _render(shape):
     spec = EdgeBreak(shape, BREAK)
     mesh = tessellate(break_edges(block, spec)[0], RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE,
                       min_size=mesh_min_size(spec))
-    calib, pose = _rig(), _pose()
+    calib, pose = toed_in_rig(SIZE), _pose()
     images, _ = scene_radiance_pair(mesh, calib, pose, blur_sigma=0.6, shading=Shading(light=LIGHT))
     inv = inventory(block)
     sharp = tessellate(block, inventory=inv)
