@@ -21,8 +21,10 @@ For every model the noiseless image is formed once; each noise level and
 seed adds Gaussian noise and quantises to 8 bits, and the pair is
 inspected with the exact calibration. Printed per model and noise level:
 per characteristic type, true value within +-U (claimed 95.45 %), RMS and
-largest |error / u|, and hole centres' normalised error (the squared
-Mahalanobis distance over 3, RMS).
+largest |error / u|; the position every measured hole would read
+(``position, every hole``: the sample parts tolerance one hole's position
+each, two holes' figures); hole centres' normalised error (the squared
+Mahalanobis distance over 3, RMS) and the registered pose's (over 6).
 
 Usage::
 
@@ -44,13 +46,14 @@ from pathlib import Path
 import numpy as np
 
 from bench_drift import CHI2_3
-from bench_stress import honesty_by_type, table, true_value
+from bench_stress import honesty_by_type, pose_mahalanobis, table, true_value
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ("project", "blur-after", "disc-prnu")
 PRNU = 0.01
 DISC_RADIUS = 1.2
 BLUR_AFTER = 0.7
+CHI2_6 = 12.5916  # chi-square 95 % point, 6 degrees of freedom (the pose)
 
 
 def _disc_kernel(radius, n=16):
@@ -115,8 +118,12 @@ def noisy_pair(left, right, noise, seed, folder, calibration):
     shutil.copy(calibration, folder / "calibration.yaml")
 
 
-def score(report, truth):
-    """Characteristic rows for honesty_by_type, and the hole centres' normalised errors."""
+def score(report, truth, every_hole=False):
+    """Characteristic rows for honesty_by_type, and the hole centres' normalised errors.
+
+    ``every_hole``: add a row for the position of every measured hole
+    (:func:`every_hole_position`), toleranced or not.
+    """
     rows = []
     for c in report["characteristics"]:
         tv = true_value(c, truth)
@@ -132,7 +139,27 @@ def score(report, truth):
             continue
         e = np.asarray(m["center"], float) - np.asarray(t["rendered"]["center"], float)
         centres.append(float(e @ np.linalg.solve(np.asarray(m["covariance"], float), e)))
+        if every_hole and not t.get("deviated"):
+            rows.append(every_hole_position(f["id"], m, t["nominal"]))
     return rows, centres
+
+
+def every_hole_position(fid, measured, nominal):
+    """The position a hole would read if toleranced, as a row for honesty_by_type (true value 0).
+
+    The sample parts tolerance the position of one hole each, and its error
+    repeats from seed to seed (the rim's fixed displacement), so the
+    toleranced positions alone are two holes' figures; every measured hole's
+    position, as :func:`partinspect.tolerances.evaluate.true_position` states
+    it from the reported centre and covariance, is a sample of all of them.
+    """
+    from partinspect.tolerances.evaluate import COVERAGE_FACTOR, true_position
+
+    value, u = true_position(np.asarray(measured["center"], float), np.asarray(measured["covariance"], float),
+                             np.asarray(nominal["center"], float), np.asarray(nominal["normal"], float),
+                             np.random.default_rng(0))
+    return {"type": "position, every hole", "id": f"{fid}.position (every hole)", "measured": value, "true": 0.0,
+            "u": u, "U": COVERAGE_FACTOR * u}
 
 
 def main():
@@ -149,7 +176,7 @@ def main():
     work = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="formation-"))
     work.mkdir(parents=True, exist_ok=True)
     noises = [float(x) for x in args.noise.split(",")]
-    results = defaultdict(lambda: {"rows": [], "centres": [], "failed": 0, "s": []})
+    results = defaultdict(lambda: {"rows": [], "centres": [], "poses": [], "failed": 0, "s": []})
     for part in args.parts.split(","):
         ex = ROOT / "examples" / part
         truth = json.loads((ex / "truth.json").read_text())
@@ -167,9 +194,10 @@ def main():
                         print(f"{part} {model} noise {noise} seed {seed}: {e}")
                         results[key]["failed"] += 1
                         continue
-                    rows, centres = score(report, truth)
+                    rows, centres = score(report, truth, every_hole=True)
                     results[key]["rows"] += rows
                     results[key]["centres"] += centres
+                    results[key]["poses"].append(pose_mahalanobis(report["registration"], truth))
                     results[key]["s"].append(time.perf_counter() - t0)
                     worst = max(rows, key=lambda r: abs(r["measured"] - r["true"]) / r["u"])
                     print(f"{part} {model} noise {noise} seed {seed}: {len(rows)} judged, worst {worst['id']} "
@@ -181,6 +209,10 @@ def main():
         if len(c):
             rows.append(["centre (3D)", len(c), len(c), f"{100 * np.mean(c <= CHI2_3):.1f} %",
                          f"{np.sqrt(np.mean(c / 3)):.2f}", "-", f"{np.sqrt(c.max() / 3):.1f}"])
+        p = np.asarray(r["poses"])
+        if len(p):
+            rows.append(["pose (6D)", len(p), len(p), f"{100 * np.mean(p <= CHI2_6):.1f} %",
+                         f"{np.sqrt(np.mean(p / 6)):.2f}", "-", f"{np.sqrt(p.max() / 6):.1f}"])
         table(header, rows)
     if not args.dir:
         shutil.rmtree(work)
