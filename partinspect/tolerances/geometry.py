@@ -54,6 +54,11 @@ def _unit(v):
     return v / n
 
 
+_TIE = 1e-9
+"""Relative difference of two distances below which they are equal (many
+times the rounding of a closest point, far below any measured length)."""
+
+
 def _closest_points(a0, da, b0, db):
     """Closest points of the infinite lines a0 + s da and b0 + t db (not parallel)."""
     w = a0 - b0
@@ -144,9 +149,15 @@ def line_legs(a_start, a_end, b_start, b_end):
 
 
 def _leg(p0, p1, d, foot):
-    """Unit direction ``+-d`` from ``foot`` (on the line) towards the segment's farther endpoint."""
+    """Unit direction ``+-d`` from ``foot`` (on the line) towards the segment's farther endpoint.
+
+    Ends as far from the foot to rounding (``_TIE`` of the segment's length)
+    are a tie, which the end point ``p1`` takes: which end the foot's last
+    bit of rounding favours depends on the processor's floating-point path.
+    """
     s0, s1 = float((p0 - foot) @ d), float((p1 - foot) @ d)
-    return d if (s1 if abs(s1) >= abs(s0) else s0) >= 0 else -d
+    far = s1 if abs(s1) >= abs(s0) - _TIE * abs(s1 - s0) else s0
+    return d if far >= 0 else -d
 
 
 def line_gap(a_start, a_end, b_start, b_end):
