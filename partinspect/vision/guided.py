@@ -103,7 +103,8 @@ def line_stretch(feature, keep, corr_length):
     ideal = _ideal_at(feature, keep)
     fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False), ideal.xy,
                                corr_length)
-    extra = {} if feature.edge_normal is None else {"edge_normal": feature.edge_normal[keep]}
+    extra = {name: getattr(feature, name)[keep] for name in _LINE_POINT_FIELDS
+             if getattr(feature, name, None) is not None}
     return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
                    ideal=ideal, fit=fit, **extra)
 
@@ -383,6 +384,7 @@ def arc_stretch(feature, keep, corr_length):
 
 
 _ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
+_LINE_POINT_FIELDS = ("edge_normal", "phase_factor")
 
 
 def clear_arc_ends(stereo, calib, arcs, images, *, meets=None, min_points=12):
@@ -560,6 +562,16 @@ def _concat(features, positions):
     extra = {}
     if first.edge_normal is not None:
         extra["edge_normal"] = np.concatenate([g.edge_normal[k] for g, k in zip(features, positions)])
+    factors = [getattr(g, "phase_factor", None) for g in features]
+    if any(F is not None for F in factors):
+        # Each piece's ripple correction is its own: one block of columns each.
+        blocks = [np.zeros((len(k), 0)) if F is None else F[k] for F, k in zip(factors, positions)]
+        out = np.zeros((sum(b.shape[0] for b in blocks), sum(b.shape[1] for b in blocks)))
+        r = c = 0
+        for b in blocks:
+            out[r:r + b.shape[0], c:c + b.shape[1]] = b
+            r, c = r + b.shape[0], c + b.shape[1]
+        extra["phase_factor"] = out
     return replace(first, segments=tuple(s for g in features for s in g.segments),
                    index=np.concatenate([g.index[k] for g, k in zip(features, positions)]),
                    uv=np.concatenate([g.uv[k] for g, k in zip(features, positions)]),

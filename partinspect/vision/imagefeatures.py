@@ -53,6 +53,7 @@ from partinspect.vision.fitting import (
     line_with_covariance,
 )
 from partinspect.vision.ideal import IDEAL_FIELDS, IdealPoints, ideal_points
+from partinspect.vision.pixel_phase import without_phase_ripple
 
 __all__ = [
     "ImageFeature",
@@ -101,6 +102,10 @@ class ImageFeature:
         polarity is then not compared in matching: where the exchange
         happens depends on the view (each camera sees another part of the
         wall).
+    phase_factor : ndarray, shape (N, k) or None
+        Lines whose points' sub-pixel phase ripple was removed
+        (:mod:`partinspect.vision.pixel_phase`): the correction's error
+        across the line per unit normal deviate, px. None elsewhere.
     """
 
     kind: str
@@ -113,6 +118,7 @@ class ImageFeature:
     blur: float
     polarity: int
     mixed_polarity: bool = False
+    phase_factor: np.ndarray | None = None
 
     def __len__(self):
         return len(self.index)
@@ -368,6 +374,32 @@ def _with_covariance(f, corr_length):
     return replace(f, fit=complete(f.fit, f.ideal.xy, corr_length))
 
 
+def _without_ripple(f, edges):
+    """A kept line with its points' sub-pixel phase ripple removed, its outliers screened again.
+
+    See :mod:`partinspect.vision.pixel_phase`. The ripple can hide a
+    displaced point (a corner-rounded end) that the screen before its
+    removal let through, so the screen (``OUTLIER_ALPHA``) runs again on
+    the corrected residuals, the ripple estimated again after each point
+    dropped, within the feature's outlier budget.
+    """
+    budget = int(MAX_OUTLIER_FRACTION * len(f.index))
+    while True:
+        g = without_phase_ripple(f, edges)
+        if g is f:
+            return f
+        z = np.abs(g.fit.residuals) / np.maximum(g.fit.point_std, 1e-12)
+        worst = int(np.argmax(z))
+        if z[worst] <= _outlier_threshold(z) or budget == 0:
+            return g
+        keep = np.delete(np.arange(len(f.index)), worst)
+        ideal = IdealPoints(*(getattr(f.ideal, name)[keep] for name in IDEAL_FIELDS))
+        fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma, with_cov=False), ideal.xy,
+                                   edges.sigma)
+        f = replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal, fit=fit)
+        budget -= 1
+
+
 def _rms(f):
     return float(np.sqrt(np.mean(f.fit.residuals ** 2)))
 
@@ -595,4 +627,5 @@ def image_features(edges, segments, K, D, *, merge=True, min_fit_points=6, max_a
             if merged is None:
                 break
             feats = merged
-    return [_with_covariance(f, edges.sigma) for f in feats]
+    feats = [_with_covariance(f, edges.sigma) for f in feats]
+    return [_without_ripple(f, edges) if f.kind == "line" else f for f in feats]

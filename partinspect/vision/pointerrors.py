@@ -205,7 +205,7 @@ class PointErrorModel:
         return out
 
 
-def point_error_model(corr, normals, components, systematic=(), outlier_z=None, calibration=None):
+def point_error_model(corr, normals, components, systematic=(), outlier_z=None, calibration=None, left_common=None):
     """The :class:`PointErrorModel` of a feature's correspondences.
 
     Parameters
@@ -224,6 +224,11 @@ def point_error_model(corr, normals, components, systematic=(), outlier_z=None, 
         See :class:`PointErrorModel`.
     calibration : ndarray, shape (N, 3, q), optional
         The points' responses to the calibration (:class:`PointErrorModel`).
+    left_common : ndarray, shape (M, q), optional
+        An error of all the left feature's points across the edge common to
+        them, px per unit normal deviate (a removed phase ripple's,
+        :attr:`partinspect.vision.pixel_phase.PhaseRipple.factor`): drawn
+        with the right fit's part, as one draw for the whole edge.
     """
     idx = corr.left_index
     steps = np.linalg.norm(np.diff(corr.left, axis=0), axis=1)
@@ -232,7 +237,17 @@ def point_error_model(corr, normals, components, systematic=(), outlier_z=None, 
     J = np.einsum("nij,nj->ni", corr.jac_left, n)
     comps = tuple((np.asarray(std, float)[idx] if np.ndim(std) else np.full(len(idx), float(std)), length)
                   for std, length in components)
-    return PointErrorModel(s, J, comps, corr.jac_fit, corr.fit_cov, tuple(systematic), outlier_z, calibration)
+    jac, cov = corr.jac_fit, corr.fit_cov
+    if left_common is not None:
+        extra = J[:, :, None] * np.asarray(left_common, float)[idx][:, None, :]
+        q = extra.shape[2]
+        if jac is None or cov is None:
+            jac, cov = extra, np.eye(q)
+        else:
+            k = cov.shape[0]
+            jac = np.concatenate([jac, extra], axis=2)
+            cov = np.block([[cov, np.zeros((k, q))], [np.zeros((q, k)), np.eye(q)]])
+    return PointErrorModel(s, J, comps, jac, cov, tuple(systematic), outlier_z, calibration)
 
 
 def short_scale_ratio(r, sigma, xy, length):

@@ -984,7 +984,8 @@ def _point_errors(fl, corr, view, calibration=None):
         comps.append((view.bias, view.bias_corr_length))
     # The left feature's fit rejected its points beyond Chauvenet's threshold
     # (imagefeatures._make_features): the form's simulation cuts its tails there too.
-    return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)), calibration)
+    return point_error_model(corr, fl.ideal.normal, comps, systematic, chauvenet_z(len(fl.ideal.xy)), calibration,
+                             fl.phase_factor)
 
 
 def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_scale=1.0, point_response=None):

@@ -1,0 +1,205 @@
+"""The edge detector's error with the sub-pixel phase, read from a line's own residuals and removed.
+
+An edge point is found as the vertex of a parabola through three gradient
+magnitudes one pixel apart along an image axis
+(:func:`partinspect.vision.edges.edge_points`). Where the blurred profile
+is not exactly the shape the estimator assumes (a sharp lens, whose blur
+is narrower than the pixel, flattens it; a sensor's fill factor and
+micro-lenses change it), the vertex is displaced by an amount that depends
+only on where the edge crosses the pixel, its sub-pixel phase ``phi``
+(the offset from the pixel centre, -1/2 to 1/2), and on the profile,
+which is the same all along a straight edge. For a profile symmetric about
+its centre the displacement is odd in ``phi`` and vanishes at 0 and 1/2:
+a sine series ``sum_k a_k sin(2 pi k phi)`` [1]_ [2]_.
+
+Along a straight edge the phase runs through its cycle at a rate set by
+the edge's slope, so this "pixel locking" shows as a ripple of the points
+about the fitted line; near a slope of a simple ratio (45 degrees, an
+image axis) the phase drifts slowly and the ripple becomes a wave tens of
+pixels long, which a form zone reads as out-of-straightness and which the
+noise model, point-to-point, does not carry. A real form deviation of
+the part cannot follow the pixel grid's phase, so regressing the residuals
+on the phase harmonics separates the two: the fitted ripple is removed
+from the points, and its coefficients' uncertainty carried.
+
+Only the part of the ripple that the line fit does not absorb is removed
+(the regressors are made orthogonal to the line's offset and tilt under
+the fit's weights), so the fitted line and its covariance stay those of
+the uncorrected points, and what is removed is what the form sees.
+
+References
+----------
+.. [1] Shimizu, M., Okutomi, M. (2005). Sub-pixel estimation error
+       cancellation on area-based matching. IJCV 63(3), 207-224 (the
+       estimator's error as an odd periodic function of the sub-pixel
+       phase).
+.. [2] Devernay, F. (1995). A non-maxima suppression method for edge
+       detection with sub-pixel accuracy. INRIA RR-2724.
+.. [3] JCGM 100:2008, 3.2.3-3.2.4 (a recognised systematic effect is
+       corrected, and the correction's uncertainty carried).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import special
+
+from partinspect.vision.fitting import information_matrices
+from partinspect.vision.psd import covariance_factor
+
+__all__ = ["PhaseRipple", "HARMONICS", "RIPPLE_P", "sampling_phase", "phase_ripple", "without_phase_ripple"]
+
+HARMONICS = (1, 2)
+"""The sine harmonics of the phase fitted: the odd error of a symmetric
+profile's vertex is dominated by the first; the second takes up a profile
+flattened at the top (a blur narrower than the pixel)."""
+
+RIPPLE_P = 0.01
+"""A ripple is removed when the Wald test of its coefficients against zero
+(chi-square with ``len(HARMONICS)`` degrees of freedom, the coefficients'
+sandwich covariance) rejects zero at this level: a clean line keeps its
+points as found."""
+
+
+@dataclass(frozen=True)
+class PhaseRipple:
+    """The phase ripple of one line's points.
+
+    Attributes
+    ----------
+    regressors : ndarray, shape (N, k)
+        ``sin(2 pi h phi)`` for h in ``HARMONICS``, made orthogonal to the
+        line's offset and tilt under the fit's weights, px per unit
+        coefficient.
+    coefficients : ndarray, shape (k,)
+        Fitted amplitudes, px.
+    covariance : ndarray, shape (k, k)
+        Their covariance, px^2 (sandwich, the points' correlated noise).
+    p_value : float
+        The Wald test's p-value of the coefficients against zero.
+    """
+
+    regressors: np.ndarray
+    coefficients: np.ndarray
+    covariance: np.ndarray
+    p_value: float
+
+    @property
+    def displacement(self):
+        """The ripple at each point along the line's normal, px, shape (N,)."""
+        return self.regressors @ self.coefficients
+
+    @property
+    def significant(self):
+        return self.p_value < RIPPLE_P
+
+    @property
+    def factor(self):
+        """The removed ripple's error at each point per unit normal deviate, px, shape (N, k).
+
+        ``factor @ z`` with ``z`` standard normal draws the correction's
+        error across the line (the coefficients' covariance, rank k).
+        """
+        return self.regressors @ covariance_factor(self.covariance)
+
+
+def sampling_phase(uv, pixel):
+    """Sub-pixel phase of edge points along the axis each was found along.
+
+    Parameters
+    ----------
+    uv : ndarray, shape (N, 2)
+        Edge points, distorted px (``EdgePoints.xy``).
+    pixel : ndarray, shape (N, 2)
+        The pixel (row, column) each was found at (``EdgePoints.pixel``):
+        the point differs from it along one axis only.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        The offset from the pixel centre along that axis, px, -1/2 to 1/2.
+    """
+    uv = np.asarray(uv, float)
+    pixel = np.asarray(pixel, float)
+    return (uv[:, 0] - pixel[:, 1]) + (uv[:, 1] - pixel[:, 0])
+
+
+def phase_ripple(xy, normal, residuals, point_std, phase, corr_length):
+    """The phase ripple of a fitted line's points (see the module notes).
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        The line's points, ideal px, in order along it.
+    normal : ndarray, shape (2,)
+        The fitted line's unit normal.
+    residuals : ndarray, shape (N,)
+        Signed distances of the points from the fitted line, px.
+    point_std : ndarray, shape (N,)
+        Their standard uncertainties across the line, px (the fit's weights).
+    phase : ndarray, shape (N,)
+        Their sampling phases (:func:`sampling_phase`).
+    corr_length : float
+        Correlation length of the points' noise along the edge, px.
+
+    Returns
+    -------
+    PhaseRipple or None
+        None when the harmonics cannot be told from the line's offset and
+        tilt (fewer points than parameters, or a phase that hardly moves).
+    """
+    xy = np.asarray(xy, float)
+    s = np.asarray(point_std, float)
+    n = len(xy)
+    k = len(HARMONICS)
+    if n < 3 + 2 * k:
+        return None
+    t = (xy - xy.mean(axis=0)) @ np.array([-normal[1], normal[0]])
+    H = np.column_stack([np.ones(n), t])
+    X = np.sin(2.0 * np.pi * np.outer(phase, HARMONICS))
+    w = 1.0 / (s * s)
+    # The regressors' part the line's offset and tilt cannot take up.
+    Xp = X - H @ np.linalg.solve(H.T @ (w[:, None] * H), H.T @ (w[:, None] * X))
+    S, M, _ = information_matrices(Xp, s, xy, corr_length)
+    if np.linalg.cond(S) > 1e8:
+        return None
+    Sinv = np.linalg.inv(S)
+    coef = Sinv @ (Xp.T @ (w * np.asarray(residuals, float)))
+    cov = Sinv @ M @ Sinv
+    wald = float(coef @ np.linalg.solve(cov, coef))
+    return PhaseRipple(Xp, coef, cov, float(special.chdtrc(k, wald)))
+
+
+def without_phase_ripple(feature, edges):
+    """A line feature with its phase ripple removed, or the feature as it is where it shows none.
+
+    Parameters
+    ----------
+    feature : ImageFeature
+        A line (:class:`partinspect.vision.imagefeatures.ImageFeature`) with its fit.
+    edges : EdgePoints
+        The image's edge points its ``index`` refers to.
+
+    Returns
+    -------
+    ImageFeature
+        Where the ripple is significant (``RIPPLE_P``): its points (distorted
+        and ideal) moved back across the line by the fitted ripple, its line
+        fitted again (the same line up to rounding: the ripple removed is
+        orthogonal to it), and ``phase_factor`` the correction's error
+        factor (:attr:`PhaseRipple.factor`).
+    """
+    from partinspect.vision.fitting import fit_line, line_with_covariance
+
+    fit = feature.fit
+    phase = sampling_phase(edges.xy[feature.index], edges.pixel[feature.index])
+    ripple = phase_ripple(feature.ideal.xy, fit.params[:2], fit.residuals, fit.point_std, phase, edges.sigma)
+    if ripple is None or not ripple.significant:
+        return feature
+    shift = ripple.displacement[:, None] * np.asarray(fit.params[:2], float)[None, :]
+    ideal = replace(feature.ideal, xy=feature.ideal.xy - shift)
+    refit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma, with_cov=False), ideal.xy,
+                                 edges.sigma)
+    return replace(feature, uv=feature.uv - shift, ideal=ideal, fit=refit, phase_factor=ripple.factor)
