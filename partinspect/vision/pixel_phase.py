@@ -49,7 +49,7 @@ from scipy import special
 from partinspect.vision.fitting import information_matrices
 from partinspect.vision.psd import covariance_factor
 
-__all__ = ["PhaseRipple", "HARMONICS", "RIPPLE_P", "sampling_phase", "phase_ripple", "without_phase_ripple"]
+__all__ = ["PhaseRipple", "HARMONICS", "RIPPLE_P", "sampling_phase", "sampling_axis", "phase_ripple", "without_phase_ripple"]
 
 HARMONICS = (1, 2)
 """The sine harmonics of the phase fitted: the odd error of a symmetric
@@ -70,9 +70,10 @@ class PhaseRipple:
     Attributes
     ----------
     regressors : ndarray, shape (N, k)
-        ``sin(2 pi h phi)`` for h in ``HARMONICS``, made orthogonal to the
-        line's offset and tilt under the fit's weights, px per unit
-        coefficient.
+        ``sin(2 pi h phi)`` for h in ``HARMONICS`` (one set per sampling
+        axis, zero at the other axis's points, where the points were found
+        along both), made orthogonal to the line's offset and tilt under
+        the fit's weights, px per unit coefficient.
     coefficients : ndarray, shape (k,)
         Fitted amplitudes, px.
     covariance : ndarray, shape (k, k)
@@ -126,7 +127,13 @@ def sampling_phase(uv, pixel):
     return (uv[:, 0] - pixel[:, 1]) + (uv[:, 1] - pixel[:, 0])
 
 
-def phase_ripple(xy, normal, residuals, point_std, phase, corr_length):
+def sampling_axis(uv, pixel):
+    """The image axis each edge point was found along: 0 for x, 1 for y, shape (N,)."""
+    uv = np.asarray(uv, float)
+    return (np.abs(uv[:, 1] - np.asarray(pixel, float)[:, 0]) > 0).astype(int)
+
+
+def phase_ripple(xy, normal, residuals, point_std, phase, corr_length, axis=None):
     """The phase ripple of a fitted line's points (see the module notes).
 
     Parameters
@@ -143,6 +150,12 @@ def phase_ripple(xy, normal, residuals, point_std, phase, corr_length):
         Their sampling phases (:func:`sampling_phase`).
     corr_length : float
         Correlation length of the points' noise along the edge, px.
+    axis : ndarray of int, shape (N,), optional
+        The axis each point was found along (:func:`sampling_axis`). The
+        displacement is along that axis, so its component across the line
+        has the sign and size of the normal's component there: near 45
+        degrees, where the axis changes from point to point, each axis has
+        its own coefficients. None: one axis for all.
 
     Returns
     -------
@@ -159,6 +172,12 @@ def phase_ripple(xy, normal, residuals, point_std, phase, corr_length):
     t = (xy - xy.mean(axis=0)) @ np.array([-normal[1], normal[0]])
     H = np.column_stack([np.ones(n), t])
     X = np.sin(2.0 * np.pi * np.outer(phase, HARMONICS))
+    if axis is not None:
+        axis = np.asarray(axis, int)
+        X = np.column_stack([X * (axis == a)[:, None] for a in (0, 1) if np.sum(axis == a) >= 2 * k])
+        k = X.shape[1]
+        if k == 0:
+            return None
     w = 1.0 / (s * s)
     # The regressors' part the line's offset and tilt cannot take up.
     Xp = X - H @ np.linalg.solve(H.T @ (w[:, None] * H), H.T @ (w[:, None] * X))
@@ -194,8 +213,9 @@ def without_phase_ripple(feature, edges):
     from partinspect.vision.fitting import fit_line, line_with_covariance
 
     fit = feature.fit
-    phase = sampling_phase(edges.xy[feature.index], edges.pixel[feature.index])
-    ripple = phase_ripple(feature.ideal.xy, fit.params[:2], fit.residuals, fit.point_std, phase, edges.sigma)
+    uv, pixel = edges.xy[feature.index], edges.pixel[feature.index]
+    ripple = phase_ripple(feature.ideal.xy, fit.params[:2], fit.residuals, fit.point_std, sampling_phase(uv, pixel),
+                          edges.sigma, sampling_axis(uv, pixel))
     if ripple is None or not ripple.significant:
         return feature
     shift = ripple.displacement[:, None] * np.asarray(fit.params[:2], float)[None, :]

@@ -91,3 +91,15 @@ def test_a_sharp_lens_pixel_locking_is_removed_from_the_lines():
         assert np.std(after) < 0.4 * np.std(before)
         # The correction's error is small beside the points' own noise.
         assert np.sqrt(np.mean(np.sum(f.phase_factor ** 2, axis=1))) < 0.3 * np.median(f.fit.point_std)
+
+
+def test_near_45_degrees_each_search_axis_has_its_own_ripple():
+    """Points found along x and along y, their ripples of opposite sign (the normal's components): both are read."""
+    xy, normal, phase, noise = _line_points(n=400, slope=0.97, seed=3)
+    axis = (np.arange(len(xy)) // 7) % 2          # the search axis changes in runs along the edge
+    truth = np.where(axis == 0, 0.012, -0.012) * np.sin(2 * np.pi * phase)
+    r = truth + noise
+    one = phase_ripple(xy, normal, r - r.mean(), np.full(len(r), 0.01), phase, 1.0)
+    two = phase_ripple(xy, normal, r - r.mean(), np.full(len(r), 0.01), phase, 1.0, axis)
+    assert two.coefficients[[0, 2]] == pytest.approx([0.012, -0.012], abs=4 * np.sqrt(two.covariance[0, 0]))
+    assert np.std(r - two.displacement) < 0.8 * np.std(r - one.displacement)
