@@ -96,16 +96,19 @@ def line_stretch(feature, keep, corr_length):
     -------
     EdgeFeature
         Same kind, segments, polarity and blur; its points, their ideal
-        coordinates and edge normals those at ``keep``; its fit (with
-        covariance) that of those points alone.
+        coordinates, edge normals and shading bounds those at ``keep``; its
+        fit (with covariance) that of those points alone.
     """
     keep = np.asarray(keep, int)
     ideal = _ideal_at(feature, keep)
     fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False), ideal.xy,
                                corr_length)
-    extra = {} if feature.edge_normal is None else {"edge_normal": feature.edge_normal[keep]}
+    extra = {name: getattr(feature, name)[keep] for name in _LINE_POINT_FIELDS if getattr(feature, name) is not None}
     return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
                    ideal=ideal, fit=fit, **extra)
+
+
+_LINE_POINT_FIELDS = ("edge_normal", "background_bound")
 
 
 def _gather(features, candidates, polyline, trim, min_points, crowd=None, cid=None, reach=MAX_DISTANCE):
@@ -557,9 +560,8 @@ def _concat(features, positions):
     first = features[0]
     ideal = replace(first.ideal, **{f: np.concatenate([getattr(g.ideal, f)[k] for g, k in zip(features, positions)])
                                     for f in IDEAL_FIELDS})
-    extra = {}
-    if first.edge_normal is not None:
-        extra["edge_normal"] = np.concatenate([g.edge_normal[k] for g, k in zip(features, positions)])
+    extra = {name: np.concatenate([getattr(g, name)[k] for g, k in zip(features, positions)])
+             if all(getattr(g, name) is not None for g in features) else None for name in _LINE_POINT_FIELDS}
     return replace(first, segments=tuple(s for g in features for s in g.segments),
                    index=np.concatenate([g.index[k] for g, k in zip(features, positions)]),
                    uv=np.concatenate([g.uv[k] for g, k in zip(features, positions)]),
