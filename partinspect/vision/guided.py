@@ -96,8 +96,8 @@ def line_stretch(feature, keep, corr_length):
     -------
     EdgeFeature
         Same kind, segments, polarity and blur; its points, their ideal
-        coordinates and edge normals those at ``keep``; its fit (with
-        covariance) that of those points alone.
+        coordinates, edge normals and shading bounds those at ``keep``; its
+        fit (with covariance) that of those points alone.
     """
     keep = np.asarray(keep, int)
     ideal = _ideal_at(feature, keep)
@@ -107,6 +107,9 @@ def line_stretch(feature, keep, corr_length):
              if getattr(feature, name, None) is not None}
     return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
                    ideal=ideal, fit=fit, **extra)
+
+
+_LINE_POINT_FIELDS = ("edge_normal", "background_bound", "phase_factor")
 
 
 def _gather(features, candidates, polyline, trim, min_points, crowd=None, cid=None, reach=MAX_DISTANCE):
@@ -384,7 +387,6 @@ def arc_stretch(feature, keep, corr_length):
 
 
 _ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
-_LINE_POINT_FIELDS = ("edge_normal", "phase_factor")
 
 
 def clear_arc_ends(stereo, calib, arcs, images, *, meets=None, min_points=12):
@@ -554,24 +556,29 @@ def rims_along(stereo, unmatched, rims, images):
     return {k: cid for cid, (k, _) in best.items()}
 
 
+def _block_columns(blocks):
+    """Matrices stacked by rows, each in columns of its own (zero elsewhere): shape (sum rows, sum columns)."""
+    out = np.zeros((sum(b.shape[0] for b in blocks), sum(b.shape[1] for b in blocks)))
+    r = c = 0
+    for b in blocks:
+        out[r:r + b.shape[0], c:c + b.shape[1]] = b
+        r, c = r + b.shape[0], c + b.shape[1]
+    return out
+
+
 def _concat(features, positions):
     """One line feature of the points at ``positions`` of each of ``features`` (its fit the first's: refit it)."""
     first = features[0]
     ideal = replace(first.ideal, **{f: np.concatenate([getattr(g.ideal, f)[k] for g, k in zip(features, positions)])
                                     for f in IDEAL_FIELDS})
-    extra = {}
-    if first.edge_normal is not None:
-        extra["edge_normal"] = np.concatenate([g.edge_normal[k] for g, k in zip(features, positions)])
+    extra = {name: np.concatenate([getattr(g, name)[k] for g, k in zip(features, positions)])
+             if all(getattr(g, name) is not None for g in features) else None
+             for name in _LINE_POINT_FIELDS if name != "phase_factor"}
     factors = [getattr(g, "phase_factor", None) for g in features]
     if any(F is not None for F in factors):
         # Each piece's ripple correction is its own: one block of columns each.
-        blocks = [np.zeros((len(k), 0)) if F is None else F[k] for F, k in zip(factors, positions)]
-        out = np.zeros((sum(b.shape[0] for b in blocks), sum(b.shape[1] for b in blocks)))
-        r = c = 0
-        for b in blocks:
-            out[r:r + b.shape[0], c:c + b.shape[1]] = b
-            r, c = r + b.shape[0], c + b.shape[1]
-        extra["phase_factor"] = out
+        extra["phase_factor"] = _block_columns([np.zeros((len(k), 0)) if F is None else F[k]
+                                                for F, k in zip(factors, positions)])
     return replace(first, segments=tuple(s for g in features for s in g.segments),
                    index=np.concatenate([g.index[k] for g, k in zip(features, positions)]),
                    uv=np.concatenate([g.uv[k] for g, k in zip(features, positions)]),

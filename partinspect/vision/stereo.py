@@ -36,9 +36,18 @@ by the Monte Carlo (:mod:`partinspect.vision.montecarlo`); the Type B part
 is not. How large that Type B really is depends on the optics and the
 surface, so the level the rim's own fit residuals show of it, at its
 correlation length, scales its share in the centre and normal
-(:func:`type_b_scale`, :mod:`partinspect.vision.bias_evidence`). Lines are
-not corrected: an edge between two planar faces under a directional light
-has uniform grey on both sides.
+(:func:`type_b_scale`, :mod:`partinspect.vision.bias_evidence`).
+
+Lines. Their points are used as found: along a straight edge the shading
+beside it runs along it too, so it moves the whole line alike, by one
+offset per image that the two-view fit turns into a displacement of the
+3D line in depth and across, which its residuals cannot show. Where the
+faces beside a line are not of uniform grey (a curved face beside it, a
+fillet's band seen near grazing incidence) that offset is a Type B
+standard uncertainty of the line in each image, fully correlated along it
+(:func:`line_type_b`): it weights the line's two images in its fit and is
+propagated with the random part into its covariance, so into a
+registration's weights and the characteristics.
 
 Frames: 2D points in distorted pixels as detected, or ideal pixels where
 said; 3D geometry in the rig frame (left camera, mm).
@@ -78,7 +87,7 @@ from partinspect.vision.matching import arc_circle, epipolar_geometry, match_fea
 from partinspect.vision.noise import noise_level_function
 
 __all__ = ["ImageResult", "EdgeFeature", "Feature3D", "StereoResult", "measure_stereo", "measure_images",
-           "feature_views", "views_of", "rim_type_b", "type_b_scale", "edge_band", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
+           "feature_views", "views_of", "rim_type_b", "line_type_b", "type_b_scale", "edge_band", "correction_std_of", "correction_corr_length", "smoothed_background", "smoothing_operators", "coupled_noise",
            "as_fitted", "random_covariance",
            "corrected_correspondences", "fit_feature", "make_feature3d", "measure_pair_feature"]
 
@@ -131,6 +140,15 @@ and in the calibration check (:mod:`partinspect.vision.epipolar_drift`): a
 form zone is set by single points' extremes, where these errors average out
 along the rim less than the correlation says. The 3D fit takes
 ``RIM_DETECTOR_ERROR``."""
+LINE_BOUND_READING = float(np.hypot(BACKGROUND_CORRECTION, EDGE_BIAS_FACTOR))
+"""Type B standard uncertainty of a line's offset in one image per px of
+the median shading bound of its points (:func:`line_type_b`). A line is not
+corrected, so what the shading moves it by is all left: the displacement
+the rims' correction would remove (``BACKGROUND_CORRECTION`` times the
+first-order shift, whose size the bound is) and what that correction
+leaves (``EDGE_BIAS_FACTOR`` times the bound), in quadrature
+(JCGM 100 F.2.4.5: a known effect left uncorrected goes into the
+uncertainty)."""
 
 
 @dataclass(frozen=True)
@@ -199,7 +217,8 @@ class Feature3D:
         Triangulated points with their 3x3 covariances.
     param_cov_systematic : ndarray
         The third part of ``param_cov``: the Type B component of a rim's
-        points (module notes, "Rims of holes"); zeros for lines.
+        points (module notes, "Rims of holes") or of a line's offset in
+        each image (module notes, "Lines").
     point_errors : PointErrorModel or None
         Draws of the errors of ``points`` with their correlations along the
         edge (:mod:`partinspect.vision.pointerrors`), for the form's Monte
@@ -335,8 +354,8 @@ class EdgeFeature(ImageFeature):
         measured in another adaptive round than its neighbours
         (:mod:`partinspect.adaptive`) carries its own.
 
-    Arcs only (None for lines), averaged along the edge over
-    ``BACKGROUND_SMOOTHING`` px:
+    Arcs, averaged along the edge over ``BACKGROUND_SMOOTHING`` px (lines:
+    ``background_bound`` alone, as read at each point; the others None):
 
     background_offset : ndarray, shape (N, 2) or None
         First-order displacement of each point by the grey-level gradients
@@ -497,8 +516,10 @@ def _with_edge_data(feature, edges):
     base = {f.name: getattr(feature, f.name) for f in fields(ImageFeature)}
     i = feature.index
     base.update(edge_normal=edges.normal[i], corr_length=float(edges.sigma))
-    if edges.background_shift is None or feature.kind != "arc":
+    if edges.background_shift is None:
         return EdgeFeature(**base)
+    if feature.kind != "arc":
+        return EdgeFeature(**base, background_bound=edges.background_bound[i])
     std = background_shift_std(edges, i)
     values = np.c_[edges.background_shift[i, None] * edges.normal[i], edges.background_bound[i]]
     mean, mean_std = smoothed_background(edges.xy[i], values, std, edges.sigma)
@@ -546,7 +567,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
     and each point
     carries the Type B standard uncertainty :func:`rim_type_b` of what
     remains, correlated along the edge over ``EDGE_BIAS_CORR_ANGLE`` times
-    the ellipse's semi-major axis. Lines are used as found.
+    the ellipse's semi-major axis. Lines are used as found, each view
+    carrying :func:`line_type_b` of its points' shading bounds as one
+    offset along the whole line (``bias_corr_length`` None).
 
     ``correction_std``: the two features' :func:`correction_std`, if
     already computed (they depend on neither the calibration nor ``uv``).
@@ -578,6 +601,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
         if offset is not None:
             bias = rim_type_b(f.background_bound)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
+        elif not arc:
+            shade = line_type_b(getattr(f, "background_bound", None))
+            bias = np.full(len(xy), shade) if shade > 0 else None
         if band is not None:
             b = band[len(views)]
             bias = np.full(len(xy), b) if bias is None else np.hypot(bias, b)
@@ -611,6 +637,40 @@ def rim_type_b(bound):
            bounds: rectangular distribution, u = a / sqrt(3)).
     """
     return np.hypot(RIM_BOUND_READING * np.asarray(bound, float), RIM_DETECTOR_ERROR)
+
+
+def line_type_b(bound):
+    """Type B standard uncertainty of a line's offset in one image from the shading beside it, px.
+
+    ``LINE_BOUND_READING`` times the median of its points'
+    ``EdgePoints.background_bound``. The shading beside a straight edge
+    runs along it, so every point is displaced alike: one offset for the
+    whole line in that image (fully correlated along it), read from the
+    points together. The median, not the mean: the few points near the
+    line's ends, where another edge comes within the reading's reach, read
+    that edge, not the shading; and beside uniform faces the bound is zero
+    (the noise's expected part is taken out of each point's), so a clean
+    line keeps none.
+
+    Parameters
+    ----------
+    bound : ndarray, shape (N,) or None
+        ``EdgeFeature.background_bound`` of the line's points in one image,
+        px.
+
+    Returns
+    -------
+    float
+        px; 0 without readings.
+
+    References
+    ----------
+    .. [1] JCGM 100:2008 (GUM), 4.3 (Type B evaluation) and F.2.4.5
+           (a known systematic effect left uncorrected).
+    """
+    if bound is None or len(bound) == 0:
+        return 0.0
+    return LINE_BOUND_READING * float(np.median(bound))
 
 
 def type_b_scale(views, fit):
@@ -798,7 +858,6 @@ def _image_param_cov(fit, kind, type_b_scale=1.0):
     radius and leaves no residual to judge it by.
     """
     if kind == "line":
-        # Lines carry no systematic part (feature_views).
         C = np.zeros((6, 6))
         C[:3, :3] = fit.covariance
         C[3:, 3:] = fit.direction_cov
@@ -808,7 +867,14 @@ def _image_param_cov(fit, kind, type_b_scale=1.0):
         E = np.stack([e1, e2], 1)
         C[:3, 3:] = E @ fit.param_cov[:2, 2:] @ E.T
         C[3:, :3] = C[:3, 3:].T
-        return C, np.zeros((6, 6))
+        # The systematic part: each view's one offset along the line (the
+        # shading beside it, a broken edge's band; feature_views).
+        if fit.param_cov_systematic is None or not np.any(fit.param_cov_systematic):
+            return C, np.zeros((6, 6))
+        Eb = np.zeros((6, 4))
+        Eb[:3, :2], Eb[3:, 2:] = E, E
+        S = Eb @ fit.param_cov_systematic @ Eb.T
+        return C - S, S
     _, _, M = minimal_residuals(fit, kind, [])
     sys = np.zeros_like(fit.param_cov) if fit.param_cov_systematic is None else fit.param_cov_systematic
     img, sys = M @ (fit.param_cov - sys) @ M.T, M @ sys @ M.T
@@ -1248,7 +1314,7 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
     # What the calibration's error does to the points themselves (it bends a
     # rim, not only moves it): the form's Monte Carlo draws it.
     P = point_responses(corr, calib) if G.shape[1] else None
-    return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band), scale, P), None
+    return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band, fl.kind), scale, P), None
 
 
 def _one_circle(fl, fr, views_under, calib, fit):
@@ -1294,14 +1360,17 @@ def _form_view(view, f):
     return replace(view, bias=np.sqrt(np.square(np.hypot(EDGE_BIAS_FACTOR * bound, EDGE_BIAS_FLOOR)) + other))
 
 
-def _without_band(view, band):
+def _without_band(view, band, kind=None):
     """The left view with a broken edge's band taken out of its Type B, for the form's point errors.
 
     Along a straight edge the step's place on the band is one offset, which
-    moves no point relative to the others; around a rim its variation is the
-    characteristic's own Type B (:mod:`partinspect.tolerances.edge_break`),
-    not a point error to draw.
+    moves no point relative to the others, and so is the shading beside it
+    (:func:`line_type_b`): a line's view keeps no Type B. Around a rim the
+    band's variation is the characteristic's own Type B
+    (:mod:`partinspect.tolerances.edge_break`), not a point error to draw.
     """
+    if kind == "line" and view.bias is not None:
+        return replace(view, bias=None)
     if band is None or view.bias is None:
         return view
     rest = np.sqrt(np.maximum(np.square(view.bias) - band[0] ** 2, 0.0))

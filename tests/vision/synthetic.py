@@ -34,7 +34,7 @@ from partinspect.vision.edges import edge_points
 from partinspect.vision.fitting import ellipse_kcr_bound, fit_ellipse, fit_line, line_kcr_bound
 
 __all__ = ["Disc", "Ellipse", "Polygon", "HalfPlane", "Slot", "rectangle", "render", "render_clean", "render_optics",
-           "line_draws", "ellipse_draws"]
+           "render_profile", "line_draws", "ellipse_draws"]
 
 
 @dataclass(frozen=True)
@@ -439,3 +439,34 @@ def toed_in_rig(size, f=4000.0, baseline=60.0, distance=300.0):
     x /= np.linalg.norm(x)
     R = np.stack([x, np.cross(z, x), z])
     return StereoCalibration(size, K, np.zeros(5), K.copy(), np.zeros(5), R, -R @ C)
+
+
+def render_profile(profile, point, normal, size, blur=0.6, ss=6):
+    """Noiseless image of a straight edge whose grey across it is ``profile``: shading beside an edge.
+
+    The scene's grey at signed distance ``u`` (px) from the line through
+    ``point`` is ``profile(u)`` (``u`` grows along ``normal``, dark to
+    bright for a step), supersampled ``ss`` x ``ss`` per pixel, blurred by
+    the Gaussian PSF and area-integrated over each pixel (to the
+    supersampling's accuracy; shapes of uniform grey have exact renders
+    above).
+
+    Parameters
+    ----------
+    profile : callable
+        ndarray of u, px -> grey levels.
+    point, normal : array_like, shape (2,)
+        A point of the line, px (OpenCV frame), and its unit normal.
+    size : (int, int)
+        (width, height) of the image.
+
+    Returns
+    -------
+    ndarray, shape (height, width), float64
+    """
+    from scipy.ndimage import gaussian_filter
+
+    W, H = size
+    ys, xs = np.mgrid[0 : H * ss, 0 : W * ss]
+    u = ((xs + 0.5) / ss - 0.5 - point[0]) * normal[0] + ((ys + 0.5) / ss - 0.5 - point[1]) * normal[1]
+    return gaussian_filter(profile(u), blur * ss).reshape(H, ss, W, ss).mean(axis=(1, 3))

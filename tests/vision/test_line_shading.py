@@ -1,0 +1,81 @@
+"""A line's Type B for the shading beside it (issue 39): one offset per image, carried into the 3D line's covariance.
+
+A 3D edge seen by a toed-in rig, its face in the left image shaded as a
+curved face near grazing incidence (grey rising as the square root of the
+distance from the edge), in the right image uniform: the left image's
+points lie off the true edge's image, all alike, which the 3D line's fit
+cannot see in its residuals.
+"""
+
+import numpy as np
+import pytest
+from scipy.special import chdtri
+
+from partinspect.vision.stereo import measure_stereo
+from tests.vision.synthetic import render_profile, toed_in_rig
+
+SIZE = (320, 240)
+POINT = np.array([0.3, 0.0, 300.0])
+DIRECTION = np.array([0.15, 1.0, 0.1]) / np.linalg.norm([0.15, 1.0, 0.1])
+DARK, FACE = 40.0, 200.0
+
+
+def _step(u):
+    return np.where(u < 0, DARK, FACE)
+
+
+def _grazing(u):
+    """A face whose grey falls towards the edge as on a surface seen near grazing incidence: 160 at it, 200 at 8 px."""
+    return np.where(u < 0, DARK, 160.0 + (FACE - 160.0) * np.sqrt(np.clip(u, 0, 8) / 8))
+
+
+def _image(calib, i, profile, seed):
+    K, _, R, t = calib.camera(i)
+    x = (np.array([POINT - 20 * DIRECTION, POINT + 20 * DIRECTION]) @ R.T + t) @ K.T
+    a, b = x[:, :2] / x[:, 2:]
+    d = (b - a) / np.linalg.norm(b - a)
+    img = render_profile(profile, a, (-d[1], d[0]), SIZE)
+    return np.clip(np.rint(img + np.random.default_rng(seed).normal(0.0, 2.0, img.shape)), 0, 255)
+
+
+def _line_error(left_profile, seed=0):
+    """The measured line's error across it (mm) and its squared Mahalanobis distance there (2 dof)."""
+    calib = toed_in_rig(SIZE)
+    res = measure_stereo(_image(calib, 0, left_profile, seed), _image(calib, 1, _step, seed + 100), calib,
+                         parallel=False)
+    lines = [f for f in res.features if f.kind == "line"]
+    assert len(lines) == 1
+    f = lines[0]
+    across = np.linalg.svd(np.eye(3) - np.outer(f.direction, f.direction))[0][:, :2]
+    e = across.T @ (POINT - f.point)
+    return f, float(np.linalg.norm(e)), float(e @ np.linalg.solve(across.T @ f.covariance @ across, e))
+
+
+def test_a_line_beside_a_grazing_face_states_the_offset_its_shading_gives_it():
+    f, err, m2 = _line_error(_grazing)
+    # the shading moves the line far beyond its image noise (about 1 um of it): 32 um
+    assert err > 0.02
+    # within chance of its stated covariance (chi-square, 2 dof, 99.9 %); without the
+    # shading's Type B, 1800
+    assert m2 < chdtri(2, 1e-3)
+    # and that is the shading's Type B, in the systematic part
+    assert np.trace(f.param_cov_systematic) > 10 * np.trace(f.param_cov_image)
+
+
+def test_a_line_between_faces_of_uniform_grey_keeps_none():
+    f, err, m2 = _line_error(_step)
+    assert err < 0.003
+    assert not np.any(f.param_cov_systematic)
+    assert m2 < chdtri(2, 1e-3)
+
+
+def test_the_line_offset_is_read_from_the_median_bound():
+    from partinspect.vision.stereo import LINE_BOUND_READING, line_type_b
+
+    # the few points near an end that read another edge do not set it
+    bound = np.r_[np.full(40, 0.05), np.full(5, 2.0)]
+    assert line_type_b(bound) == pytest.approx(LINE_BOUND_READING * 0.05)
+    assert line_type_b(np.zeros(30)) == 0.0
+    assert line_type_b(None) == 0.0
+    # the rims' correction (1.4 times the first-order shift) and what it leaves (0.75 times the bound)
+    assert LINE_BOUND_READING == pytest.approx(np.hypot(1.4, 0.75))
