@@ -73,7 +73,7 @@ from scipy.ndimage import gaussian_filter1d, map_coordinates
 from scipy.optimize import least_squares
 
 from partinspect.vision.calibration import project_points
-from partinspect.vision.fit3d import View, fit_circle_3d
+from partinspect.vision.fit3d import View, circle_residuals_at, fit_circle_3d
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.matching import Match
 from partinspect.vision.stereo import measure_pair_feature
@@ -554,8 +554,9 @@ def _fitted_place(rim, cams, theta, places, sharp, rival=True):
     (s, s_rival, misfit), or s where ``rival`` is False, or None
         The place from the steepest steps, from their rivals, and the RMS
         of the predicted less the image's own steepest places round the
-        rim, what a shift and a sinusoid (the pose's error and the size
-        measured) leave, as a share of the band's width in the image.
+        rim, what a rigid move and a size of the rim in both images (the
+        pose's error and the size measured) leave, as a share of the band's
+        width in the image (RMS over the images).
         None where an image sees fewer than 6 angles.
     """
     seen = tuple(np.isfinite(pl[0]) for pl in places)
@@ -572,12 +573,15 @@ def _fitted_place(rim, cams, theta, places, sharp, rival=True):
 
     if not rival:
         return size(0)
-    misfit = []
-    for (ok, _, _, _, _, band), pl in zip(per_image, places):
-        X = np.c_[np.ones(ok.sum()), np.cos(theta[ok]), np.sin(theta[ok])]
-        e = pl[0, ok] - pl[2, ok]
-        e = e - X @ np.linalg.lstsq(X, e, rcond=None)[0]
-        misfit.append(float(np.sqrt(np.mean(e * e))) / band)
+    # The pose's error moves the rim rigidly (its tilt too) in both images at once, and the size is
+    # measured: a two-view circle fit of the image's own steps less the predicted takes out those and
+    # leaves what the model does not explain.
+    views = [View(uv0 + (pl[2, ok] - pl[0, ok])[:, None] * d, sigma, P)
+             for (ok, uv0, d, sigma, P, _), pl in zip(per_image, places)]
+    r, _ = circle_residuals_at(views, fit_circle_3d(views, c_rig, n_rig, rim.radius))
+    parts = np.split(r, np.cumsum([len(v.xy) for v in views])[:-1])
+    misfit = [float(np.sqrt(np.mean(np.square(e * v.sigma)))) / band
+              for e, v, (*_, band) in zip(parts, views, per_image)]
     return size(0), size(1), float(np.sqrt(np.mean(np.square(misfit))))
 
 
