@@ -73,7 +73,7 @@ from scipy.ndimage import gaussian_filter1d, map_coordinates
 from scipy.optimize import least_squares
 
 from partinspect.vision.calibration import project_points
-from partinspect.vision.fit3d import View, fit_circle_3d
+from partinspect.vision.fit3d import View, circle_residuals_at, fit_circle_3d
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.matching import Match
 from partinspect.vision.stereo import measure_pair_feature
@@ -131,6 +131,17 @@ class BandPlace:
         break: the shapes' and rival steps' range at its angle
         (rectangular), the model's misfit and the light's, combined in
         quadrature (RMS over the angles), at most ``1 / sqrt(12)``.
+    modes : (ndarray, ndarray), shape (k, n) each
+        Per image, the place's errors that are shared round the rim and by
+        both images, each as the displacement by one standard uncertainty
+        at each angle, px along ``offsets``' direction (NaN where the band
+        is not seen): first the shapes' and rival steps' range over
+        ``sqrt(12)`` (one break and one light for the whole rim: the place
+        lies at one share of its range everywhere, rectangular), then the
+        light's principal directions (:func:`_place_modes`).
+    u_rest : float
+        What of ``u_point`` is not in ``modes``, as a share of the break:
+        the model's misfit to the image's own steps, a point's own.
     """
 
     s: float
@@ -143,7 +154,8 @@ class BandPlace:
     theta: np.ndarray = None
     offsets: tuple = None
     u_point: float = None
-
+    modes: tuple = None
+    u_rest: float = None
 
 
 def rim_section(shape, material_side, n=SECTION_SAMPLES):
@@ -542,8 +554,9 @@ def _fitted_place(rim, cams, theta, places, sharp, rival=True):
     (s, s_rival, misfit), or s where ``rival`` is False, or None
         The place from the steepest steps, from their rivals, and the RMS
         of the predicted less the image's own steepest places round the
-        rim, what a shift and a sinusoid (the pose's error and the size
-        measured) leave, as a share of the band's width in the image.
+        rim, what a rigid move and a size of the rim in both images (the
+        pose's error and the size measured) leave, as a share of the band's
+        width in the image (RMS over the images).
         None where an image sees fewer than 6 angles.
     """
     seen = tuple(np.isfinite(pl[0]) for pl in places)
@@ -560,24 +573,65 @@ def _fitted_place(rim, cams, theta, places, sharp, rival=True):
 
     if not rival:
         return size(0)
-    misfit = []
-    for (ok, _, _, _, _, band), pl in zip(per_image, places):
-        X = np.c_[np.ones(ok.sum()), np.cos(theta[ok]), np.sin(theta[ok])]
-        e = pl[0, ok] - pl[2, ok]
-        e = e - X @ np.linalg.lstsq(X, e, rcond=None)[0]
-        misfit.append(float(np.sqrt(np.mean(e * e))) / band)
+    # The pose's error moves the rim rigidly (its tilt too) in both images at once, and the size is
+    # measured: a two-view circle fit of the image's own steps less the predicted takes out those and
+    # leaves what the model does not explain.
+    views = [View(uv0 + (pl[2, ok] - pl[0, ok])[:, None] * d, sigma, P)
+             for (ok, uv0, d, sigma, P, _), pl in zip(per_image, places)]
+    r, _ = circle_residuals_at(views, fit_circle_3d(views, c_rig, n_rig, rim.radius))
+    parts = np.split(r, np.cumsum([len(v.xy) for v in views])[:-1])
+    misfit = [float(np.sqrt(np.mean(np.square(e * v.sigma)))) / band
+              for e, v, (*_, band) in zip(parts, views, per_image)]
     return size(0), size(1), float(np.sqrt(np.mean(np.square(misfit))))
 
 
 def _point_places(rim, cams, theta, shapes):
-    """Per image, the place at each angle midway between the shapes' and rivals' extremes, and its range, px."""
+    """Per image, the place at each angle midway between the shapes' and rivals' extremes, and its range, px.
+
+    Returns
+    -------
+    list of (mid, share, range)
+        Per image, each shape (angles,): the place, px; its range as a
+        share of the break's width in the image; the range, px.
+    """
     out = []
     p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, theta)
     for i, cam in enumerate(cams):
         c = np.concatenate([pl[i][:2] for pl in shapes])
         lo, hi = np.min(c, axis=0), np.max(c, axis=0)
-        out.append((0.5 * (lo + hi), (hi - lo) / _band_px(rim, cam, p0, rh)))
+        out.append((0.5 * (lo + hi), (hi - lo) / _band_px(rim, cam, p0, rh), hi - lo))
     return out
+
+
+def _place_modes(ranges, places, moved):
+    """Per image, the band place's errors shared round the rim and by both images, px at each angle.
+
+    A rim has one break and is under one light, so what is not known of
+    them moves the place at every angle and in both images at once, by
+    amounts the model predicts: the rim's fit then takes the part of the
+    move common round the rim as its radius and only the part that varies
+    round it (the light's direction, the view's obliquity) as its centre.
+    Two kinds: the place somewhere across the range the shapes and rival
+    steps give (one share of it everywhere, rectangular: the range over
+    ``sqrt(12)``, JCGM 100 4.3.7), and the light moved along each principal
+    direction of its covariance by one standard deviation (JCGM 100, 5.2).
+
+    Parameters
+    ----------
+    ranges : sequence of ndarray, shape (angles,)
+        Per image, the range of the place, px.
+    places : sequence of ndarray, shape (3, angles)
+        Per image, :func:`_image_places` under the fitted light.
+    moved : sequence of sequence of ndarray, shape (3, angles)
+        Per light direction, per image, the same under the moved light.
+
+    Returns
+    -------
+    tuple of ndarray, shape (1 + directions, angles)
+        NaN where the band is not seen.
+    """
+    return tuple(np.vstack([rng / math.sqrt(12.0)] + [m[i][0] - pl[0] for m in moved])
+                 for i, (rng, pl) in enumerate(zip(ranges, places)))
 
 
 def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, width):
@@ -630,21 +684,32 @@ def band_place(images, calib, part_to_camera, center, axis, radius, hole, size, 
     lo, hi = min(fillet[:2] + chamfer[:2]), max(fillet[:2] + chamfer[:2])
     s_mid, u_shape = 0.5 * (lo + hi), (hi - lo) / math.sqrt(12.0)
     w, V = np.linalg.eigh(cov)
-    moves = [_fitted_place(rim, cams, theta, _places(seen["fillet"], theta, light + math.sqrt(max(wi, 0.0)) * V[:, j],
-                                                     width), sharp, rival=False) for j, wi in enumerate(w)]
+    lights = [_places(seen["fillet"], theta, light + math.sqrt(max(wi, 0.0)) * V[:, j], width)
+              for j, wi in enumerate(w)]
+    moves = [_fitted_place(rim, cams, theta, m, sharp, rival=False) for m in lights]
     u_light = math.sqrt(sum((m - fillet[0]) ** 2 for m in moves if m is not None))
     # What the model does not explain of the image's own steps round the rim (the better shape's).
     u_model = min(fillet[2], chamfer[2])
     u = min(UNIFORM_STD, math.sqrt(u_shape**2 + u_light**2 + u_model**2))
     s_f, s_c = fillet[0], chamfer[0]
     points = _point_places(rim, cams, theta, list(shapes.values()))
-    ranges = np.concatenate([r[np.isfinite(r)] for _, r in points])
+    ranges = np.concatenate([r[np.isfinite(r)] for _, r, _ in points])
     u_point = min(UNIFORM_STD, math.sqrt(float(np.mean(ranges**2)) / 12.0 + u_light**2 + u_model**2))
+    modes = _place_modes([r for _, _, r in points], shapes["fillet"], lights)
     return BandPlace(float(np.clip(s_mid, 0.0, 1.0)), u, s_f, s_c, u_shape, u_light, u_model, theta,
-                     tuple(p for p, _ in points), u_point)
+                     tuple(p for p, _, _ in points), u_point, modes, min(UNIFORM_STD, u_model))
 
 
-def _moved_to_sharp(feature, rim, cam, theta, offsets, corr_length):
+def _round_rim(theta, values, fine):
+    """``values`` (angles,) interpolated round the rim at ``fine``, NaN (not seen) taking the nearest seen; None if < 2 seen."""
+    seen = np.isfinite(values)
+    if seen.sum() < 2:
+        return None
+    period = np.r_[theta[seen] - 2 * np.pi, theta[seen], theta[seen] + 2 * np.pi]
+    return np.interp(fine, period, np.tile(values[seen], 3))
+
+
+def _moved_to_sharp(feature, rim, cam, theta, offsets, corr_length, modes=None, names=None):
     """An image arc with each point moved by minus its predicted place (towards the sharp rim's image), refitted.
 
     Each point takes the place of the nearest of the sharp rim's image
@@ -652,14 +717,15 @@ def _moved_to_sharp(feature, rim, cam, theta, offsets, corr_length):
     where the band is not seen takes its nearest seen one). The move is
     made in the distorted image and carried to the ideal one by each
     point's Jacobian; covariances are kept (the place's uncertainty is the
-    Type B the fit is given).
+    Type B the fit is given). The place's shared errors ``modes`` (k,
+    angles), px, are read at each point alike and carried to the ideal
+    image by the Jacobian's stretch across the edge: the feature's
+    ``band_modes``, named ``names``.
     """
     fine = np.linspace(0.0, 2.0 * np.pi, FINE_ANGLES, endpoint=False)
-    seen = np.isfinite(offsets)
-    if seen.sum() < 2:
+    offset = _round_rim(theta, offsets, fine)
+    if offset is None:
         return None
-    period = np.r_[theta[seen] - 2 * np.pi, theta[seen], theta[seen] + 2 * np.pi]
-    offset = np.interp(fine, period, np.tile(offsets[seen], 3))
     p0, rh = _rim_frame(rim.center, rim.axis, rim.radius, fine)
     uv0, d = _outward(p0, rh, rim.side, *cam[:4])
     near = np.argmin(np.linalg.norm(feature.uv[:, None] - uv0[None], axis=2), axis=1)
@@ -667,7 +733,13 @@ def _moved_to_sharp(feature, rim, cam, theta, offsets, corr_length):
     xy = feature.ideal.xy + np.einsum("nij,nj->ni", feature.ideal.jacobian, shift)
     ideal = replace(feature.ideal, xy=xy)
     fit = fit_ellipse(xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
-    return replace(feature, uv=feature.uv + shift, ideal=ideal, fit=fit)
+    extra = {}
+    if modes is not None:
+        stretch = np.linalg.norm(np.einsum("nij,nj->ni", feature.ideal.jacobian, d[near]), axis=1)
+        rows = [_round_rim(theta, m, fine) for m in modes]
+        rows = [np.zeros(len(fine)) if r is None else r for r in rows]
+        extra = {"band_modes": np.array([r[near] * stretch for r in rows]), "band_mode_names": tuple(names)}
+    return replace(feature, uv=feature.uv + shift, ideal=ideal, fit=fit, **extra)
 
 
 def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
@@ -715,15 +787,18 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
         rim = _Rim(np.asarray(center, float), axis, float(radius), 1 if hole else -1, float(size))
         f3 = stereo.features[k]
         scale = L.features[f3.left].corr_length or float(L.edges.sigma)
+        modes = place.modes or (None, None)
+        names = None if place.modes is None else [f"{cid} band place {j}" for j in range(len(place.modes[0]))]
         try:
-            moved = [_moved_to_sharp(res.features[i], rim, cam, place.theta, off, scale)
-                     for res, i, cam, off in zip((L, R), (f3.left, f3.right), cams, place.offsets)]
+            moved = [_moved_to_sharp(res.features[i], rim, cam, place.theta, off, scale, m, names)
+                     for res, i, cam, off, m in zip((L, R), (f3.left, f3.right), cams, place.offsets, modes)]
         except (np.linalg.LinAlgError, ValueError):
             continue
         if any(m is None for m in moved):
             continue
+        rest = place.u_point if place.modes is None else place.u_rest
         new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
-                                      *moved, calib, geo, scale, place.u_point * rim.size)
+                                      *moved, calib, geo, scale, rest * rim.size)
         if new is None:
             continue
         lefts[f3.left], rights[f3.right] = moved

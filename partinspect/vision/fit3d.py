@@ -75,6 +75,17 @@ class View:
         correction is averaged along the edge).
     correction_corr_length : float or None
         Its correlation length along the edge, px (same form as ``corr_length``).
+    modes : ndarray, shape (k, N) or None
+        Systematic displacement patterns across the edge, px: row j is the
+        displacement of every point by one standard uncertainty of an
+        unknown coefficient (a Type B, JCGM 100 4.3) whose effect on the
+        points is known in shape, e.g. a broken rim's band place, whose
+        error moves each point by its angle's own amount. One coefficient
+        moves every view carrying its name (``mode_names``) together, so
+        what is common round a rim goes to its radius and only what varies
+        round it to its centre.
+    mode_names : tuple of k hashable or None
+        The coefficients' names: rows of two views with one name share it.
     """
 
     xy: np.ndarray
@@ -85,6 +96,8 @@ class View:
     bias_corr_length: float | None = None
     sigma_correction: np.ndarray | None = None
     correction_corr_length: float | None = None
+    modes: np.ndarray | None = None
+    mode_names: tuple | None = None
 
     @property
     def random_sigma(self):
@@ -97,9 +110,14 @@ class View:
     def total_sigma(self):
         """Standard uncertainty of each point, random and systematic together, px (the fit's weights)."""
         s = self.random_sigma
-        if self.bias is None:
+        if self.bias is None and self.modes is None:
             return s
-        return np.sqrt(s * s + self.bias * self.bias)
+        var = s * s
+        if self.bias is not None:
+            var = var + self.bias * self.bias
+        if self.modes is not None:
+            var = var + np.sum(np.square(self.modes), axis=0)
+        return np.sqrt(var)
 
 
 @dataclass(frozen=True)
@@ -147,7 +165,8 @@ class Circle3D:
         Number of residuals minus 6.
     param_cov_systematic : ndarray, shape (6, 6) or None
         The share of ``param_cov`` due to the views' uncorrected systematic
-        displacements (``View.bias``); the covariances above include it.
+        displacements (``View.bias``, ``View.modes``); the covariances above
+        include it.
     """
 
     center: np.ndarray
@@ -248,12 +267,13 @@ def _covariance(views, J):
     (residuals divided by each point's ``total_sigma``). The estimate is
     ``theta = -S^-1 H_w^T e_w`` to first order, with ``S = H_w^T H_w``; the
     weighted errors e_w = e / t have the covariance ``D_s R_s D_s + D_c
-    R_c D_c + D_b R_b D_b`` (D_s = diag(sigma / t), D_c =
+    R_c D_c + D_b R_b D_b + sum_j m_j m_j^T`` (D_s = diag(sigma / t), D_c =
     diag(sigma_correction / t), D_b = diag(bias / t); R_s, R_c, R_b the
     correlations along the edge of the noise, of the correction's noise
-    and of the systematic displacements), so each part is ``S^-1 (H_w^T D
+    and of the systematic displacements; m_j the weighted pattern of mode
+    j over every view that carries it), so each part is ``S^-1 (H_w^T D
     R D H_w) S^-1``, the first two the random one. The views' errors are
-    independent of each other.
+    independent of each other but for their shared modes.
     """
     S, M, Mb = information_parts(views, J)
     Sinv = np.linalg.inv(S)
@@ -280,11 +300,14 @@ def information_parts(views, J):
     M_random, M_systematic : ndarray, shape (p, p)
         ``J^T D R D J`` of the random errors (image noise and the
         correction's, each with its correlation along the edge) and of the
-        systematic displacements (``View.bias``); the estimate's covariance
-        is ``S^-1 (M_random + M_systematic) S^-1`` (:func:`_covariance`).
+        systematic displacements (``View.bias`` and ``View.modes``, a mode's
+        weighted pattern summed over the views sharing its name before its
+        outer product); the estimate's covariance is ``S^-1 (M_random +
+        M_systematic) S^-1`` (:func:`_covariance`).
     """
     p = J.shape[1]
     M, Mb = np.zeros((p, p)), np.zeros((p, p))
+    shared = {}
     start = 0
     for v in views:
         n = len(v.xy)
@@ -295,7 +318,12 @@ def information_parts(views, J):
             M += _gram(hw * (v.sigma_correction / t)[:, None], v.xy, v.correction_corr_length)
         if v.bias is not None:
             Mb += _gram_dense(hw * (v.bias / t)[:, None], v.xy, v.bias_corr_length)
+        if v.modes is not None:
+            for name, a in zip(v.mode_names, (np.asarray(v.modes, float) / t) @ hw):
+                shared[name] = shared.get(name, 0.0) + a
         start += n
+    for a in shared.values():
+        Mb += np.outer(a, a)
     return J.T @ J, M, Mb
 
 

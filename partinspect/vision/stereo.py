@@ -366,6 +366,16 @@ class EdgeFeature(ImageFeature):
     background_std : ndarray, shape (N,) or None
         Standard deviation of ``background_offset`` along the normal from
         image noise, px.
+
+    A broken rim moved onto its sharp edge's image
+    (:func:`partinspect.vision.band_place.rims_at_sharp_edge`):
+
+    band_modes : ndarray, shape (k, N) or None
+        The displacement of each point across the edge by one standard
+        uncertainty of each of its band place's shared errors, ideal px
+        (``View.modes``).
+    band_mode_names : tuple of k str or None
+        Their names: the two images of one rim share them.
     """
 
     edge_normal: np.ndarray | None = None
@@ -373,6 +383,8 @@ class EdgeFeature(ImageFeature):
     background_offset: np.ndarray | None = None
     background_bound: np.ndarray | None = None
     background_std: np.ndarray | None = None
+    band_modes: np.ndarray | None = None
+    band_mode_names: tuple | None = None
 
 
 def smoothed_background(xy, values, std, corr_length, length=BACKGROUND_SMOOTHING):
@@ -576,7 +588,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
     ``band``: per view, the Type B standard uncertainty, px, of where a
     broken edge's step lies across its band (:func:`edge_band`), added in
     quadrature to every point; along a line it is one offset for the whole
-    view, along a rim correlated as the shading's rest.
+    view, along a rim correlated as the shading's rest. A feature's
+    ``band_modes`` (a broken rim moved onto its sharp edge's image) are the
+    views' ``modes``.
     """
     P1, P2 = camera_matrices(calib)
     if correction_std is None:
@@ -607,7 +621,8 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
         if band is not None:
             b = band[len(views)]
             bias = np.full(len(xy), b) if bias is None else np.hypot(bias, b)
-        views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length)))
+        views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length),
+                          getattr(f, "band_modes", None), getattr(f, "band_mode_names", None)))
     return views
 
 

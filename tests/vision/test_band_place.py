@@ -164,8 +164,9 @@ def test_the_band_is_read_once_per_shape_for_every_light(broken_pair, monkeypatc
     widths = tuple(float(np.median(edge_points(im, noise=0.5).width)) for im in images)
     place = band_place(images, calib, pose, [HOLE[0], HOLE[1], PLATE[2]], [0, 0, 1.0], HOLE[2], True, BREAK, widths)
     assert place is not None
-    # The sharp rim once per shape (twice at most), each shape's steepest and rival steps, one fit per
-    # light moved (four): not all of them for each of the six shape-and-light predictions (18).
-    assert calls["fit"] <= 2 + 2 * 2 + 4
+    # The sharp rim once per shape (twice at most), each shape's steepest and rival steps and its
+    # misfit, one fit per light moved (four): not all of them for each of the six shape-and-light
+    # predictions (24).
+    assert calls["fit"] <= 2 + 2 * 3 + 4
     # The image's own steps read once per shape, image and angle seen, not again for each light.
     assert calls["observed"] <= 2 * 2 * module.ANGLES

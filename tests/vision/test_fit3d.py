@@ -174,3 +174,33 @@ def test_systematic_part_is_the_response_to_the_stated_displacement(corr):
         full = fit_circle_3d([View(clean[0].xy, clean[0].sigma, PS[0], 1.0, b, None), clean[1]],
                              CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic
         assert S[5, 5] < full[5, 5]
+
+
+def _outward(x):
+    """Unit normals of image points x of a closed curve, pointing away from its centroid."""
+    n = normals(x)
+    return n * np.sign(np.einsum("ni,ni->n", n, x - x.mean(axis=0)))[:, None]
+
+
+def test_a_shared_mode_moves_both_views_at_once():
+    """A displacement pattern named alike in both views (one coefficient, e.g. a broken rim's band place):
+    its propagated covariance is the outer product of the fit's response to moving both views by it
+    (named apart, each view would move alone: another covariance). Common round the rim, it moves the
+    radius, the centre hardly."""
+    X = circle_points(400)
+    xs = [proj(P, X) for P in PS]
+    c = 0.1  # px, outward all round, in both images
+    views = [View(x, np.full(400, SIGMA), P, 1.0, modes=np.full((1, 400), c), mode_names=("place",))
+             for x, P in zip(xs, PS)]
+    f0 = fit_circle_3d(views, CIRCLE["center"], CIRCLE["normal"], 6.0)
+    moved = [View(x + c * _outward(x), v.sigma, v.P, 1.0, modes=v.modes, mode_names=v.mode_names)
+             for x, v in zip(xs, views)]
+    f1 = fit_circle_3d(moved, CIRCLE["center"], CIRCLE["normal"], 6.0)
+    d = np.r_[f1.center - f0.center, f1.radius - f0.radius]
+    S = f0.param_cov_systematic
+    s = np.sqrt(np.diag(S)[[0, 1, 2, 5]])
+    assert np.allclose(np.abs(d), s, rtol=0.03, atol=1e-9), (d, s)
+    apart = [View(v.xy, v.sigma, v.P, 1.0, modes=v.modes, mode_names=(f"place {i}",)) for i, v in enumerate(views)]
+    S_apart = fit_circle_3d(apart, CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic
+    assert S_apart[5, 5] < 0.8 * S[5, 5]
+    assert np.sqrt(np.trace(S[:3, :3])) < 0.1 * np.sqrt(S[5, 5])
