@@ -44,7 +44,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from partinspect.vision.edges import EDGE_BIAS_FACTOR, neighbour_points
+from partinspect.vision.edges import EDGE_BIAS_FACTOR
 from partinspect.vision.fitting import (
     EllipseJob,
     as_points,
@@ -98,6 +98,8 @@ OFF_LINE_Z = 5.0
 # deg at r = 35 px); a tangent junction leaves only the points' displacement
 # by the shading beside them, a fraction of a pixel.
 TANGENT_TOLERANCE = 1.0
+
+_NEIGHBOURS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
 
 
 @dataclass(frozen=True)
@@ -161,7 +163,14 @@ def chain_edges(edges, *, min_cos=0.5):
     N = len(edges)
     if N == 0:
         return []
-    nb = neighbour_points(edges.pixel, edges.shape)
+    H, W = edges.shape
+    grid = np.full(H * W, -1, np.int64)
+    r, c = edges.pixel[:, 0].astype(np.int64), edges.pixel[:, 1].astype(np.int64)
+    grid[r * W + c] = np.arange(N)
+    nr = r[:, None] + _NEIGHBOURS[None, :, 0]
+    nc = c[:, None] + _NEIGHBOURS[None, :, 1]
+    inside = (nr >= 0) & (nr < H) & (nc >= 0) & (nc < W)
+    nb = np.where(inside, grid[np.clip(nr, 0, H - 1) * W + np.clip(nc, 0, W - 1)], -1)
     valid = nb >= 0
     nbs = np.where(valid, nb, 0)
     xy, n = edges.xy, edges.normal

@@ -38,8 +38,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from partinspect.vision.noise import QUANTISATION_STD, estimate_noise
 
@@ -498,69 +496,6 @@ def noise_scale_map(image, noise_level, sigma=1.0):
     return np.sqrt(np.maximum(var, QUANTISATION_STD ** 2)) / noise_level.noise
 
 
-NEIGHBOURS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
-"""A pixel's 8 neighbours, (row, column) offsets."""
-
-
-def neighbour_points(pixel, shape):
-    """Index of the point in each of every point's 8 neighbouring pixels, -1 where there is none.
-
-    Looked up among the points' sorted pixel numbers, not in a table of
-    every pixel of the image (a few thousand points against millions of
-    pixels); where a pixel holds several points, the last, as such a
-    table filled in order would hold (the detector gives one a pixel).
-
-    Parameters
-    ----------
-    pixel : ndarray, shape (N, 2)
-        Each point's pixel, (row, column).
-    shape : tuple
-        The image's (H, W).
-
-    Returns
-    -------
-    ndarray, shape (N, 8), int
-        In the order of ``NEIGHBOURS``.
-    """
-    H, W = shape
-    r, c = pixel[:, 0].astype(np.int64), pixel[:, 1].astype(np.int64)
-    key = r * W + c
-    order = np.argsort(key, kind="stable")
-    keys = key[order]
-    nr = r[:, None] + NEIGHBOURS[None, :, 0]
-    nc = c[:, None] + NEIGHBOURS[None, :, 1]
-    inside = (nr >= 0) & (nr < H) & (nc >= 0) & (nc < W)
-    wanted = nr * W + nc
-    at = np.maximum(np.searchsorted(keys, wanted, side="right") - 1, 0)
-    return np.where(inside & (keys[at] == wanted), order[at], -1)
-
-
-def pixel_components(flat, shape):
-    """The 8-connected components of a set of pixels: (count, label of each pixel).
-
-    From the links between neighbouring pixels of the set
-    (:func:`neighbour_points`), not by labelling a whole image: the
-    gradient maxima are a few thousand of its millions of pixels.
-
-    Parameters
-    ----------
-    flat : ndarray, shape (N,), int
-        The pixels' row-major indices into an image of ``shape``, distinct.
-    shape : tuple
-        (H, W).
-
-    Returns
-    -------
-    n : int
-    labels : ndarray, shape (N,), int
-        In 0 .. n - 1, equal for pixels of one component.
-    """
-    nb = neighbour_points(np.column_stack(np.divmod(flat, shape[1])), shape)
-    i, k = np.nonzero(nb >= 0)
-    links = coo_matrix((np.ones(len(i)), (i, nb[i, k])), shape=(len(flat), len(flat)))
-    return connected_components(links, directed=False)
-
-
 def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0, k_high=8.0, noise_level=None):
     """Sub-pixel edge points with position covariances.
 
@@ -639,7 +574,10 @@ def edge_points(image, sigma=1.0, noise=None, low=None, high=None, *, k_low=4.0,
     gxf, gyf = gxf[ismax], gyf[ismax]
 
     # Hysteresis on the 8-connected maxima.
-    n_lab, lab = pixel_components(flat, (H, W))
+    mask = np.zeros(H * W, np.uint8)
+    mask[flat] = 1
+    n_lab, labels = cv2.connectedComponents(mask.reshape(H, W), connectivity=8, ltype=cv2.CV_32S)
+    lab = labels.ravel()[flat]
     strong = np.zeros(n_lab, bool)
     strong[lab[b > (high if scale_map is None else high * scale_map.ravel()[flat])]] = True
     keep = strong[lab]

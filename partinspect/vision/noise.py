@@ -113,56 +113,12 @@ def _median(x, lattice=None):
 
 
 def _filtered(img):
-    """The image as float32 and its Sobel gradient magnitude, (H, W) each.
-
-    The gradient is needed at every pixel (the edge mask takes its maxima
-    over the 3 x 3 neighbourhoods of the kept pixels, which together cover
-    the image); the Immerkaer responses and the local means only at the
-    kept pixels (:func:`_immerkaer_at`, :func:`_mean3x3_at`).
-    """
+    """The image as float32, its Immerkaer responses and its Sobel gradient magnitude, (H, W) each."""
     f = img.astype(np.float32)
+    resp = cv2.filter2D(f, cv2.CV_32F, _MASK, borderType=cv2.BORDER_REFLECT)
     gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
     gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
-    return f, cv2.magnitude(gx, gy, gx)
-
-
-def _taps_at(f, step):
-    """``tap(dy, dx)``: ``f[1 + dy :: step, 1 + dx :: step]`` over the grid
-    ``[1:-1:step, 1:-1:step]`` of :func:`_grid`, dy, dx in -1, 0, 1."""
-    H, W = f.shape
-    return lambda dy, dx: f[1 + dy:H - 1 + dy:step, 1 + dx:W - 1 + dx:step]
-
-
-def _immerkaer_at(f, step):
-    """Immerkaer's responses [1]_ of the float32 image ``f`` on the grid ``[1:-1:step, 1:-1:step]``.
-
-    The mask's nine taps summed in the order ``cv2.filter2D`` sums them,
-    so the values equal its output there bit for bit (checked in the
-    tests) without filtering the pixels between the grid's.
-    """
-    tap = _taps_at(f, step)
-    resp = tap(-1, -1) - 2.0 * tap(-1, 0)
-    for (dy, dx), w in zip([(-1, 1), (0, -1), (0, 0), (0, 1), (1, -1), (1, 0), (1, 1)], [1, -2, 4, -2, 1, -2, 1]):
-        resp += tap(dy, dx) if w == 1 else np.float32(w) * tap(dy, dx)
-    return resp
-
-
-def _mean3x3_at(img, f, step):
-    """3 x 3 means of the float32 image ``f`` (of ``img``) on the grid ``[1:-1:step, 1:-1:step]``.
-
-    An 8- or 16-bit image's 3 x 3 sums are integers, exact in float32, and
-    ``cv2.blur`` divides them by nine correctly rounded (checked over every
-    sum in the tests): the same values from the grid's sums alone. Other
-    images are blurred whole, as the order of a float sum matters.
-    """
-    if not (np.issubdtype(img.dtype, np.integer) and img.dtype.itemsize <= 2):
-        return cv2.blur(f, (3, 3), borderType=cv2.BORDER_REFLECT)[1:-1:step, 1:-1:step]
-    tap = _taps_at(f, step)
-    total = tap(-1, -1) + tap(-1, 0)
-    for dy, dx in [(-1, 1), (0, -1), (0, 0), (0, 1), (1, -1), (1, 0), (1, 1)]:
-        total += tap(dy, dx)
-    total /= np.float32(9.0)
-    return total
+    return f, resp, cv2.magnitude(gx, gy)
 
 
 def _grey(image):
@@ -236,11 +192,11 @@ def _grid(img, filtered, step):
     grid's pixels only, and thresholded at each iteration.
     """
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
-    resp = _immerkaer_at(filtered[0], step)
+    resp = filtered[1][1:-1:step, 1:-1:step]
     valid = np.ones(resp.shape, bool)
     if top is not None:
         valid &= ~_max3x3_at((img == 0) | (img == top), step)
-    return resp, _max3x3_at(filtered[1], step), valid
+    return resp, _max3x3_at(filtered[2], step), valid
 
 
 def _estimate_noise(img, filtered, clip=3.0, edge_k=4.0, iterations=3, grid=None, lattice=None):
@@ -443,7 +399,7 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
     noise = float(noise)
     constant = NoiseLevel(noise * noise, 0.0, 0.0, noise, False)
     top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
-    grey = _mean3x3_at(img, filtered[0], 3)
+    grey = cv2.blur(filtered[0], (3, 3), borderType=cv2.BORDER_REFLECT)[1:-1:3, 1:-1:3]
     grey_lattice = _levels(grey.ravel(), 9.0)
     level = constant
     for _ in range(2):

@@ -197,44 +197,6 @@ def test_noise_from_the_kept_pixels_only_is_the_same(shape, dtype):
     assert noise.estimate_noise(img) == _noise_whole_image(img)
 
 
-def test_neighbour_points_are_the_pixel_table_s():
-    # The neighbours looked up among the points' sorted pixels are those a
-    # full-image table of pixel to point gives (image borders, empty
-    # neighbours and a pixel holding two points included).
-    from partinspect.vision.edges import NEIGHBOURS, neighbour_points
-
-    rng = np.random.default_rng(4)
-    H, W = 60, 80
-    pixel = np.c_[rng.integers(0, H, 1500), rng.integers(0, W, 1500)]
-    table = np.full(H * W, -1)
-    table[pixel[:, 0] * W + pixel[:, 1]] = np.arange(len(pixel))
-    nr, nc = pixel[:, :1] + NEIGHBOURS[:, 0], pixel[:, 1:] + NEIGHBOURS[:, 1]
-    inside = (nr >= 0) & (nr < H) & (nc >= 0) & (nc < W)
-    ref = np.where(inside, table[np.clip(nr, 0, H - 1) * W + np.clip(nc, 0, W - 1)], -1)
-    got = neighbour_points(pixel.astype(np.int32), (H, W))
-    assert len(np.unique(pixel[:, 0] * W + pixel[:, 1])) < len(pixel) and (ref >= 0).any() and (ref < 0).any()
-    assert np.array_equal(got, ref)
-
-
-def test_pixel_components_are_connected_components_s():
-    # The hysteresis's components of the gradient maxima, from the links
-    # between neighbouring maxima: the partition cv2.connectedComponents
-    # (8-connected) gives on the image, touching the image's borders too.
-    from partinspect.vision.edges import pixel_components
-
-    rng = np.random.default_rng(6)
-    for density in (0.05, 0.3, 0.6):
-        mask = (rng.random((70, 90)) < density).astype(np.uint8)
-        flat = np.flatnonzero(mask)
-        n, got = pixel_components(flat, mask.shape)
-        n_ref, ref = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
-        ref = ref.ravel()[flat]
-        assert n == n_ref - 1 and 1 < n < len(flat)
-        # One to one: each component of one is a component of the other.
-        pairs = np.unique(np.c_[got, ref], axis=0)
-        assert len(pairs) == n
-
-
 def test_pair_fits_shared_by_cost_not_by_turn():
     from partinspect.vision.stereo import _halves
 
@@ -262,37 +224,6 @@ def test_median_from_lattice_counts_is_numpys():
     assert noise._levels(rng.normal(size=100).astype(np.float32) + 10, 1.0) is None
     assert noise._levels(np.array([1.0, np.nan]), 1.0) is None
     assert noise._levels(np.array([0.0, float(noise.MAX_LEVELS)]), 1.0) is None
-
-
-@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
-def test_noise_responses_on_the_grid_are_filter2d_s(dtype):
-    # Immerkaer's responses summed at the kept pixels only: cv2.filter2D's
-    # values there, bit for bit, for integer and float images alike.
-    rng = np.random.default_rng(3)
-    img = rng.normal(120, 40, (301, 407))
-    img = (np.clip(np.rint(img), 0, 255) * (257 if dtype == np.uint16 else 1) if dtype in (np.uint8, np.uint16)
-           else img).astype(dtype)
-    f = img.astype(np.float32)
-    whole = cv2.filter2D(f, cv2.CV_32F, noise._MASK, borderType=cv2.BORDER_REFLECT)
-    for step in (1, 2, 3, 5):
-        assert np.array_equal(noise._immerkaer_at(f, step), whole[1:-1:step, 1:-1:step])
-
-
-@pytest.mark.parametrize("bits", [8, 16])
-def test_grid_means_are_blur_s_for_every_sum(bits):
-    # An integer image's 3 x 3 means from the grid's sums alone equal
-    # cv2.blur's for every sum nine grey levels can make (0 .. 9 * top).
-    top = (1 << bits) - 1
-    q, r = np.divmod(np.arange(9 * top + 1), 9)
-    blocks = (q[:, None] + (np.arange(9)[None, :] < r[:, None])).reshape(-1, 3, 3)
-    blocks = np.concatenate([blocks, np.zeros((-len(blocks) % 600, 3, 3), blocks.dtype)])
-    img = blocks.reshape(-1, 600, 3, 3).transpose(0, 2, 1, 3).reshape(-1, 1800)
-    img = img.astype(np.uint8 if bits == 8 else np.uint16)
-    f = img.astype(np.float32)
-    ref = cv2.blur(f, (3, 3), borderType=cv2.BORDER_REFLECT)[1:-1:3, 1:-1:3]
-    got = noise._mean3x3_at(img, f, 3)
-    assert np.array_equal(got, ref)
-    assert np.array_equal(np.unique(np.rint(got * 9.0)), np.arange(len(q)))  # every sum was there
 
 
 def test_noise_bins_stop_iterating_once_settled():
