@@ -366,11 +366,16 @@ def _release_free_heap():
     """Hand the heap's free pages back to the OS before forking (glibc's ``malloc_trim``).
 
     After a fork both processes share every page copy-on-write, and the
-    heap's free blocks are where the next large arrays are made: each
-    process's first write to each of their pages then copies it from the
-    other (the image chain's filtered images, about 100 MB per pair and
-    process). Handed back first, those pages come fresh and zero-filled
-    on first write, and in huge pages where the kernel has them.
+    heap's free blocks are where the next large arrays are made (glibc
+    serves an array from the heap once one of its size has been freed):
+    each process's first write to each of their pages then copies the page.
+    Handed back first, those pages come fresh, zero-filled on first write,
+    and in huge pages where the kernel has them. Figures: docs/validation.md.
+
+    References
+    ----------
+    .. [1] malloc_trim(3) and mallopt(3) (``M_MMAP_THRESHOLD``'s dynamic
+           adjustment), Linux man-pages project.
     """
     trim = _libc("malloc_trim")  # glibc only; other C libraries have none
     if trim is not None:
