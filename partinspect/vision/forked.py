@@ -210,6 +210,7 @@ def _start(func, args, kwargs):
     process forked meanwhile holds a copy of the pipe's writing end.
     """
     prctl = _pdeathsig_setter()
+    _release_free_heap()
     parent = os.getpid()
     pipes = []
     try:
@@ -344,13 +345,38 @@ def _reap(child):
     child["reaped"] = True
 
 
-def _pdeathsig_setter():
-    """``prctl`` of the C library on Linux (to have the child killed with its parent), else None."""
+def _libc(name):
+    """Function ``name`` of the C library on Linux, else None."""
     if not sys.platform.startswith("linux"):
         return None
     try:
         import ctypes
 
-        return ctypes.CDLL(None, use_errno=True).prctl
+        return getattr(ctypes.CDLL(None, use_errno=True), name)
     except (ImportError, OSError, AttributeError):
         return None
+
+
+def _pdeathsig_setter():
+    """``prctl`` of the C library on Linux (to have the child killed with its parent), else None."""
+    return _libc("prctl")
+
+
+def _release_free_heap():
+    """Hand the heap's free pages back to the OS before forking (glibc's ``malloc_trim``).
+
+    After a fork both processes share every page copy-on-write, and the
+    heap's free blocks are where the next large arrays are made (glibc
+    serves an array from the heap once one of its size has been freed):
+    each process's first write to each of their pages then copies the page.
+    Handed back first, those pages come fresh, zero-filled on first write,
+    and in huge pages where the kernel has them. Figures: docs/validation.md.
+
+    References
+    ----------
+    .. [1] malloc_trim(3) and mallopt(3) (``M_MMAP_THRESHOLD``'s dynamic
+           adjustment), Linux man-pages project.
+    """
+    trim = _libc("malloc_trim")  # glibc only; other C libraries have none
+    if trim is not None:
+        trim(0)

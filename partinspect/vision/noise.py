@@ -337,10 +337,15 @@ def _bin_variances(resp, grey, n_bins, resp_lattice=None, grey_lattice=None):
         r2 = (resp[sel].astype(np.float64) / _MASK_NORM) ** 2
         lattice = None if r2_levels is None else (resp_lattice[0][sel], r2_levels)
         var = float(_median(r2, lattice)) / 0.4549364231195724  # median of chi-square(1)
+        n_below = -1
         for _ in range(5):
             below = r2 < 9.0 * var
-            if not below.any():
+            m = int(np.count_nonzero(below))
+            # The same count is the same samples (thresholds on one array
+            # keep nested sets), hence the same variance from here on.
+            if m == 0 or m == n_below:
                 break
+            n_below = m
             var = float(r2[below].mean() / _truncated_variance_factor(3.0))
         g = grey[sel].astype(np.float64)
         out.append((g.mean(), (g * g).mean(), var, n))

@@ -226,6 +226,26 @@ def test_median_from_lattice_counts_is_numpys():
     assert noise._levels(np.array([0.0, float(noise.MAX_LEVELS)]), 1.0) is None
 
 
+def test_noise_bins_stop_iterating_once_settled():
+    # Each bin's truncated second moment stops once its kept responses
+    # stop changing: the same variances as running all five iterations.
+    rng = np.random.default_rng(8)
+    grey = rng.uniform(20, 230, 60000)
+    resp = rng.normal(size=grey.size) * 6 * np.sqrt(1 + 0.04 * grey)
+    resp[rng.random(grey.size) < 0.02] *= 20  # edge pixels let through
+    resp = resp.astype(np.float32)
+    edges = np.unique(np.quantile(grey, np.linspace(0, 1, 13)))
+    idx = np.clip(np.searchsorted(edges, grey, side="right") - 1, 0, len(edges) - 2)
+    ref = []
+    for k in range(len(edges) - 1):
+        r2 = (resp[idx == k].astype(np.float64) / noise._MASK_NORM) ** 2
+        var = float(np.median(r2)) / 0.4549364231195724
+        for _ in range(5):
+            var = float(r2[r2 < 9.0 * var].mean() / noise._truncated_variance_factor(3.0))
+        ref.append(var)
+    assert np.array_equal(noise._bin_variances(resp, grey, 12)[:, 2], ref)
+
+
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
 def test_noise_level_read_from_counts_is_the_same(dtype, monkeypatch):
     # The medians and grey bins read off the responses' and means' lattice
