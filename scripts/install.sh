@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Install everything partinspect needs on a fresh Debian machine:
-# Chromium for the HTML report's browser test, then the Python package with
-# its dependencies
-# (editable, with the test extras) at the versions in constraints.txt.
+# Chromium for the HTML report's browser test and PostgreSQL's server for the
+# shared-database test, then the Python package with its dependencies
+# (editable, with the test and PostgreSQL extras) at the versions in constraints.txt.
 # Usage: bash scripts/install.sh [--no-browser | --browser-only]
 #   --no-browser    skip Chromium (the report's browser test is then skipped)
 #   --browser-only  install only Chromium (what tests/reports/test_browser.py runs when it is missing)
@@ -47,6 +47,15 @@ install_browser() {
     fi
 }
 
+install_postgresql() {
+    # The server binaries only serve tests/production/test_postgresql.py (a
+    # throwaway cluster on 127.0.0.1): failing to get them is a warning.
+    if ! apt_install /usr/lib/postgresql postgresql; then
+        echo "install: without PostgreSQL's server, tests/production/test_postgresql.py will be skipped" >&2
+        return 1
+    fi
+}
+
 if [ "$browser" = only ]; then
     install_browser
     exit $?
@@ -54,15 +63,16 @@ fi
 if [ "$browser" = yes ]; then
     install_browser || true
 fi
+install_postgresql || true
 
 # Re-install when pyproject.toml or constraints.txt (the tested versions)
 # changed since the last install by this Python.
 stamp=build/.install-stamp
 want="$("$PYTHON" -c 'import sys;print(sys.executable)') $(cat pyproject.toml constraints.txt | sha256sum | cut -c1-16)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PYTHON" -c "import importlib.metadata as m; m.version(\"partinspect\")" >/dev/null 2>&1 \
-   || ! "$PYTHON" -c 'import importlib.util as u,sys; sys.exit(not all(u.find_spec(m) for m in ("cadquery","embreex","cv2","trimesh","pytest")))'; then
+   || ! "$PYTHON" -c 'import importlib.util as u,sys; sys.exit(not all(u.find_spec(m) for m in ("cadquery","embreex","cv2","trimesh","pytest","psycopg")))'; then
     echo "install: installing partinspect and its Python dependencies (pip)" >&2
-    "$PYTHON" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[test]"
+    "$PYTHON" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[test,postgresql]"
     mkdir -p build && echo "$want" > "$stamp"
 fi
 command -v inspect >/dev/null 2>&1 || hash -r
