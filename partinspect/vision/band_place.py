@@ -79,7 +79,7 @@ from partinspect.vision.matching import Match
 from partinspect.vision.stereo import measure_pair_feature
 
 __all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "observed_place", "band_place",
-           "rims_at_sharp_edge", "camera_views", "read_grey"]
+           "rims_at_sharp_edge", "camera_views", "read_grey", "refit_pair", "with_refitted"]
 
 FINE_ANGLES = 720
 """Angles at which the sharp rim's image is sampled to give each edge point its angle."""
@@ -335,6 +335,33 @@ def camera_views(calib, part_to_camera):
         Rp, tp = R @ T[:3, :3], R @ T[:3, 3] + np.ravel(t)
         out.append((K, D, Rp, tp, -Rp.T @ tp, K @ np.c_[R, np.ravel(t)]))
     return tuple(out)
+
+
+def refit_pair(stereo, calib, k, moved, scale, band, **extra):
+    """The 3D feature ``stereo.features[k]`` measured again from its two moved image features, or None.
+
+    ``moved``: its left and right image features with their points moved
+    (onto the sharp edge's image); ``scale``: their noise's correlation
+    length, px; ``band``: the Type B of where the step lies, mm
+    (``edge_break`` of :func:`partinspect.vision.stereo.measure_pair_feature`);
+    ``extra``: fields set on the new feature beside the old one's ``guided``.
+    """
+    f3 = stereo.features[k]
+    new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
+                                  *moved, calib, stereo.geometry, scale, band)
+    return None if new is None else replace(new, guided=f3.guided, **extra)
+
+
+def with_refitted(stereo, refits):
+    """``stereo`` with each pair of ``refits`` (index -> (left, right image feature, Feature3D)) in place of its own."""
+    if not refits:
+        return stereo
+    lefts, rights, feats = list(stereo.left.features), list(stereo.right.features), list(stereo.features)
+    for k, (fl, fr, f) in refits.items():
+        f3 = stereo.features[k]
+        lefts[f3.left], rights[f3.right], feats[k] = fl, fr, f
+    return replace(stereo, left=replace(stereo.left, features=lefts), right=replace(stereo.right, features=rights),
+                   features=tuple(feats))
 
 
 def _outward(p0, rh, side, K, D, R, t):
@@ -773,10 +800,9 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
         ``band_place``; a rim whose refit fails stays as it was.
     refitted : set of str
     """
-    L, R, geo = stereo.left, stereo.right, stereo.geometry
+    L, R = stereo.left, stereo.right
     cams = camera_views(calib, part_to_camera)
-    lefts, rights, feats = list(L.features), list(R.features), list(stereo.features)
-    refitted = set()
+    refits, refitted = {}, set()
     for k, cid in arcs.items():
         if cid not in places or places[cid][0].offsets is None:
             continue
@@ -797,14 +823,9 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
         if any(m is None for m in moved):
             continue
         rest = place.u_point if place.modes is None else place.u_rest
-        new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
-                                      *moved, calib, geo, scale, rest * rim.size)
+        new = refit_pair(stereo, calib, k, moved, scale, rest * rim.size, band_place=place)
         if new is None:
             continue
-        lefts[f3.left], rights[f3.right] = moved
-        feats[k] = replace(new, guided=f3.guided, band_place=place)
+        refits[k] = (*moved, new)
         refitted.add(cid)
-    if not refitted:
-        return stereo, refitted
-    return replace(stereo, left=replace(L, features=lefts), right=replace(R, features=rights),
-                    features=tuple(feats)), refitted
+    return with_refitted(stereo, refits), refitted

@@ -21,6 +21,7 @@ edge are those of the same points in the longer line.
 from dataclasses import replace
 
 import numpy as np
+from scipy.linalg import block_diag
 
 from partinspect.vision.contours import CLEARANCE, arc_length, end_runs
 from partinspect.vision.edges import BACKGROUND_DISTANCES
@@ -556,16 +557,6 @@ def rims_along(stereo, unmatched, rims, images):
     return {k: cid for cid, (k, _) in best.items()}
 
 
-def _block_columns(blocks):
-    """Matrices stacked by rows, each in columns of its own (zero elsewhere): shape (sum rows, sum columns)."""
-    out = np.zeros((sum(b.shape[0] for b in blocks), sum(b.shape[1] for b in blocks)))
-    r = c = 0
-    for b in blocks:
-        out[r:r + b.shape[0], c:c + b.shape[1]] = b
-        r, c = r + b.shape[0], c + b.shape[1]
-    return out
-
-
 def _concat(features, positions):
     """One line feature of the points at ``positions`` of each of ``features`` (its fit the first's: refit it)."""
     first = features[0]
@@ -577,8 +568,8 @@ def _concat(features, positions):
     factors = [getattr(g, "phase_factor", None) for g in features]
     if any(F is not None for F in factors):
         # Each piece's ripple correction is its own: one block of columns each.
-        extra["phase_factor"] = _block_columns([np.zeros((len(k), 0)) if F is None else F[k]
-                                                for F, k in zip(factors, positions)])
+        extra["phase_factor"] = block_diag(*[np.zeros((len(k), 0)) if F is None else F[k]
+                                             for F, k in zip(factors, positions)])
     return replace(first, segments=tuple(s for g in features for s in g.segments),
                    index=np.concatenate([g.index[k] for g, k in zip(features, positions)]),
                    uv=np.concatenate([g.uv[k] for g, k in zip(features, positions)]),

@@ -394,9 +394,8 @@ def _without_ripple(f, edges):
             return g
         keep = np.delete(np.arange(len(f.index)), worst)
         ideal = IdealPoints(*(getattr(f.ideal, name)[keep] for name in IDEAL_FIELDS))
-        fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma, with_cov=False), ideal.xy,
-                                   edges.sigma)
-        f = replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal, fit=fit)
+        f = replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal,
+                    fit=fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma))
         budget -= 1
 
 

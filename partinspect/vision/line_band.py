@@ -69,11 +69,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from partinspect.vision.band_place import (READ_WIDTHS, SECTION_SAMPLES, apparent_place, camera_views, observed_place,
-                                           read_grey)
+                                           read_grey, refit_pair, with_refitted)
 from partinspect.vision.calibration import project_points
 from partinspect.vision.fitting import fit_line
-from partinspect.vision.matching import Match
-from partinspect.vision.stereo import measure_pair_feature
 
 __all__ = ["BrokenLine", "LinePlace", "edge_section", "face_light", "line_place", "line_places",
            "lines_at_sharp_edge"]
@@ -466,10 +464,9 @@ def lines_at_sharp_edge(stereo, calib, part_to_camera, matched, lines, places, b
         Those lines refitted (their image features too).
     refitted : set of str
     """
-    L, R, geo = stereo.left, stereo.right, stereo.geometry
+    L, R = stereo.left, stereo.right
     cams = camera_views(calib, part_to_camera)
-    lefts, rights, feats = list(L.features), list(R.features), list(stereo.features)
-    refitted = set()
+    refits, refitted = {}, set()
     for k, cid in matched.items():
         place = places.get(cid)
         if place is None or place.u >= band:
@@ -481,14 +478,9 @@ def lines_at_sharp_edge(stereo, calib, part_to_camera, matched, lines, places, b
                      for j, (res, i, cam) in enumerate(zip((L, R), (f3.left, f3.right), cams))]
         except (np.linalg.LinAlgError, ValueError):
             continue
-        new, _ = measure_pair_feature(Match(f3.left, f3.right, float("nan"), float("nan"), float("nan"), float("inf")),
-                                      *moved, calib, geo, scale, place.u)
+        new = refit_pair(stereo, calib, k, moved, scale, place.u)
         if new is None:
             continue
-        lefts[f3.left], rights[f3.right] = moved
-        feats[k] = replace(new, guided=f3.guided)
+        refits[k] = (*moved, new)
         refitted.add(cid)
-    if not refitted:
-        return stereo, refitted
-    return replace(stereo, left=replace(L, features=lefts), right=replace(R, features=rights),
-                   features=tuple(feats)), refitted
+    return with_refitted(stereo, refits), refitted

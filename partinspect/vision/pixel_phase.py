@@ -46,7 +46,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import special
 
-from partinspect.vision.fitting import information_matrices
+from partinspect.vision.fitting import fit_line, information_matrices
 from partinspect.vision.psd import covariance_factor
 
 __all__ = ["PhaseRipple", "HARMONICS", "RIPPLE_P", "sampling_phase", "sampling_axis", "phase_ripple", "without_phase_ripple"]
@@ -210,8 +210,6 @@ def without_phase_ripple(feature, edges):
         orthogonal to it), and ``phase_factor`` the correction's error
         factor (:attr:`PhaseRipple.factor`).
     """
-    from partinspect.vision.fitting import fit_line, line_with_covariance
-
     fit = feature.fit
     uv, pixel = edges.xy[feature.index], edges.pixel[feature.index]
     ripple = phase_ripple(feature.ideal.xy, fit.params[:2], fit.residuals, fit.point_std, sampling_phase(uv, pixel),
@@ -220,6 +218,5 @@ def without_phase_ripple(feature, edges):
         return feature
     shift = ripple.displacement[:, None] * np.asarray(fit.params[:2], float)[None, :]
     ideal = replace(feature.ideal, xy=feature.ideal.xy - shift)
-    refit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma, with_cov=False), ideal.xy,
-                                 edges.sigma)
-    return replace(feature, uv=feature.uv - shift, ideal=ideal, fit=refit, phase_factor=ripple.factor)
+    fit = fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma)
+    return replace(feature, uv=feature.uv - shift, ideal=ideal, fit=fit, phase_factor=ripple.factor)

@@ -237,16 +237,15 @@ def point_error_model(corr, normals, components, systematic=(), outlier_z=None, 
     J = np.einsum("nij,nj->ni", corr.jac_left, n)
     comps = tuple((np.asarray(std, float)[idx] if np.ndim(std) else np.full(len(idx), float(std)), length)
                   for std, length in components)
+    from scipy.linalg import block_diag
+
     jac, cov = corr.jac_fit, corr.fit_cov
     if left_common is not None:
         extra = J[:, :, None] * np.asarray(left_common, float)[idx][:, None, :]
-        q = extra.shape[2]
         if jac is None or cov is None:
-            jac, cov = extra, np.eye(q)
+            jac, cov = extra, np.eye(extra.shape[2])
         else:
-            k = cov.shape[0]
-            jac = np.concatenate([jac, extra], axis=2)
-            cov = np.block([[cov, np.zeros((k, q))], [np.zeros((q, k)), np.eye(q)]])
+            jac, cov = np.concatenate([jac, extra], axis=2), block_diag(cov, np.eye(extra.shape[2]))
     return PointErrorModel(s, J, comps, jac, cov, tuple(systematic), outlier_z, calibration)
 
 
