@@ -29,7 +29,7 @@ Without named datums, features whose residuals are beyond chance
 robust best fit).
 
 The stereo calibration's error is one error shared by every feature
-(:attr:`partinspect.vision.stereo.Feature3D.calibration_response`, ``G``,
+(:attr:`partinspect.vision.feature3d.Feature3D.calibration_response`, ``G``,
 a feature's response to the calibration's q principal directions of
 uncertainty). Most of it moves every feature alike, as a rigid motion
 would, and the pose is meant to take that up: the part frame is the one
@@ -158,7 +158,7 @@ def pose_error(T_est, T_true):
 def calibration_response(kind, rec):
     """A record's responses to the calibration's principal directions, shape (7, q) or (6, q).
 
-    ``calibration_response`` of a :class:`partinspect.vision.stereo.Feature3D`;
+    ``calibration_response`` of a :class:`partinspect.vision.feature3d.Feature3D`;
     q = 0 for a record without one.
     """
     G = getattr(rec, "calibration_response", None)

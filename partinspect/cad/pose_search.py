@@ -128,7 +128,7 @@ def axis_cov(rec):
     """Covariance (3, 3) of a record's unit normal or direction.
 
     ``normal_cov`` / ``direction_cov`` (fit3d records) or ``axis_cov``
-    (:class:`partinspect.vision.stereo.Feature3D`).
+    (:class:`partinspect.vision.feature3d.Feature3D`).
     """
     for name in ("normal_cov", "direction_cov", "axis_cov"):
         v = getattr(rec, name, None)

@@ -125,7 +125,7 @@ class ViewSamples:
         px) and the noise of the first-order background shift, px (see
         :func:`background_terms`),
         both averaged along the edge as the chain averages them
-        (:func:`partinspect.vision.stereo.smoothed_background`); None for lines.
+        (:func:`partinspect.vision.rim_errors.smoothed_background`); None for lines.
     """
 
     uv: np.ndarray
@@ -155,7 +155,7 @@ class FeaturePrediction:
         under the run's threshold, :func:`_least_step`), "failed".
     reason : str or None
         In words, naming the feature.
-    record : partinspect.vision.stereo.Feature3D or None
+    record : partinspect.vision.feature3d.Feature3D or None
         The predicted measured feature (rig frame) with its covariances.
     left, right : ViewSamples or None
     epipolar_angle : float or None
@@ -665,7 +665,7 @@ def sample_view(scene, calib, index, part_to_camera, kind, geometry, model, shad
     std = std0 * pattern
     bound = bstd = None
     if kind != "line" and len(uv):
-        from partinspect.vision.stereo import smoothed_background
+        from partinspect.vision.rim_errors import smoothed_background
 
         raw_bound, raw_std = background_terms(scene, K, D, R, t, part_to_camera, uv, normal, contrast, model, shading)
         # Averaged along the edge as the chain averages its readings.
@@ -872,8 +872,10 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     from partinspect.vision.calibration_uncertainty import calibration_responses
     from partinspect.vision.correspondences import correspond
     from partinspect.vision.matching import epipolar_geometry
-    from partinspect.vision.stereo import corrected_correspondences, fit_feature, make_feature3d, views_of
+    from partinspect.vision.arc_partner import corrected_correspondences
 
+    from partinspect.vision.feature3d import make_feature3d
+    from partinspect.vision.stereo import fit_feature, views_of
     geo = geo if geo is not None else epipolar_geometry(calib)
     fid, kind = feature.id, feature.kind
     g = feature_geometry(feature)

@@ -47,7 +47,7 @@ import numpy as np
 from partinspect.vision.calibration_uncertainty import full_covariance, with_extrinsic_covariance
 from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.psd import covariance_factor
-from partinspect.vision.stereo import EDGE_BIAS_FLOOR
+from partinspect.vision.rim_errors import EDGE_BIAS_FLOOR
 
 __all__ = ["TANGENT_REACH", "MIN_SIGNIFICANCE", "DriftEstimate", "tangent_offsets", "tangency_residuals",
            "estimate_drift", "drift_axes", "rotated_right_camera", "fit_drift", "predicted_residual_std",
@@ -170,7 +170,7 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
     residuals, variances : ndarray, shape (n,)
         Right minus left band offset of each tangency, px, and its variance,
         px^2: the two fits' and, for each image, the rims' Type B edge
-        displacement (:data:`partinspect.vision.stereo.EDGE_BIAS_FLOOR`), and
+        displacement (:data:`partinspect.vision.rim_errors.EDGE_BIAS_FLOOR`), and
         the rim's own disagreement between its two tangencies
         (:func:`_with_rim_disagreement`).
     select : list of (int, int)

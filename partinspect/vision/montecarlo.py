@@ -7,7 +7,7 @@ Gaussian errors with their standard uncertainties and the along-edge
 correlation of smoothed noise (``exp(-d^2 / (4 l^2))`` between points at
 distance d, l the edge filter's sigma, as the sandwich covariances assume),
 and the background correction of the points of rims by its own noise
-(correlated over :func:`partinspect.vision.stereo.correction_corr_length`);
+(correlated over :func:`partinspect.vision.rim_errors.correction_corr_length`);
 the calibration parameters with a standard uncertainty are drawn
 independently; the points are mapped to ideal pixels again and the
 two-view 3D fit redone from the nominal solution. The covariance of the
@@ -29,8 +29,9 @@ import numpy as np
 from partinspect.vision.fit3d import fit_circle_3d, fit_line_3d
 from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING
 from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
-from partinspect.vision.stereo import correction_corr_length, correction_std_of, coupled_noise, feature_views
+from partinspect.vision.rim_errors import correction_corr_length, correction_std_of, coupled_noise
 
+from partinspect.vision.stereo import feature_views
 __all__ = ["MonteCarloFeature", "monte_carlo", "correlated_normal_errors", "with_monte_carlo_covariances"]
 
 

@@ -196,7 +196,7 @@ def test_corrected_points_noise_as_the_3d_views_state_it():
     correction's rest) says 0.95 of that. Taken as independent of the
     points, the correction's noise left the model at 0.89."""
     from partinspect.vision.edges import background_shift_std
-    from partinspect.vision.stereo import BACKGROUND_CORRECTION, coupled_noise, smoothed_background
+    from partinspect.vision.rim_errors import BACKGROUND_CORRECTION, coupled_noise, smoothed_background
 
     got, model = [], []
     for e, m, mid in _vertical_step_draws(150, 5):

@@ -19,7 +19,7 @@ from partinspect.vision.fitting import (
     fit_line,
     line_with_covariance,
 )
-from partinspect.vision.stereo import smoothed_background
+from partinspect.vision.rim_errors import smoothed_background
 
 
 def test_small_symmetric_solvers_match_numpy():
@@ -269,22 +269,22 @@ def test_noise_level_read_from_counts_is_the_same(dtype, monkeypatch):
 
 
 def test_smoothing_operators_are_built_once_per_edge():
-    from partinspect.vision import stereo
+    from partinspect.vision import rim_errors
 
     t = np.linspace(0.0, 5.0, 400)
     xy = np.c_[300 + 80 * np.cos(t), 200 + 50 * np.sin(t)]
-    w, rho = stereo.smoothing_operators(xy, 1.0, stereo.BACKGROUND_SMOOTHING)
+    w, rho = rim_errors.smoothing_operators(xy, 1.0, rim_errors.BACKGROUND_SMOOTHING)
     # The pair's fit asks again with its own copy of the points: the same matrices, not built again.
-    again = stereo.smoothing_operators(xy.copy(), 1.0, stereo.BACKGROUND_SMOOTHING)
+    again = rim_errors.smoothing_operators(xy.copy(), 1.0, rim_errors.BACKGROUND_SMOOTHING)
     assert again[0] is w and again[1] is rho
-    fresh = stereo._smoothing_operators(xy, 1.0, stereo.BACKGROUND_SMOOTHING)
+    fresh = rim_errors._smoothing_operators(xy, 1.0, rim_errors.BACKGROUND_SMOOTHING)
     assert all((a != b).nnz == 0 for a, b in zip((w, rho), fresh))
     moved = xy + np.array([1e-9, 0.0])
-    assert stereo.smoothing_operators(moved, 1.0, stereo.BACKGROUND_SMOOTHING)[0] is not w
-    assert stereo.smoothing_operators(xy, 1.5, stereo.BACKGROUND_SMOOTHING)[0] is not w
-    for k in range(stereo.OPERATORS_KEPT + 5):
-        stereo.smoothing_operators(xy[: 50 + k], 1.0, 2.0)
-    assert len(stereo._operators) == stereo.OPERATORS_KEPT
+    assert rim_errors.smoothing_operators(moved, 1.0, rim_errors.BACKGROUND_SMOOTHING)[0] is not w
+    assert rim_errors.smoothing_operators(xy, 1.5, rim_errors.BACKGROUND_SMOOTHING)[0] is not w
+    for k in range(rim_errors.OPERATORS_KEPT + 5):
+        rim_errors.smoothing_operators(xy[: 50 + k], 1.0, 2.0)
+    assert len(rim_errors._operators) == rim_errors.OPERATORS_KEPT
 
 
 def test_grey_bins_from_counts_select_on_sorted_levels(monkeypatch):

@@ -1,4 +1,4 @@
-"""The right ellipse a rim's left points take their partners on (:func:`partinspect.vision.stereo.as_fitted`)."""
+"""The right ellipse a rim's left points take their partners on (:func:`partinspect.vision.arc_partner.as_fitted`)."""
 
 import numpy as np
 
@@ -6,7 +6,7 @@ from partinspect.vision.fit3d import View
 from partinspect.vision.fitting import fit_ellipse
 from partinspect.vision.ideal import IdealPoints
 from partinspect.vision.imagefeatures import ImageFeature
-from partinspect.vision.stereo import as_fitted, random_covariance
+from partinspect.vision.arc_partner import as_fitted, random_covariance
 
 TRUE = np.array([1566.4, 820.8, 43.8, 33.2, 0.18])
 """A 5 mm hole's rim as the right camera of the robustness run's gen-015 saw it, px."""

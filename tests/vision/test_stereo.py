@@ -141,7 +141,7 @@ def test_rim_radii_are_stated_at_their_size():
 
 
 def test_rim_type_b_reads_the_bound_as_a_rectangular_half_width():
-    from partinspect.vision.stereo import RIM_DETECTOR_ERROR, rim_type_b
+    from partinspect.vision.rim_errors import RIM_DETECTOR_ERROR, rim_type_b
 
     b = np.array([0.0, 0.01, 0.1, 0.3])
     u = rim_type_b(b)
@@ -156,8 +156,9 @@ def test_the_form_keeps_its_point_level_type_b():
     # EDGE_BIAS_FACTOR times the bound with EDGE_BIAS_FLOOR; only the 3D
     # fit's centre and radius take rim_type_b.
     from partinspect.vision.edges import EDGE_BIAS_FACTOR
-    from partinspect.vision.stereo import EDGE_BIAS_FLOOR, feature_views, rim_type_b
+    from partinspect.vision.rim_errors import EDGE_BIAS_FLOOR, rim_type_b
 
+    from partinspect.vision.stereo import feature_views
     rig, res = measured(0)
     checked = 0
     for f in res.features:
@@ -230,7 +231,7 @@ def test_the_background_corrections_noise_has_the_stated_correlation():
     px): its noise then has the stated standard deviation and is
     correlated over correction_corr_length (2.2 px), not over 1 px."""
     from partinspect.vision.montecarlo import correlated_normal_errors
-    from partinspect.vision.stereo import correction_corr_length, smoothed_background
+    from partinspect.vision.rim_errors import correction_corr_length, smoothed_background
 
     xy = np.c_[np.arange(120.0), np.zeros(120)]
     z = correlated_normal_errors(xy, 1.0, 4000, np.random.default_rng(3))
@@ -472,7 +473,7 @@ def _max_distance(params, true):
 
 
 def test_the_partner_ellipse_leaves_out_points_beyond_their_whole_uncertainty():
-    from partinspect.vision.stereo import as_fitted
+    from partinspect.vision.arc_partner import as_fitted
 
     f, view, true = _tip_arc(1.0)
     bent = _max_distance(f.fit.params, true)
@@ -488,7 +489,7 @@ def test_the_partner_ellipse_leaves_out_points_beyond_their_whole_uncertainty():
 
 def test_the_partner_ellipse_of_a_clean_arc_keeps_every_point():
     from partinspect.vision.fitting import fit_ellipse
-    from partinspect.vision.stereo import as_fitted
+    from partinspect.vision.arc_partner import as_fitted
 
     f, view, true = _tip_arc(0.0)
     rng = np.random.default_rng(3)
