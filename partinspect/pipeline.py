@@ -552,29 +552,16 @@ def _lines_at_band_places(stereo, inputs, registration, widths, progress):
           for k, cid in matched.items() if cid in lines}
     images = (inputs.left, inputs.right)
     with inputs.timings.stage("edge-break line places"):
-        # First at the pose registered on the apparent steps, without the misfit that pose's own
-        # displacement would put in; then the misfit read at the pose registered on the moved lines.
-        places = line_places(images, inputs.calib, registration.part_to_camera, lines, widths, uv, misfit=False)
-        moved, refitted = lines_at_sharp_edge(stereo, inputs.calib, registration.part_to_camera, matched, lines,
-                                              places, stereo.edge_break)
-    def placed(moved):
-        return {cid: (places.get(cid), line, cid in moved) for cid, line in lines.items()}
-
-    if not refitted:
-        return stereo, refitted, placed(refitted)
-    try:
-        with inputs.timings.stage("registering"):
-            registration = _register(moved, inputs, registration.poses)
-    except InputError:
-        return stereo, set(), placed(set())
-    matched = registration.cad_ids(stereo.features, "line")
-    with inputs.timings.stage("edge-break line places"):
+        # The misfit read at the pose registered on the apparent steps, each carrying the whole band: a
+        # pose registered on the lines moved would take up the error their places share (one light, one
+        # break shape for all) and read it as no misfit. This pose's own error, within its covariance,
+        # is read as misfit too: conservative.
         places = line_places(images, inputs.calib, registration.part_to_camera, lines, widths, uv)
         stereo, refitted = lines_at_sharp_edge(stereo, inputs.calib, registration.part_to_camera, matched, lines,
                                                places, stereo.edge_break)
     if refitted:
         progress(f"{len(refitted)} broken line(s) measured at their predicted place")
-    return stereo, refitted, placed(refitted)
+    return stereo, refitted, {cid: (places.get(cid), line, cid in refitted) for cid, line in lines.items()}
 
 
 def _judged_across_poses(characteristics, decisions, registration, inputs, progress):

@@ -513,6 +513,13 @@ def test_a_broken_render_says_per_feature_where_its_edge_was_taken(broken_plate,
         assert e["standard_uncertainty"] < e["band_standard_uncertainty"]
     for fid in set(eb) - moved:
         assert eb[fid]["standard_uncertainty"] == pytest.approx(0.0816497, abs=1e-6) and eb[fid]["reason"]
+    # The pose registered on the moved features lies within its stated covariance of the rendered one.
+    from partinspect.cad.pose_refine import pose_error
+
+    truth = json.loads((broken_plate / "truth.json").read_text())
+    reg = report["registration"]
+    xi = pose_error(np.array(reg["part_to_camera"]), np.array(truth["part_to_camera"]))
+    assert xi @ np.linalg.solve(np.array(reg["pose_covariance"]), xi) < 22.46  # chi-square on 6, chance 1e-3
     html = (tmp_path / "out" / "report.html").read_text()
     assert html.count('class="sub small edge-break"') == len(measured)
     assert html.count("moved onto the sharp edge by its predicted band place") == len(moved)
