@@ -436,21 +436,22 @@ def evaluate(inputs, m, progress):
     """
     from partinspect.diagnosis import split_unseen, unmeasured_reasons
     from partinspect.reports.assemble import assemble_report, input_entries
-    from partinspect.results import characteristic_entry, feature_entries, registration_entry
+    from partinspect.results import characteristic_entry, edge_break_entries, feature_entries, registration_entry
     from partinspect.tolerances.decision import decide_all, verdict
     from partinspect.tolerances.from_pmi import datum_entry
     from partinspect.vision.images import IMAGE_NAMES
 
     progress(f"evaluating {len(inputs.characteristics)} characteristics")
     judged, not_inspected = split_unseen(inputs.characteristics, m.seen, m.registration)
-    judged, m = _at_band_places(judged, inputs, m, progress)
+    judged, m, placed = _at_band_places(judged, inputs, m, progress)
     decisions = decide_all(_evaluate_on_two_cores(judged, m.registration, inputs.inv), inputs.resolved.decision_rule)
     if m.registration.competing:
         decisions = _judged_across_poses(judged, decisions, m.registration, inputs, progress)
     characteristics = [characteristic_entry(d) for d in decisions]
     why = unmeasured_reasons(inputs.inv, m.stereo, m.registration, m.seen, inputs.calib,
                              (inputs.left, inputs.right, inputs.bit_depth))
-    features = feature_entries(inputs.inv, m.stereo, m.registration, m.seen, decisions, why)
+    features = feature_entries(inputs.inv, m.stereo, m.registration, m.seen, decisions, why,
+                               edge_break_entries(m.stereo, m.registration, inputs.calib, *placed))
     for c in characteristics:
         if c["measured"] is None:
             c["reason"] = "not measured: " + "; ".join(f"{fid}: {why[fid]}" for fid in c["features"] if fid in why)
@@ -492,13 +493,17 @@ def _at_band_places(characteristics, inputs, m, progress):
     -------
     characteristics : list of Characteristic
     m : Measured
+    placed : (dict, dict)
+        Rims and lines: CAD id -> (place or None, the rim's break size or
+        the ``BrokenLine``, moved), for
+        :func:`partinspect.results.edge_break_entries`.
     """
     from partinspect.tolerances.edge_break import broken_rims, with_band_places
     from partinspect.vision.band_place import band_place, rims_at_sharp_edge
 
     rims = broken_rims(characteristics, inputs.inv, m.registration.part_to_camera)
     if not rims and m.stereo.edge_break is None:
-        return characteristics, m
+        return characteristics, m, ({}, {})
     widths = tuple(float(np.median(side.edges.width)) for side in (m.stereo.left, m.stereo.right))
     stereo, refitted, places = m.stereo, set(), {}
     if rims:
@@ -512,54 +517,51 @@ def _at_band_places(characteristics, inputs, m, progress):
                                                   {fid: (p, rims[fid]) for fid, p in places.items()})
         if refitted:
             progress(f"{len(refitted)} broken rim(s) measured at their predicted place")
-    stereo, lines = _lines_at_band_places(stereo, inputs, m.registration, widths, progress)
+    stereo, lines, placed_lines = _lines_at_band_places(stereo, inputs, m.registration, widths, progress)
     if refitted or lines:
         try:
             with inputs.timings.stage("registering"):
                 m = replace(m, stereo=stereo, registration=_register(stereo, inputs, m.registration.poses))
         except InputError:
-            pass
-    return with_band_places(characteristics, places), m
+            # Kept as measured before the moves: nothing was moved.
+            refitted, lines = set(), set()
+            placed_lines = {cid: (p, line, False) for cid, (p, line, _) in placed_lines.items()}
+    placed_rims = {fid: (places.get(fid), rim[4], fid in refitted) for fid, rim in rims.items()}
+    return with_band_places(characteristics, places), m, (placed_rims, placed_lines)
 
 
 def _lines_at_band_places(stereo, inputs, registration, widths, progress):
-    """The measured broken lines moved onto their sharp edges' images (:mod:`.vision.line_band`), where predicted."""
+    """The measured broken lines moved onto their sharp edges' images (:mod:`.vision.line_band`), where predicted.
+
+    Returns the stereo result, the lines moved, and per broken line its
+    place (None where not predicted), the line and whether it was moved.
+    """
     from partinspect.tolerances.edge_break import broken_lines
     from partinspect.vision.line_band import BrokenLine, line_places, lines_at_sharp_edge
 
     eb = inputs.resolved.spec.edge_break
     if eb is None or stereo.edge_break is None:
-        return stereo, set()
+        return stereo, set(), {}
     matched = registration.cad_ids(stereo.features, "line")
     lines = {cid: BrokenLine(*t) for cid, t in broken_lines(inputs.inv, inputs.model.mesh, set(matched.values()),
                                                              eb.min, eb.max).items()}
     if not lines:
-        return stereo, set()
+        return stereo, set(), {}
     progress(f"predicting where {len(lines)} broken line(s) show their edge")
     uv = {cid: (stereo.left.features[stereo.features[k].left].uv, stereo.right.features[stereo.features[k].right].uv)
           for k, cid in matched.items() if cid in lines}
     images = (inputs.left, inputs.right)
     with inputs.timings.stage("edge-break line places"):
-        # First at the pose registered on the apparent steps, without the misfit that pose's own
-        # displacement would put in; then the misfit read at the pose registered on the moved lines.
-        places = line_places(images, inputs.calib, registration.part_to_camera, lines, widths, uv, misfit=False)
-        moved, refitted = lines_at_sharp_edge(stereo, inputs.calib, registration.part_to_camera, matched, lines,
-                                              places, stereo.edge_break)
-    if not refitted:
-        return stereo, refitted
-    try:
-        with inputs.timings.stage("registering"):
-            registration = _register(moved, inputs, registration.poses)
-    except InputError:
-        return stereo, set()
-    matched = registration.cad_ids(stereo.features, "line")
-    with inputs.timings.stage("edge-break line places"):
+        # The misfit read at the pose registered on the apparent steps, each carrying the whole band: a
+        # pose registered on the lines moved would take up the error their places share (one light, one
+        # break shape for all) and read it as no misfit. This pose's own error, within its covariance,
+        # is read as misfit too: conservative.
         places = line_places(images, inputs.calib, registration.part_to_camera, lines, widths, uv)
         stereo, refitted = lines_at_sharp_edge(stereo, inputs.calib, registration.part_to_camera, matched, lines,
                                                places, stereo.edge_break)
     if refitted:
         progress(f"{len(refitted)} broken line(s) measured at their predicted place")
-    return stereo, refitted
+    return stereo, refitted, {cid: (places.get(cid), line, cid in refitted) for cid, line in lines.items()}
 
 
 def _judged_across_poses(characteristics, decisions, registration, inputs, progress):

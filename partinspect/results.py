@@ -13,8 +13,8 @@ import numpy as np
 from partinspect.cad.registration import feature_order
 from partinspect.reports.assemble import mat, vec
 
-__all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "ambiguity_entry", "feature_entries", "curve_3d",
-           "figure_data", "fused_feature_entries", "view_entry"]
+__all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "ambiguity_entry", "feature_entries",
+           "edge_break_entries", "curve_3d", "figure_data", "fused_feature_entries", "view_entry"]
 
 
 def nominal_geometry(feature):
@@ -97,12 +97,14 @@ def _assignment_differs(reg, other):
     return sorted((fid for fid in set(a) | set(b) if a.get(fid) != b.get(fid)), key=feature_order)
 
 
-def feature_entries(inv, stereo, registration, seen, decisions, reasons):
+def feature_entries(inv, stereo, registration, seen, decisions, reasons, edge_break=None):
     """report.json's "features": nominal and measured geometry (part frame) with covariances.
 
     ``reasons``: CAD id -> why it was not measured
     (:func:`partinspect.diagnosis.unmeasured_reasons`), for every feature
-    the registration did not assign.
+    the registration did not assign. ``edge_break``: CAD id -> where a
+    measured feature's edge was taken on its broken edge
+    (:func:`edge_break_entries`), its entry's ``"edge_break"``.
     """
     parts = {p.cad_id: p for p in registration.features_in_part_frame() if p.cad_id is not None}
     index = {"circle": [f for f in stereo.features if f.kind != "line"], "line": [f for f in stereo.features if f.kind == "line"]}
@@ -124,8 +126,108 @@ def feature_entries(inv, stereo, registration, seen, decisions, reasons):
             if f3.guided is not None:
                 entry["reason"] = ("measured on its own stretch of a longer straight edge in the images (edges in "
                                    "line with it merge into one there), the stretch its CAD edge's image covers")
+            if edge_break and f.id in edge_break:
+                entry["edge_break"] = edge_break[f.id]
         out.append(entry)
     return out
+
+
+UNPREDICTED = ("its place across the band is not predicted: the chain predicts it on a toleranced rim seen from its "
+               "face and on a straight edge between two planar faces")
+
+
+def edge_break_entries(stereo, registration, calib, rims, lines):
+    """Where each measured feature's edge was taken on its broken edge: report.json's features' ``"edge_break"``.
+
+    Under a stated edge break every edge point carries the whole band as a
+    Type B (:func:`partinspect.vision.stereo.edge_band`) unless its feature
+    was moved onto the sharp edge's image by its predicted place
+    (:func:`partinspect.vision.band_place.rims_at_sharp_edge`,
+    :func:`partinspect.vision.line_band.lines_at_sharp_edge`): the entry
+    says which, how far the apparent edge lay from the sharp edge's image
+    (towards the face, as the points were moved back by it), and the Type
+    B each point carries, so a reader sees what was corrected and what
+    carried.
+
+    Parameters
+    ----------
+    stereo : StereoResult
+        ``edge_break``: the uniform band's Type B, mm (None: no break stated).
+    registration : Registration
+        The final one (its pose converts a line's offsets to mm).
+    calib : StereoCalibration
+    rims : dict of str to (BandPlace or None, float, bool)
+        CAD id of a broken rim whose place the chain predicts -> its place
+        (:class:`~partinspect.vision.band_place.BandPlace`, None where not
+        predicted), the break's expected size (mm) and whether its points
+        were moved.
+    lines : dict of str to (LinePlace or None, BrokenLine, bool)
+        Likewise for the broken straight edges
+        (:mod:`partinspect.vision.line_band`), with the edge.
+
+    Returns
+    -------
+    dict of str to dict
+        CAD id -> entry, every measured feature; empty where no break is stated.
+    """
+    from partinspect.vision.band_place import UNIFORM_STD, pixel_size
+
+    if stereo.edge_break is None:
+        return {}
+    band = float(stereo.edge_break)
+    kept = {"measured_at": "apparent edge", "standard_uncertainty": round(band, 6), "reason": UNPREDICTED}
+    out = {}
+    for p in registration.features_in_part_frame():
+        if p.cad_id is None:
+            continue
+        place, edge, moved = (rims if p.kind == "circle" else lines).get(p.cad_id, (None, None, False))
+        entry = dict(kept)
+        if place is None and edge is not None:
+            entry["reason"] = "its place across the band could not be predicted (too little of it or of its faces seen)"
+        elif place is not None and p.kind == "circle":
+            entry = _rim_entry(place, edge, moved, band, UNIFORM_STD)
+        elif place is not None:
+            mid = p.point if p.start is None else 0.5 * (p.start + p.end)
+            entry = _line_entry(place, edge, moved, band, pixel_size(calib, registration.part_to_camera, mid))
+        out[p.cad_id] = entry
+    return out
+
+
+def _offset_ranges(offsets):
+    """Per image, [least, largest] of a place's offsets, px (None where none is finite)."""
+    out = []
+    for o in offsets:
+        o = np.asarray(o, float)
+        o = o[np.isfinite(o)]
+        out.append(vec([o.min(), o.max()], 4) if o.size else None)
+    return out
+
+
+def _rim_entry(place, size, moved, band, uniform):
+    """A broken rim's ``"edge_break"``: its band place ``s`` (share of the break from the wall), offset, Type B."""
+    entry = {"break_size": round(size, 6), "band_place": round(place.s, 4),
+             "band_place_standard_uncertainty": round(place.u, 4),
+             "offset": round(place.s * size, 6), "offset_px": _offset_ranges(place.offsets)}
+    if moved:
+        return {"measured_at": "predicted band place", **entry,
+                "standard_uncertainty": round(place.u_point * size, 6), "band_standard_uncertainty": round(band, 6)}
+    why = ("its place is predicted no better than uniform across the band" if max(place.u, place.u_point) >= uniform
+           else "its fit at the predicted place failed")
+    return {"measured_at": "apparent edge", **entry, "standard_uncertainty": round(band, 6),
+            "reason": f"{why}: its size is corrected by the place, its points keep the band"}
+
+
+def _line_entry(place, line, moved, band, pixel):
+    """A broken straight edge's ``"edge_break"``: its offset (mm, px per image, towards its first face) and Type B."""
+    medians = [float(np.nanmedian(o)) * px for o, px in zip(place.offsets, pixel) if np.isfinite(o).any()]
+    entry = {"break_size": round(line.size, 6), "offset": round(float(np.mean(medians)), 6),
+             "offset_px": _offset_ranges(place.offsets), "towards_face": line.faces[0]}
+    if moved:
+        return {"measured_at": "predicted band place", **entry, "standard_uncertainty": round(place.u, 6),
+                "standard_uncertainty_px": vec(place.u_px, 4), "band_standard_uncertainty": round(band, 6)}
+    why = ("its place is predicted no better than uniform across the band" if place.u >= band
+           else "its fit at the predicted place, or the pose registered on it, failed")
+    return {"measured_at": "apparent edge", **entry, "standard_uncertainty": round(band, 6), "reason": why}
 
 
 def _entry_of(f, seen):

@@ -62,6 +62,7 @@ def test_nominal_plate_passes_or_is_inconclusive_and_says_why(workdir, tmp_path,
         else:
             assert f["status"] in ("pass", "inconclusive", "measured")
             assert np.all(np.linalg.eigvalsh(np.array(f["measured"]["covariance"])) > 0)
+            assert "edge_break" not in f  # no break stated
 
     # Nothing fails; an inconclusive one straddles a limit with its U, or was not measured.
     decisions = {c["decision"] for c in report["characteristics"]}
@@ -470,3 +471,55 @@ def test_a_stated_edge_break_has_its_band_place_predicted_on_the_rims_seen_from_
     stages = {t["stage"] for t in report["timings"]["stages"]}
     assert "edge-break band places" in stages
     assert "edge-break line places" in stages  # the lines' places too (vision.line_band)
+
+
+@pytest.fixture(scope="module")
+def broken_plate(plate, tmp_path_factory):
+    """The plate rendered small with every convex edge rounded R 0.1 mm (the STEP file sharp)."""
+    out = tmp_path_factory.mktemp("broken") / "render"
+    assert main(["render", str(plate), str(out), "--edge-break", "R0.1", "--size", "612x512", "--pose",
+                 str(plate.parent / "truth.json"), "-q"]) == 0
+    return out
+
+
+def test_a_broken_render_says_per_feature_where_its_edge_was_taken(broken_plate, plate, tmp_path):
+    from partinspect.pipeline import run_inspection
+
+    spec = tmp_path / "broken.tol.yaml"
+    spec.write_text("edge_break: {min: 0.1, max: 0.1}\n")
+    report = run_inspection(plate, broken_plate / "images", tmp_path / "out", tolerances=spec).report
+    jsonschema.validate(report, SCHEMA)
+    measured = {f["id"]: f for f in report["features"] if f["measured"] is not None}
+    eb = {fid: f["edge_break"] for fid, f in measured.items()}  # every measured feature says
+    moved = {fid for fid, e in eb.items() if e["measured_at"] == "predicted band place"}
+    rims = moved & {"circle-2", "circle-4", "circle-6", "circle-8", "circle-10"}  # the top rims
+    lines = {fid for fid in moved if fid.startswith("line-")}
+    assert len(rims) >= 3 and len(lines) >= 5
+    sizes = {c["feature"]: c["details"]["edge_break"] for c in report["characteristics"]
+             if c["type"] == "diameter" and c["measured"] is not None}
+    z = []
+    for fid in rims:
+        e, m, nominal = eb[fid], measured[fid]["measured"], measured[fid]["nominal"]
+        assert 0 < e["band_place"] < 1 and e["offset"] == pytest.approx(e["band_place"] * e["break_size"], abs=1e-5)
+        assert e["band_place"] == pytest.approx(sizes[fid]["s"], abs=1e-4)  # the size's place, the same
+        assert e["standard_uncertainty"] < 0.5 * e["band_standard_uncertainty"]
+        z.append((m["radius"] - nominal["radius"]) / m["radius_std"])
+    # Moved onto the sharp rim, the fit measures the wall (the nominal here), not the apparent rim
+    # s b outside it (0.025-0.035 mm, 2-4 radius_std).
+    assert np.sqrt(np.mean(np.square(z))) < 2.0, z
+    for fid in lines:
+        e = eb[fid]
+        assert 0 < abs(e["offset"]) < e["break_size"] and e["towards_face"].startswith("face-")
+        assert e["standard_uncertainty"] < e["band_standard_uncertainty"]
+    for fid in set(eb) - moved:
+        assert eb[fid]["standard_uncertainty"] == pytest.approx(0.0816497, abs=1e-6) and eb[fid]["reason"]
+    # The pose registered on the moved features lies within its stated covariance of the rendered one.
+    from partinspect.cad.pose_refine import pose_error
+
+    truth = json.loads((broken_plate / "truth.json").read_text())
+    reg = report["registration"]
+    xi = pose_error(np.array(reg["part_to_camera"]), np.array(truth["part_to_camera"]))
+    assert xi @ np.linalg.solve(np.array(reg["pose_covariance"]), xi) < 22.46  # chi-square on 6, chance 1e-3
+    html = (tmp_path / "out" / "report.html").read_text()
+    assert html.count('class="sub small edge-break"') == len(measured)
+    assert html.count("moved onto the sharp edge by its predicted band place") == len(moved)

@@ -184,8 +184,30 @@ def feature_rows(report):
         rows.append({
             "id": f.get("id", ""), "kind": f.get("kind", ""), "nominal": nominal, "measured": measured,
             "sigma": sigma, "status": status, "reason": f.get("reason") or "", "decision": worst.get(f.get("id")),
+            "edge_break": _edge_break_text(f.get("edge_break")) if mea else "",
         })
     return rows
+
+
+def _edge_break_text(e):
+    """One line saying where a feature's edge was taken on its broken edge (report.json's ``"edge_break"``)."""
+    if not isinstance(e, dict):
+        return ""
+    px = "; ".join(f"{side} {_num(r[0], 2)} to {_num(r[1], 2)} px" for side, r in zip(("left", "right"), e.get("offset_px") or ())
+                   if isinstance(r, (list, tuple)) and len(r) == 2 and all(_finite(x) for x in r))
+    where = ""
+    if _finite(e.get("offset")):
+        towards = e.get("towards_face") or "the face"
+        where = f"step predicted {_signed(e['offset'])} mm from the sharp edge towards {towards}" + (f" ({px})" if px else "")
+        if _finite(e.get("band_place")):
+            where += f", band place {_num(e['band_place'], 2)} ± {_num(e.get('band_place_standard_uncertainty'), 2)}"
+    u = f"Type B {_num(e.get('standard_uncertainty'))} mm per point"
+    if e.get("measured_at") == "predicted band place":
+        band = e.get("band_standard_uncertainty")
+        return (f"edge break: moved onto the sharp edge by its predicted band place; {where}; {u}"
+                + (f" (the whole band's {_num(band)})" if _finite(band) else ""))
+    return "; ".join(t for t in (f"edge break: measured at the apparent edge, the band carried as {u}", where,
+                                 e.get("reason") or "") if t)
 
 
 def _vec3(v):

@@ -155,8 +155,9 @@ def broken_rims(characteristics, inventory, part_to_camera):
         the rim's centre (part frame, mm), its planar face's outward unit
         normal, its radius, True for a hole (False a boss) and the break's
         expected size ``(min + max) / 2``, mm. Only circles bounding one
-        plane and one cylinder: what :mod:`partinspect.vision.band_place`
-        can predict.
+        plane and one cylinder (split into several faces or not, one
+        material side): what :mod:`partinspect.vision.band_place` can
+        predict.
     """
     out = {}
     for c in characteristics:
@@ -167,10 +168,11 @@ def broken_rims(characteristics, inventory, part_to_camera):
             f = inventory[s.features[0]]
             faces = [inventory[fid] for fid in f.faces if fid in inventory]
             planes = [g for g in faces if g.surface == "plane"]
-            walls = [g for g in faces if g.surface == "cylinder" and g.convex is not None]
-            if len(planes) == 1 and len(walls) == 1 and seen_from_its_face(inventory, s.features[0], part_to_camera):
+            # A STEP file often splits a hole's wall into two half cylinders: one wall still, if one side.
+            side = cylinder_side(inventory, s.features[0])
+            if len(planes) == 1 and side is not None and seen_from_its_face(inventory, s.features[0], part_to_camera):
                 out[s.features[0]] = (np.asarray(f.center, float), np.asarray(planes[0].normal, float),
-                                      float(f.radius), not walls[0].convex, 0.5 * sum(s.edge_break))
+                                      float(f.radius), not side, 0.5 * sum(s.edge_break))
     return out
 
 

@@ -79,7 +79,7 @@ from partinspect.vision.matching import Match
 from partinspect.vision.stereo import measure_pair_feature
 
 __all__ = ["BandPlace", "rim_section", "fit_light", "band_profile", "apparent_place", "observed_place", "band_place",
-           "rims_at_sharp_edge", "camera_views", "read_grey", "refit_pair", "with_refitted"]
+           "rims_at_sharp_edge", "camera_views", "pixel_size", "read_grey", "refit_pair", "with_refitted"]
 
 FINE_ANGLES = 720
 """Angles at which the sharp rim's image is sampled to give each edge point its angle."""
@@ -335,6 +335,29 @@ def camera_views(calib, part_to_camera):
         Rp, tp = R @ T[:3, :3], R @ T[:3, 3] + np.ravel(t)
         out.append((K, D, Rp, tp, -Rp.T @ tp, K @ np.c_[R, np.ravel(t)]))
     return tuple(out)
+
+
+def pixel_size(calib, part_to_camera, point):
+    """Per camera, the size of one pixel at a part-frame point, mm: its depth over the focal length.
+
+    What a place across a band, stated in px as the prediction is made,
+    is as a distance on the part (pinhole, JCGM 100 first order: the
+    depth's variation across a band is negligible).
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+    part_to_camera : ndarray, shape (4, 4)
+    point : array_like, shape (3,)
+        Part frame, mm.
+
+    Returns
+    -------
+    (float, float)
+        Left, right, mm per px.
+    """
+    p = np.asarray(point, float)
+    return tuple(float((R @ p + t)[2] / K[0, 0]) for K, _, R, t, _, _ in camera_views(calib, part_to_camera))
 
 
 def refit_pair(stereo, calib, k, moved, scale, band, **extra):

@@ -37,11 +37,12 @@ straight edge of the registered part:
    less the image's own steepest places along the edge
    (:func:`partinspect.vision.band_place.observed_place`), with its
    standard error (the step's error is one offset along a line), is the
-   model's misfit, a Type B component of its own. It is
-   read at a pose registered on the lines moved to their predicted
-   places: at the first pose, registered on the apparent steps, it would
-   hold the band's own displacement of the pose (it holds what is left of
-   the pose's error: conservative).
+   model's misfit, a Type B component of its own. The caller reads it at
+   the pose registered on the apparent steps, each carrying the whole
+   band: a pose registered on the lines moved would take up the error
+   their places share (one light, one break shape) and read it as no
+   misfit; this one's own error, within its covariance, counts as misfit
+   (conservative).
 
 :func:`lines_at_sharp_edge` moves each measured line's points by their
 station's place onto the sharp edge's image and fits it again, each point

@@ -316,3 +316,39 @@ def test_registration_names_the_pmi_datums_it_used():
     report["registration"]["datum_reference"].pop("applied")
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(report, SCHEMA)
+
+
+def test_features_measured_on_a_broken_edge_say_where_escaped_and_valid():
+    report = make_report(CHARS)
+    circle, line = report["features"]
+    line["measured"] = {"point": [5, 0, 0], "direction": [1, 0, 0], "start": [0, 0, 0], "end": [10, 0, 0],
+                        "covariance": [[1e-6, 0, 0], [0, 1e-6, 0], [0, 0, 1e-6]]}
+    line.pop("reason")
+    line["status"] = "measured"
+    circle["edge_break"] = {"measured_at": "predicted band place", "break_size": 0.1, "band_place": 0.31,
+                            "band_place_standard_uncertainty": 0.15, "offset": 0.031,
+                            "offset_px": [[-0.41, 0.36], None], "standard_uncertainty": 0.0163,
+                            "band_standard_uncertainty": 0.08165}
+    line["edge_break"] = {"measured_at": "apparent edge", "break_size": 0.1, "offset": -0.0837,
+                          "offset_px": [[-0.38, -0.35], [-0.44, -0.43]], "towards_face": "face-<1>",
+                          "standard_uncertainty": 0.08165, "reason": "its place is <b>predicted</b> no better"}
+    jsonschema.validate(report, SCHEMA)
+    html = render_html(report)
+    rows = re.findall(r'<div class="sub small edge-break">(.*?)</div>', html)
+    assert len(rows) == 2
+    moved, kept = rows if "moved" in rows[0] else rows[::-1]
+    assert "moved onto the sharp edge by its predicted band place" in moved
+    assert "+0.0310 mm" in moved and "left -0.41 to 0.36 px" in moved and "right" not in moved
+    assert "band place 0.31 ± 0.15" in moved and "Type B 0.0163 mm per point (the whole band&#39;s 0.0817)" in moved
+    assert "measured at the apparent edge, the band carried as Type B 0.0817 mm per point" in kept
+    assert "−0.0837 mm from the sharp edge towards face-&lt;1&gt;" in kept
+    assert "&lt;b&gt;predicted&lt;/b&gt;" in kept and "<b>predicted" not in html and "face-<1>" not in html
+    for bad in ({"measured_at": "moved", "standard_uncertainty": 0.01},
+                {"measured_at": "apparent edge", "standard_uncertainty": -0.01},
+                {"measured_at": "predicted band place", "standard_uncertainty": 0.01, "band_place": 1.5}):
+        circle["edge_break"] = bad
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(report, SCHEMA)
+    circle.pop("edge_break")
+    line["edge_break"] = {"measured_at": "apparent edge", "standard_uncertainty": 0.08}
+    assert len(re.findall('class="sub small edge-break"', render_html(report))) == 1

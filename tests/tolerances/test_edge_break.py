@@ -140,6 +140,25 @@ def test_a_predicted_band_place_reaches_the_size_and_its_bonus_and_narrows_it(pl
     assert predicted.details["edge_break"]["band_place"] == "predicted from the light on the part"
 
 
+def test_a_rim_whose_wall_the_step_file_splits_in_two_is_still_a_broken_rim():
+    from types import SimpleNamespace as NS
+
+    from partinspect.tolerances.edge_break import broken_rims
+
+    # NIST ftc_09's holes: each wall two half cylinders (faces of one material side) and the top plane.
+    inv = {"circle-1": NS(center=[0.0, 0.0, 0.0], radius=3.175, faces=("face-1", "face-2", "face-3")),
+           "face-1": NS(surface="cylinder", convex=False), "face-2": NS(surface="cylinder", convex=False),
+           "face-3": NS(surface="plane", normal=[0.0, 0.0, 1.0], convex=None)}
+    c = NS(type="diameter", features=("circle-1",), edge_break=(0.1, 0.1), material=None)
+    above = np.eye(4)
+    above[:3, :3] = np.diag([1.0, -1.0, -1.0])  # the camera looks down -z at the part's +z face
+    above[2, 3] = 300.0
+    rims = broken_rims([c], inv, above)
+    assert set(rims) == {"circle-1"} and rims["circle-1"][3] is True  # a hole
+    inv["face-2"] = NS(surface="cylinder", convex=True)  # a wall of two material sides: not one rim
+    assert broken_rims([c], inv, above) == {}
+
+
 def test_only_external_straight_edges_between_planes_are_broken_lines():
     import cadquery as cq
 
