@@ -13,9 +13,10 @@ That profile is modelled as blurred steps (Canny's interaction of nearby
 edges, [1]_): the edge, located from its unshaded side as much as from
 the other, and the band as a second step of its own depth, place and
 width (its near flank) with its return a width further out (its far
-flank; out of reach for a face that stays shaded). The edge detector's maximum of the smoothed
-gradient, computed on that model with and without the second step, gives
-the displacement of the line's points by the band (:func:`band_displacement`).
+flank; out of reach for a face that stays shaded). The edge detector's
+maximum of the smoothed gradient, computed on that model with and without
+the band, gives the displacement of the line's points by the band
+(:func:`band_displacement`).
 
 Frames: distorted pixels as the points were found (OpenCV pixel frame);
 the profile's coordinate runs along each point's edge normal, dark to
@@ -48,9 +49,9 @@ STEP = 0.25
 """px between the profile's samples (bilinear, so the samples within one
 pixel are correlated; the fit's residuals set its noise)."""
 BAND_Z = 4.0
-"""A second step is taken as present when its height is this many of its
-standard errors from zero: beside faces of uniform grey none is, and a
-chance one would put a Type B on a clean line."""
+"""A band is taken as present when its depth is this many of its standard
+errors from zero: beside faces of uniform grey none is, and a chance one
+would put a Type B on a clean line."""
 DETECTOR_FLOOR = 0.005
 """px: a displacement the model gives below this is not counted. It is the
 detector's own error beside flat shading
