@@ -95,10 +95,13 @@ def across_profile(image, uv, normal, reach=REACH, step=STEP):
 
 
 def _design(t, t0, s, d, s2, w):
-    """Columns of the model: level, edge of unit height, band of unit depth (its two flanks)."""
-    u = t - t0
-    far = np.sign(d) * w
-    return np.c_[np.ones_like(t), ndtr(u / s), ndtr(np.sign(d) * (u - d) / s2) - ndtr(np.sign(d) * (u - d - far) / s2)]
+    """Columns of the model: level, edge of unit height, band of unit depth (its two flanks).
+
+    Shape (M, 3) for scalar parameters; parameters of shape (K, 1) give (K, M, 3).
+    """
+    u, e = t - t0, np.sign(d)
+    band = ndtr(e * (u - d) / s2) - ndtr(e * (u - d - e * w) / s2)
+    return np.stack(np.broadcast_arrays(1.0, ndtr(u / s), band), axis=-1)
 
 
 def two_step_fit(t, grey):
@@ -129,13 +132,10 @@ def two_step_fit(t, grey):
     best = None
     for side in (1.0, -1.0):
         for d0 in START_DISTANCES:
-            def resid(q):
-                A = _design(t, *q)
-                return A @ np.linalg.solve(A.T @ A + 1e-9 * np.eye(3), A.T @ grey) - grey
-
             lo = [-1.0, 0.3, 0.5, 0.3, 0.5] if side > 0 else [-1.0, 0.3, -REACH, 0.3, 0.5]
             hi = [1.0, 2.0, REACH, 2.5, 4 * REACH] if side > 0 else [1.0, 2.0, -0.5, 2.5, 4 * REACH]
-            r = least_squares(resid, [0.0, 0.8, side * d0, 0.8, 2.0], bounds=(lo, hi), ftol=1e-6, xtol=1e-6)
+            r = least_squares(lambda q: _projected_residuals(t, grey, q[None])[0], [0.0, 0.8, side * d0, 0.8, 2.0],
+                              jac=lambda q: _forward_jacobian(t, grey, q, hi), bounds=(lo, hi), ftol=1e-6, xtol=1e-6)
             if best is None or r.cost < best.cost:
                 best = r
     if best is None or not np.isfinite(best.cost) or c0 == 0:
@@ -150,6 +150,22 @@ def two_step_fit(t, grey):
     var = 2.0 * best.cost / dof
     cov = np.linalg.pinv(J.T @ J) * var
     return dict(t0=t0, s=s, d=d, s2=s2, w=w, a=lin[0], c=lin[1], h=lin[2], h_std=float(np.sqrt(max(cov[2, 2], 0.0))))
+
+
+def _projected_residuals(t, grey, Q):
+    """Residuals of the model with its linear parameters solved for, at each row of ``Q`` (K, 5): (K, M)."""
+    A = _design(t, *(Q[:, k, None] for k in range(5)))
+    AtA = np.einsum("kmi,kmj->kij", A, A) + 1e-9 * np.eye(3)
+    lin = np.linalg.solve(AtA, np.einsum("kmi,m->ki", A, grey)[..., None])[..., 0]
+    return np.einsum("kmi,ki->km", A, lin) - grey
+
+
+def _forward_jacobian(t, grey, q, hi):
+    """Forward differences of :func:`_projected_residuals` in every parameter at once, stepped away from ``hi``."""
+    step = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(q))
+    step = np.where(q + step > np.asarray(hi), -step, step)
+    R = _projected_residuals(t, grey, np.vstack([q, q + np.diag(step)]))
+    return ((R[1:] - R[0]) / step[:, None]).T
 
 
 def _numeric_jacobian(t, q, lin, eps=1e-5):
@@ -225,8 +241,8 @@ def line_band_shift(image, uv, normal, sigma=1.0, bound=None):
         no shading was read beside the line, 3-4 px off it, and no band is
         sought: a band within the step's response has its floor or far
         flank there (the bound of the synthetic bands is 0.013-0.1 px,
-        docs/validation.md), and the fit, 0.05-0.2 s a line, is spared on
-        the lines between faces of uniform grey.
+        docs/validation.md), and the fit is spared on the lines between
+        faces of uniform grey.
 
     Returns
     -------
