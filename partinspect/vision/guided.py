@@ -110,7 +110,7 @@ def line_stretch(feature, keep, corr_length):
                    ideal=ideal, fit=fit, **extra)
 
 
-_LINE_POINT_FIELDS = ("edge_normal", "background_bound", "phase_factor")
+_LINE_POINT_FIELDS = ("edge_normal", "background_bound", "band_shift", "phase_factor")
 
 
 def _gather(features, candidates, polyline, trim, min_points, crowd=None, cid=None, reach=MAX_DISTANCE):

@@ -34,7 +34,9 @@ fillet's band seen near grazing incidence) that offset is a Type B
 standard uncertainty of the line in each image, fully correlated along it
 (:func:`line_type_b`): it weights the line's two images in its fit and is
 propagated with the random part into its covariance, so into a
-registration's weights and the characteristics.
+registration's weights and the characteristics. Two readings size it: the
+shading 3-4 px off the points, and a band nearer than that, read from the
+grey profile across the line (:mod:`partinspect.vision.line_profile`).
 
 Frames: 2D points in distorted pixels as detected, or ideal pixels where
 said; 3D geometry in the rig frame (left camera, mm).
@@ -66,6 +68,7 @@ from partinspect.vision.calibration_uncertainty import calibration_responses, re
 from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import ImageFeature, image_features
+from partinspect.vision.line_profile import line_band_shift
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
 from partinspect.vision.rim_errors import (BACKGROUND_CORRECTION, EDGE_BIAS_CORR_ANGLE, correction_corr_length,
@@ -184,6 +187,14 @@ class EdgeFeature(ImageFeature):
     A broken rim moved onto its sharp edge's image
     (:func:`partinspect.vision.band_place.rims_at_sharp_edge`):
 
+    Lines:
+
+    band_shift : ndarray, shape (N,) or None
+        The displacement of the points by a narrow band beside the line,
+        px, as the profile across the image line they were found on reads
+        it (:func:`partinspect.vision.line_profile.line_band_shift`; one
+        value for the points of one image line).
+
     band_modes : ndarray, shape (k, N) or None
         The displacement of each point across the edge by one standard
         uncertainty of each of its band place's shared errors, ideal px
@@ -197,18 +208,20 @@ class EdgeFeature(ImageFeature):
     background_offset: np.ndarray | None = None
     background_bound: np.ndarray | None = None
     background_std: np.ndarray | None = None
+    band_shift: np.ndarray | None = None
     band_modes: np.ndarray | None = None
     band_mode_names: tuple | None = None
 
 
-def _with_edge_data(feature, edges):
+def _with_edge_data(feature, edges, image):
     base = {f.name: getattr(feature, f.name) for f in fields(ImageFeature)}
     i = feature.index
     base.update(edge_normal=edges.normal[i], corr_length=float(edges.sigma))
     if edges.background_shift is None:
         return EdgeFeature(**base)
     if feature.kind != "arc":
-        return EdgeFeature(**base, background_bound=edges.background_bound[i])
+        shift = line_band_shift(image, feature.uv, edges.normal[i], edges.sigma, edges.background_bound[i])
+        return EdgeFeature(**base, background_bound=edges.background_bound[i], band_shift=np.full(len(i), shift))
     std = background_shift_std(edges, i)
     values = np.c_[edges.background_shift[i, None] * edges.normal[i], edges.background_bound[i]]
     mean, mean_std = smoothed_background(edges.xy[i], values, std, edges.sigma)
@@ -230,7 +243,7 @@ def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options
     noise = level.noise
     edges = edge_points(img, sigma, noise=noise, noise_level=level, **(edge_options or {}))
     segments = segment_contours(edges, chain_edges(edges), **(segment_options or {}))
-    feats = [_with_edge_data(f, edges) for f in image_features(edges, segments, K, D)]
+    feats = [_with_edge_data(f, edges, img) for f in image_features(edges, segments, K, D)]
     return ImageResult(noise, edges, segments, feats)
 
 
@@ -293,7 +306,7 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
             bias = rim_type_b(f.background_bound)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
         elif not arc:
-            shade = line_type_b(getattr(f, "background_bound", None))
+            shade = line_type_b(getattr(f, "background_bound", None), getattr(f, "band_shift", None))
             bias = np.full(len(xy), shade) if shade > 0 else None
         if band is not None:
             b = band[len(views)]
@@ -303,24 +316,31 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
     return views
 
 
-def line_type_b(bound):
+def line_type_b(bound, band=None):
     """Type B standard uncertainty of a line's offset in one image from the shading beside it, px.
 
-    ``LINE_BOUND_READING`` times the median of its points'
-    ``EdgePoints.background_bound``. The shading beside a straight edge
-    runs along it, so every point is displaced alike: one offset for the
-    whole line in that image (fully correlated along it), read from the
-    points together. The median, not the mean: the few points near the
-    line's ends, where another edge comes within the reading's reach, read
-    that edge, not the shading; and beside uniform faces the bound is zero
-    (the noise's expected part is taken out of each point's), so a clean
-    line keeps none.
+    Two readings of one displacement, in quadrature. ``LINE_BOUND_READING``
+    times the median of its points' ``EdgePoints.background_bound``: the
+    shading 3-4 px off the edge. The shading beside a straight edge runs
+    along it, so every point is displaced alike: one offset for the whole
+    line in that image (fully correlated along it), read from the points
+    together. The median, not the mean: the few points near the line's
+    ends, where another edge comes within the reading's reach, read that
+    edge, not the shading; and beside uniform faces the bound is zero (the
+    noise's expected part is taken out of each point's), so a clean line
+    keeps none. And the magnitude of the median ``band``: a narrow band
+    whose flank lies within the step's own response, which that reading
+    misses (:func:`partinspect.vision.line_profile.line_band_shift`, zero
+    beside uniform faces); where both see a shading each under-reads it
+    (the band's model 75-90 % of it), so neither is left out.
 
     Parameters
     ----------
     bound : ndarray, shape (N,) or None
         ``EdgeFeature.background_bound`` of the line's points in one image,
         px.
+    band : ndarray, shape (N,) or None
+        ``EdgeFeature.band_shift`` of the same points, px.
 
     Returns
     -------
@@ -332,9 +352,10 @@ def line_type_b(bound):
     .. [1] JCGM 100:2008 (GUM), 4.3 (Type B evaluation) and F.2.4.5
            (a known systematic effect left uncorrected).
     """
-    if bound is None or len(bound) == 0:
-        return 0.0
-    return LINE_BOUND_READING * float(np.median(bound))
+    shade = 0.0 if bound is None or len(bound) == 0 else LINE_BOUND_READING * float(np.median(bound))
+    if band is None or len(band) == 0:
+        return shade
+    return float(np.hypot(shade, np.median(band)))
 
 
 def edge_band(points, geo, edge_break):

@@ -79,3 +79,76 @@ def test_the_line_offset_is_read_from_the_median_bound():
     assert line_type_b(None) == 0.0
     # the rims' correction (1.4 times the first-order shift) and what it leaves (0.75 times the bound)
     assert LINE_BOUND_READING == pytest.approx(np.hypot(1.4, 0.75))
+
+
+def _band(flank, depth=62.0):
+    """A flat face, then a band ``depth`` below it: its flank from ``flank`` px to its floor at 3.7 px, back up by 6 px.
+
+    A fillet's band seen near grazing incidence beside a narrow face; with
+    the flank within 2 px the shading reading 3-4 px off the edge misses it.
+    """
+    return lambda u: np.where(u < 0, DARK, FACE - depth * np.clip(np.minimum((u - flank) / (3.7 - flank),
+                                                                            (6.0 - u) / 2.3), 0, 1))
+
+
+@pytest.mark.parametrize("flank", [1.5, 2.0])
+def test_a_line_beside_a_narrow_band_states_the_offset_the_band_gives_it(flank):
+    # seed 1: with the band, seed 0 finds no line to match (the right image's uniform face does)
+    f, err, m2 = _line_error(_band(flank), seed=1)
+    # the band moves the line 40-50 um, 50 times its image noise
+    assert err > 0.03
+    # within chance at 95 % (2 dof); the shading reading alone left 7.7 (flank 1.5 px)
+    # and 2.3 (2.0 px): it reads the band's floor, past its flank
+    assert m2 < chdtri(2, 0.05)
+    assert np.trace(f.param_cov_systematic) > 10 * np.trace(f.param_cov_image)
+
+
+def _one_image(profile, seed, noise=2.0):
+    """One image of a straight edge with ``profile`` across it; its edge points near the line, and their offsets."""
+    from partinspect.vision.edges import edge_points
+    from tests.vision.synthetic import render_profile
+
+    normal, point = np.array([np.cos(0.05), np.sin(0.05)]), np.array([40.3, 40.0])
+    img = render_profile(profile, point, normal, (90, 80))
+    img = np.clip(np.rint(img + np.random.default_rng(seed).normal(0.0, noise, img.shape)), 0, 255)
+    ep = edge_points(img, 1.0, noise=noise)
+    offset = (ep.xy - point) @ normal
+    near = (np.abs(offset) < 1.0) & (ep.xy[:, 1] > 10) & (ep.xy[:, 1] < 70)
+    return img, ep.xy[near], ep.normal[near], offset[near]
+
+
+@pytest.mark.parametrize("flank", [1.0, 1.5, 2.0, 2.5])
+def test_the_band_reading_gives_most_of_the_displacement_a_band_causes(flank):
+    from partinspect.vision.line_profile import line_band_shift
+
+    img, xy, normal, offset = _one_image(_band(flank), seed=1)
+    found = np.median(offset)
+    # the band pulls the edge towards it: -0.07 to -0.17 px
+    assert found < -0.05
+    shift = line_band_shift(img, xy, normal)
+    # same sign, 70-100 % of it (the model's band is two blurred steps, the
+    # rendered one two linear flanks)
+    assert 0.7 < shift / found < 1.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_the_band_reading_is_zero_beside_uniform_faces(seed):
+    from partinspect.vision.line_profile import line_band_shift
+
+    img, xy, normal, offset = _one_image(_step, seed)
+    assert len(xy) > 50
+    assert line_band_shift(img, xy, normal) == 0.0
+
+
+def test_the_band_model_moves_the_detector_towards_a_dark_band_and_not_without_one():
+    from partinspect.vision.line_profile import band_displacement
+
+    # no band: the maximum stays on the step
+    assert abs(band_displacement(160.0, 0.0, 2.0, 0.7, 0.7, 2.0)) < 1e-3
+    # a dark band on the bright side pulls the gradient's maximum away from it (to negative offsets) ...
+    near = band_displacement(160.0, -60.0, 1.5, 0.7, 0.7, 2.0)
+    far = band_displacement(160.0, -60.0, 3.0, 0.7, 0.7, 2.0)
+    assert near < far < 0
+    # ... and a bright one towards it; mirrored, the same amount
+    assert band_displacement(160.0, 60.0, 1.5, 0.7, 0.7, 2.0) > 0
+    assert band_displacement(-160.0, -60.0, -1.5, 0.7, 0.7, 2.0) == pytest.approx(-near, abs=0.01)
