@@ -32,10 +32,9 @@ References
 """
 
 import numpy as np
+from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
 from scipy.special import ndtr
-
-from partinspect.vision.edges import _bilinear
 
 __all__ = ["REACH", "BAND_Z", "across_profile", "two_step_fit", "band_displacement", "line_band_shift",
            "DETECTOR_FLOOR"]
@@ -55,7 +54,7 @@ would put a Type B on a clean line."""
 DETECTOR_FLOOR = 0.005
 """px: a displacement the model gives below this is not counted. It is the
 detector's own error beside flat shading
-(``stereo.RIM_DETECTOR_ERROR``): a step of uniform faces is fitted by the
+(:data:`partinspect.vision.rim_errors.RIM_DETECTOR_ERROR`): a step of uniform faces is fitted by the
 two Gaussian-blurred steps to within a grey level (the pixel's box and the
 bilinear samples are not Gaussian), which on a long line is significant
 and gives 0.000-0.004 px."""
@@ -90,8 +89,9 @@ def across_profile(image, uv, normal, reach=REACH, step=STEP):
     t = np.arange(-reach, reach + 0.5 * step, step)
     img = np.asarray(image, float)
     p = uv[:, None, :] + t[None, :, None] * normal[:, None, :]
-    grey = _bilinear(img, p[..., 0].ravel(), p[..., 1].ravel()).reshape(len(uv), len(t))
-    return t, grey.mean(axis=0)
+    # Bilinear, clamped at the borders (map_coordinates takes rows first).
+    grey = map_coordinates(img, [p[..., 1].ravel(), p[..., 0].ravel()], order=1, mode="nearest")
+    return t, grey.reshape(len(uv), len(t)).mean(axis=0)
 
 
 def _design(t, t0, s, d, s2, w):

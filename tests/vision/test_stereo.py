@@ -129,7 +129,7 @@ def test_circles_honest():
 def test_rim_radii_are_stated_at_their_size():
     # A radius is the mean of its rim's displacements, which the fit's Type B
     # states with the shading bound read as a rectangular distribution's
-    # half-width and the detector's own error as floor (stereo.rim_type_b).
+    # half-width and the detector's own error as floor (rim_errors.rim_type_b).
     # With each point at 0.75 times the bound and a 0.01 px floor the radii
     # of these 14 rims (circles and arcs, seeds 0-1) read 0.52 RMS |error|/u,
     # the largest 1.06: stated about twice their size. Now 0.68, the largest
