@@ -36,6 +36,8 @@ from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
 from scipy.special import ndtr
 
+from partinspect.vision.rim_errors import RIM_DETECTOR_ERROR
+
 __all__ = ["REACH", "BAND_Z", "across_profile", "two_step_fit", "band_displacement", "line_band_shift",
            "DETECTOR_FLOOR"]
 
@@ -51,13 +53,13 @@ BAND_Z = 4.0
 """A band is taken as present when its depth is this many of its standard
 errors from zero: beside faces of uniform grey none is, and a chance one
 would put a Type B on a clean line."""
-DETECTOR_FLOOR = 0.005
+DETECTOR_FLOOR = RIM_DETECTOR_ERROR
 """px: a displacement the model gives below this is not counted. It is the
 detector's own error beside flat shading
-(:data:`partinspect.vision.rim_errors.RIM_DETECTOR_ERROR`): a step of uniform faces is fitted by the
-two Gaussian-blurred steps to within a grey level (the pixel's box and the
-bilinear samples are not Gaussian), which on a long line is significant
-and gives 0.000-0.004 px."""
+(:data:`partinspect.vision.rim_errors.RIM_DETECTOR_ERROR`): a step of
+uniform faces is fitted by the two Gaussian-blurred steps to within a grey
+level (the pixel's box and the bilinear samples are not Gaussian), which on
+a long line is significant and gives 0.000-0.004 px."""
 START_DISTANCES = (1.5, 3.0)
 """px: the band's near flank is sought from these starts on either side
 (the fit has local minima: a band read as the edge's own shoulder)."""
