@@ -130,7 +130,8 @@ def two_step_fit(t, grey):
         from the fit's residuals (model misfit included), grey levels;
         None when no fit converges.
     """
-    c0 = grey[-1] - grey[0]
+    if grey[-1] == grey[0]:
+        return None  # no step across the profile: nothing to fit
     best = None
     for side in (1.0, -1.0):
         for d0 in START_DISTANCES:
@@ -140,7 +141,7 @@ def two_step_fit(t, grey):
                               jac=lambda q: _forward_jacobian(t, grey, q, hi), bounds=(lo, hi), ftol=1e-6, xtol=1e-6)
             if best is None or r.cost < best.cost:
                 best = r
-    if best is None or not np.isfinite(best.cost) or c0 == 0:
+    if best is None or not np.isfinite(best.cost):
         return None
     t0, s, d, s2, w = best.x
     A = _design(t, *best.x)
