@@ -49,7 +49,8 @@ from scipy import special
 from partinspect.vision.fitting import fit_line, information_matrices
 from partinspect.vision.psd import covariance_factor
 
-__all__ = ["PhaseRipple", "HARMONICS", "RIPPLE_P", "sampling_phase", "sampling_axis", "phase_ripple", "without_phase_ripple"]
+__all__ = ["PhaseRipple", "HARMONICS", "RIPPLE_P", "sampling_phase", "sampling_axis", "line_phase", "phase_ripple",
+           "without_phase_ripple"]
 
 HARMONICS = (1, 2)
 """The sine harmonics of the phase fitted: the odd error of a symmetric
@@ -133,6 +134,46 @@ def sampling_axis(uv, pixel):
     return (np.abs(uv[:, 1] - np.asarray(pixel, float)[:, 0]) > 0).astype(int)
 
 
+def line_phase(uv, pixel, residuals, normal):
+    """Sub-pixel phase at which the fitted line crosses each point's search axis.
+
+    The ripple is a function of where the edge crosses the pixel, not of
+    where the noisy point was found: a point's own phase is the edge's plus
+    its noise, so harmonics of it regress the residuals on their own noise.
+    Where the edge's phase hardly moves along the line (an image axis, 45
+    degrees) that regression takes the noise up as a "ripple" and removes
+    it, leaving points far straighter than their stated noise. The point
+    moved along its search axis onto the fitted line gives the edge's phase.
+
+    Parameters
+    ----------
+    uv : ndarray, shape (N, 2)
+        Edge points, distorted px (``EdgePoints.xy``).
+    pixel : ndarray, shape (N, 2)
+        The pixel (row, column) each was found at.
+    residuals : ndarray, shape (N,)
+        Signed distances of the points from the fitted line along ``normal``,
+        px (``LineFit.residuals``).
+    normal : ndarray, shape (2,)
+        The fitted line's unit normal.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        px. A move ``d`` along the search axis changes the residual by
+        ``d`` times the normal's component on that axis, which the search
+        along the gradient's dominant axis keeps at 1/sqrt(2) or more.
+
+    References
+    ----------
+    .. [1] Fuller, W. A. (1987). Measurement Error Models. Wiley, 1.1 (a
+           regressor observed with error biases the regression towards it).
+    """
+    axis = sampling_axis(uv, pixel)
+    along = np.asarray(normal, float)[axis]
+    return sampling_phase(uv, pixel) - np.asarray(residuals, float) / along
+
+
 def phase_ripple(xy, normal, residuals, point_std, phase, corr_length, axis=None):
     """The phase ripple of a fitted line's points (see the module notes).
 
@@ -212,8 +253,9 @@ def without_phase_ripple(feature, edges):
     """
     fit = feature.fit
     uv, pixel = edges.xy[feature.index], edges.pixel[feature.index]
-    ripple = phase_ripple(feature.ideal.xy, fit.params[:2], fit.residuals, fit.point_std, sampling_phase(uv, pixel),
-                          edges.sigma, sampling_axis(uv, pixel))
+    phase = line_phase(uv, pixel, fit.residuals, fit.params[:2])
+    ripple = phase_ripple(feature.ideal.xy, fit.params[:2], fit.residuals, fit.point_std, phase, edges.sigma,
+                          sampling_axis(uv, pixel))
     if ripple is None or not ripple.significant:
         return feature
     shift = ripple.displacement[:, None] * np.asarray(fit.params[:2], float)[None, :]

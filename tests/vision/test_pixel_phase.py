@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from partinspect.vision.pixel_phase import HARMONICS, RIPPLE_P, phase_ripple, sampling_phase
+from partinspect.vision.pixel_phase import HARMONICS, RIPPLE_P, line_phase, phase_ripple, sampling_phase
 from partinspect.vision.stereo import measure_images
 from tests.vision.synthetic import rectangle, render
 
@@ -103,3 +103,30 @@ def test_near_45_degrees_each_search_axis_has_its_own_ripple():
     two = phase_ripple(xy, normal, r - r.mean(), np.full(len(r), 0.01), phase, 1.0, axis)
     assert two.coefficients[[0, 2]] == pytest.approx([0.012, -0.012], abs=4 * np.sqrt(two.covariance[0, 0]))
     assert np.std(r - two.displacement) < 0.8 * np.std(r - one.displacement)
+
+
+def test_line_phase_is_where_the_fitted_line_crosses_the_search_axis():
+    """A point found 0.1 px off a 45-degree line along x: the line crosses that axis 0.1 * sqrt(2) px away."""
+    normal = np.array([1.0, -1.0]) / np.sqrt(2.0)
+    pixel = np.array([[10, 20], [11, 20]])                  # (row, column)
+    uv = np.array([[20.3, 10.0], [20.0, 11.2]])             # found along x, then along y
+    residuals = np.array([0.1, -0.1])
+    assert line_phase(uv, pixel, residuals, normal) == pytest.approx([0.3 - 0.1 * np.sqrt(2), 0.2 - 0.1 * np.sqrt(2)])
+
+
+@pytest.mark.parametrize("angle", [0.0, np.pi / 4])
+def test_noise_on_a_line_whose_phase_stands_still_is_not_taken_for_a_ripple(angle):
+    """Along an image axis or at 45 degrees an edge crosses every pixel at one phase, so no ripple can show.
+
+    Harmonics of each point's own phase (the edge's plus the point's noise)
+    would regress the residuals on their own noise and remove it: the points'
+    scatter about the true edge stays what the detector left.
+    """
+    poly = rectangle(160.3, 120.2, 150, 110, angle)
+    img = render([(poly, 200.0)], 240, 320, background=40.0, blur=1.0, noise=2.0, seed=2)
+    res = measure_images(img, K, D)
+    lines = [f for f in res.features if f.kind == "line" and len(f.index) > 40]
+    assert len(lines) == 4
+    for f in lines:
+        assert f.phase_factor is None
+        assert np.std(poly.distance(f.uv)) == pytest.approx(np.std(poly.distance(res.edges.xy[f.index])), rel=1e-6)
