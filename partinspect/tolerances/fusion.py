@@ -50,9 +50,6 @@ References
 .. [1] Aitken, A. C. (1935). On least squares and linear combination of
        observations. Proc. Royal Society of Edinburgh 55, 42-48.
 .. [2] JCGM 100:2008 (GUM), 5.2: correlated input quantities.
-.. [3] Anderson, T. W. (2003). An Introduction to Multivariate Statistical
-       Analysis, 3rd ed., Wiley, theorem 2.5.1: the conditional
-       distribution of a multivariate normal vector.
 """
 
 from __future__ import annotations
@@ -66,7 +63,7 @@ from partinspect.frames import orthonormal_frame
 from partinspect.tolerances.evaluate import pick_feature
 
 __all__ = ["SIGNIFICANCE", "VIEW_P", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine",
-           "consistent_views", "given_pose", "view_motion", "consistent_view_set", "fuse_feature", "fuse", "fused_cross_covariance"]
+           "consistent_views", "view_motion", "consistent_view_set", "fuse_feature", "fuse", "fused_cross_covariance"]
 
 SIGNIFICANCE = 0.99
 """Probability that a consistent view passes the test (per view and feature)."""
@@ -351,44 +348,14 @@ views, or its features' disagreement with theirs, is less likely than this
 by chance; a feature within a view is an outlier of that motion below it."""
 
 
-def given_pose(cov, cross, pose_cov):
-    """A feature's error split into its response to the pose error and a part independent of it.
+def _without_pose(C, B, S):
+    """A feature's covariance less its view's pose part ``B S B^T``, floored positive.
 
-    Parameters
-    ----------
-    cov : ndarray, shape (n, n)
-        Covariance of the feature's parameters (part frame, the pose's part
-        included).
-    cross : ndarray, shape (n, 6)
-        Their covariance with the pose error ``xi``
-        (:meth:`~partinspect.cad.registration.Registration.pose_covariance`,
-        in the same parameters).
-    pose_cov : ndarray, shape (6, 6)
-        ``S = Cov(xi)``.
-
-    Returns
-    -------
-    response : ndarray, shape (n, 6)
-        ``G = Cov(p, xi) S^-1``: the error's expectation given ``xi`` is
-        ``G xi``.
-    rest_cov : ndarray, shape (n, n)
-        ``cov - G Cov(p, xi)^T``: the covariance of what is left,
-        uncorrelated with ``xi``.
-
-    Notes
-    -----
-    The rule is the conditional distribution of jointly normal errors [3]_:
-    with ``(p, xi)`` of joint covariance ``[[cov, cross], [cross^T, S]]``,
-    ``p`` given ``xi`` has mean ``cross S^-1 xi`` and covariance the Schur
-    complement ``cov - cross S^-1 cross^T``, positive semi-definite because
-    the joint covariance is. Taking a feature's error as ``B xi`` plus a
-    part independent of ``xi`` with covariance ``cov - B S B^T`` is right
-    only when the feature did not drive the pose: for a datum that
-    difference can be indefinite, since the pose was fitted to it [2]_.
+    The pose's cross terms with the feature can leave the difference
+    slightly indefinite: its eigenvalues are floored at 1e-3 of the largest.
     """
-    response = np.linalg.solve(pose_cov, cross.T).T
-    rest = cov - response @ cross.T
-    return response, 0.5 * (rest + rest.T)
+    w, V = np.linalg.eigh(0.5 * (C - B @ S @ B.T + (C - B @ S @ B.T).T))
+    return (V * np.maximum(w, 1e-3 * w.max())) @ V.T
 
 
 def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_P):
@@ -396,19 +363,14 @@ def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_
 
     Each shared feature's difference ``d_f`` (view ``v``'s minimal
     parameters less the other views' combination) is modelled as
-    ``G_f delta + e_f``: ``delta`` a small motion of view v's part frame
-    (its pose error ``xi``, 6 parameters as in
-    :mod:`partinspect.cad.pose_refine`), ``G_f`` the feature's error's
-    response to it and ``e_f`` the rest of its error and the others',
-    independent of ``delta`` (:func:`given_pose`: for a datum, whose error
-    the pose was fitted to, ``G_f`` is not only the motion's effect
-    ``B_f``). ``delta`` is the weighted least-squares fit, the features'
-    ``e_f`` taken independent of each other; features whose residual is
-    less likely than ``p_outlier`` are left out one by one (a rim the model
-    misjudges must not pass for a moved view). A view that is right has
-    ``delta`` within its pose covariance ``S`` plus the fit's:
-    ``chi2 = delta^T (S + (G^T E^-1 G)^-1)^-1 delta`` on 6 degrees of
-    freedom.
+    ``B_f delta + e_f``: ``delta`` a small motion of view v's part frame
+    (its pose error, 6 parameters as in :mod:`partinspect.cad.pose_refine`),
+    ``B_f`` the feature's response to it, ``e_f`` its own and the others'
+    errors. ``delta`` is the weighted least-squares fit; features whose
+    residual is less likely than ``p_outlier`` are left out one by one (a
+    rim the model misjudges must not pass for a moved view). A view that is
+    right has ``delta`` within its pose covariance ``S`` plus the fit's:
+    ``chi2 = delta^T (S + (B^T E^-1 B)^-1)^-1 delta`` on 6 degrees of freedom.
 
     Returns
     -------
@@ -418,7 +380,6 @@ def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_
     """
     from scipy.special import chdtrc
 
-    S = registrations[v].pose_cov
     rows = []
     for f in inventory.features:
         mine = pick_feature(view_parts[v], f.id)
@@ -428,10 +389,11 @@ def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_
         y, J, C = _reduced(mine, f)
         reds = [_reduced(p, f) for p in theirs]
         y_o, C_o, _ = combine([r[0] for r in reds], [r[2] for r in reds])
-        G, rest = given_pose(C, J @ registrations[v].pose_covariance(mine), S)
-        rows.append((f.id, y - y_o, G, rest + C_o))
+        B = J @ mine.pose_jacobian
+        rows.append((f.id, y - y_o, B, _without_pose(C + C_o, B, registrations[v].pose_cov)))
     if len(rows) < 3:
         return None
+    S = registrations[v].pose_cov
     keep = list(range(len(rows)))
     while True:
         A = sum(rows[i][2].T @ np.linalg.solve(rows[i][3], rows[i][2]) for i in keep)

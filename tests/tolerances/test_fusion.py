@@ -9,17 +9,7 @@ from partinspect.cad.registration import register
 from partinspect.poses import turned_pose
 from partinspect.simulate.measured import measure_features
 from partinspect.tolerances.evaluate_fused import evaluate_fused, pair_value
-from partinspect.tolerances.fusion import (
-    VIEW_P,
-    combine,
-    consistent_views,
-    expand,
-    fuse,
-    _reduced,
-    given_pose,
-    reduce,
-    view_motion,
-)
+from partinspect.tolerances.fusion import combine, consistent_views, expand, fuse, reduce
 from partinspect.tolerances.geometry import feature_distance
 from partinspect.tolerances.resolve import Characteristic
 
@@ -256,31 +246,3 @@ def test_a_form_is_judged_in_the_view_that_judges_it_best(plate):
     single = [evaluate_characteristic(c, r.features_in_part_frame(), r, inv, n_mc=200) for r in regs]
     assert used == (1,) and single[1].standard_uncertainty < 0.5 * single[0].standard_uncertainty
     assert ev.standard_uncertainty == pytest.approx(single[1].standard_uncertainty)
-
-
-def test_the_view_motion_test_follows_chi_square_with_datums_correlated_with_their_pose(plate):
-    """Three consistent views whose features are all datums of their own pose: each datum's part-frame error
-    is correlated with the pose fitted to it, so its response to the pose error is not B alone and what is left
-    is smaller than its covariance less B S B^T. Taken given the pose (``given_pose``) the motion's chi-square
-    follows chi-square on 6: its mean is about 6 (the error left independent of the pose taken as C - B S B^T
-    gives a mean of 0.6 on these draws) and no right view is refused."""
-    inv = plate[0]
-    rng = np.random.default_rng(12)
-    chi2, p_min = [], 1.0
-    for _ in range(12):
-        regs = _views(plate, [(0, 0, 0), (0, 0, 25), (0, 0, -25)], rng)
-        parts = [r.features_in_part_frame() for r in regs]
-        for v in range(3):
-            t = view_motion(v, [u for u in range(3) if u != v], parts, regs, inv)
-            chi2.append(t["chi2"])
-            p_min = min(p_min, t["p"])
-        datum = next(pf for pf in parts[0] if pf.datum)
-        _, J, cov = _reduced(datum, inv[datum.cad_id])  # minimal parameters: no unit-vector constraint
-        response, rest = given_pose(cov, J @ regs[0].pose_covariance(datum), regs[0].pose_cov)
-        scale = 1.0 / np.sqrt(np.diag(rest))
-        assert np.linalg.eigvalsh(scale[:, None] * rest * scale).min() > 0
-        # the pose was fitted to the datum: its error's response to the pose is far from the motion's B alone
-        assert np.linalg.norm(response - J @ datum.pose_jacobian) > 0.3 * np.linalg.norm(J @ datum.pose_jacobian)
-    # 36 draws of chi-square on 6: mean 6, its standard deviation about 0.6
-    assert 4.5 < np.mean(chi2) < 7.8, np.mean(chi2)
-    assert p_min > VIEW_P
