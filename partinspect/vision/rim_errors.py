@@ -11,24 +11,17 @@ edge by :func:`smoothed_background`). As GUM asks for a recognised
 systematic effect, the rest is a Type B standard uncertainty per point,
 correlated along the rim over ``EDGE_BIAS_CORR_ANGLE`` (neighbouring points
 are displaced alike): in the 3D fit, which weights and propagates it with
-the random part into the centre, normal and radius, what the correction
-leaves of the shading's bound when the detector's response to the shading
-lies anywhere between a uniform face's and a grazing one's
-(``DETECTOR_RESPONSE_RANGE``), with the detector's own error in quadrature
-(:func:`rim_type_b`, JCGM 100 4.3.7); in the form's point errors, whose
-zone single points set, ``EDGE_BIAS_FACTOR`` times the bound with
-``EDGE_BIAS_FLOOR`` (:func:`form_view`). The correction's own noise is
-random, correlated over :func:`correction_corr_length`, shares part of the
-points' own noise (:func:`coupled_noise`), and is drawn by the Monte
-Carlo (:mod:`partinspect.vision.montecarlo`); the Type B part is not. It
-is each rim's own: the rims' fixed errors are not one shared coefficient
-(one correction factor for all rims explains at most a tenth of them, and
-distances between holes read as their centres do; docs/validation.md,
-"The rims' covariance by source"), so no covariance between rims is
-stated for it. How large that Type B really is depends on the optics and
-the surface, so the level the rim's own fit residuals show of it, at its
-correlation length, scales its share in the centre and normal
-(:func:`type_b_scale`,
+the random part into the centre, normal and radius, the shading's bound
+read as a rectangular distribution's half-width with the detector's own
+error in quadrature (:func:`rim_type_b`, JCGM 100 4.3.7); in the form's
+point errors, whose zone single points set, ``EDGE_BIAS_FACTOR`` times the
+bound with ``EDGE_BIAS_FLOOR`` (:func:`form_view`). The correction's own
+noise is random, correlated over :func:`correction_corr_length`, shares part
+of the points' own noise (:func:`coupled_noise`), and is drawn by the Monte
+Carlo (:mod:`partinspect.vision.montecarlo`); the Type B part is not. How
+large that Type B really is depends on the optics and the surface, so the
+level the rim's own fit residuals show of it, at its correlation length,
+scales its share in the centre and normal (:func:`type_b_scale`,
 :mod:`partinspect.vision.bias_evidence`).
 
 Frames: points in pixels (distorted as detected, or ideal where said).
@@ -50,9 +43,8 @@ from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FAC
 from partinspect.vision.fit3d import circle_residuals_at
 
 __all__ = ["BACKGROUND_CORRECTION", "BACKGROUND_SMOOTHING", "EDGE_BIAS_CORR_ANGLE", "RIM_DETECTOR_ERROR",
-           "DETECTOR_RESPONSE_RANGE", "remainder_reading", "RIM_BOUND_READING", "EDGE_BIAS_FLOOR",
-           "smoothed_background", "smoothing_operators", "coupled_noise", "rim_type_b", "type_b_scale",
-           "correction_std_of", "correction_corr_length", "form_view"]
+           "RIM_BOUND_READING", "EDGE_BIAS_FLOOR", "smoothed_background", "smoothing_operators", "coupled_noise",
+           "rim_type_b", "type_b_scale", "correction_std_of", "correction_corr_length", "form_view"]
 
 
 # Points of arcs: the corrections and the Type B component of the module
@@ -89,49 +81,15 @@ bench_psf_shape); without a floor the fit leans on those points as if they
 were exact."""
 
 
-DETECTOR_RESPONSE_RANGE = (1.15, 2.32)
-"""px the detector's point moves per px of the first-order shading shift as
-read (``EdgePoints.background_shift``), from a face of uniform slope beside
-the edge (1.15-1.34) to a face seen at grazing incidence (1.84-2.32): the
-three-sample vertex's response to the background with the reading's own loss
-of the step's tail, over profile widths 1.0-1.4 px and sampling steps
-0.71-1 px (docs/validation.md, "The rims' shading correction from the
-detector's response", checked on straight edges within 0.2). Nothing in one
-image says where between the two faces a rim lies."""
-
-
-def remainder_reading(response_range=DETECTOR_RESPONSE_RANGE, correction=BACKGROUND_CORRECTION):
-    """Root mean square of what a correction of ``correction`` times the read shift leaves, per px of it.
-
-    The detector's response ``k`` lies anywhere in ``response_range``, no
-    value likelier (JCGM 100 4.3.7); the correction removes ``correction``
-    times the shift, so ``k - correction`` is left, and its second moment
-    about zero (the correction applied, not the range's midpoint) is
-    ``m^2 + a^2 / 3`` with ``m`` the range's midpoint less the correction
-    and ``a`` its half-width (JCGM 100 F.2.4.5: an uncorrected offset within
-    the uncertainty).
-
-    Returns
-    -------
-    float
-        0.476 for the defaults.
-    """
-    lo, hi = response_range
-    m, a = 0.5 * (lo + hi) - correction, 0.5 * (hi - lo)
-    return float(np.sqrt(m * m + a * a / 3.0))
-
-
-RIM_BOUND_READING = remainder_reading()
+RIM_BOUND_READING = 1.0 / np.sqrt(3.0)
 """Type B standard uncertainty of a rim point in its 3D fit per px of the
-shading bound (:func:`rim_type_b`): what ``BACKGROUND_CORRECTION`` leaves
-of a displacement of the size of the bound, the detector's response anywhere
-within ``DETECTOR_RESPONSE_RANGE`` (:func:`remainder_reading`). The bound is
-the whole shading difference read beside the point (its component along the
-normal is the shift), so this states the remainder of a point as a fraction
-of the most it could be displaced. The fit's centre and radius are averages
-of the remainders round the rim (the radius their mean, the centre their
-first harmonic), which that reading states; ``EDGE_BIAS_FACTOR`` (0.75) is
-the single points' spread the form is judged with."""
+shading bound (:func:`rim_type_b`): the correction's remainder is taken to
+lie anywhere within +-bound, no value likelier than another, a rectangular
+distribution of half-width a with u = a / sqrt(3) (JCGM 100, 4.3.7). The
+fit's centre and radius are averages of the remainders round the rim (the
+radius their mean, the centre their first harmonic), which that reading
+states; ``EDGE_BIAS_FACTOR`` (0.75) is the single points' spread the form
+is judged with."""
 
 
 EDGE_BIAS_FLOOR = 0.01
@@ -285,11 +243,10 @@ def coupled_noise(xy, sigma, background_std, corr_length, length=BACKGROUND_SMOO
 def rim_type_b(bound):
     """Type B standard uncertainty of rim points in their 3D fit, px, from their shading bounds.
 
-    ``RIM_BOUND_READING`` times the bound (what the shading correction
-    leaves when the detector's response to the shading lies anywhere within
-    ``DETECTOR_RESPONSE_RANGE``, JCGM 100 4.3.7), with
-    ``RIM_DETECTOR_ERROR`` in quadrature (the detector's own error on a
-    curved edge). Correlated along the rim over
+    ``RIM_BOUND_READING`` times the bound (what the shading correction may
+    have left, read as a rectangular distribution over +-bound, JCGM 100
+    4.3.7), with ``RIM_DETECTOR_ERROR`` in quadrature (the detector's own
+    error on a curved edge). Correlated along the rim over
     ``EDGE_BIAS_CORR_ANGLE``, it sets the fit's weights and the systematic
     part of its centre, normal and radius.
 
@@ -306,8 +263,7 @@ def rim_type_b(bound):
     References
     ----------
     .. [1] JCGM 100:2008 (GUM), 4.3.7 (a quantity known only to lie within
-           bounds: rectangular distribution) and F.2.4.5 (an offset not
-           corrected for, within the uncertainty).
+           bounds: rectangular distribution, u = a / sqrt(3)).
     """
     return np.hypot(RIM_BOUND_READING * np.asarray(bound, float), RIM_DETECTOR_ERROR)
 
