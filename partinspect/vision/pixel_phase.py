@@ -20,7 +20,9 @@ pixels long, which a form zone reads as out-of-straightness and which the
 noise model, point-to-point, does not carry. A real form deviation of
 the part cannot follow the pixel grid's phase, so regressing the residuals
 on the phase harmonics separates the two: the fitted ripple is removed
-from the points, and its coefficients' uncertainty carried.
+from the points, and its coefficients' uncertainty carried. The phase is
+the edge's, where the fitted line crosses each point's search axis
+(:func:`line_phase`), not the point's own, which carries its noise.
 
 Only the part of the ripple that the line fit does not absorb is removed
 (the regressors are made orthogonal to the line's offset and tilt under
