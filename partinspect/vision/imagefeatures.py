@@ -48,6 +48,7 @@ from partinspect.vision.fitting import (
     direct_residuals,
     ellipse_geometry,
     ellipse_with_covariance,
+    fit_ellipse,
     fit_ellipses,
     fit_line,
     line_with_covariance,
@@ -58,6 +59,7 @@ from partinspect.vision.pixel_phase import without_phase_ripple
 __all__ = [
     "ImageFeature",
     "image_features",
+    "one_polarity",
     "chauvenet_z",
     "OUTLIER_ALPHA",
     "OUTLIER_Z_MAX",
@@ -397,6 +399,54 @@ def _without_ripple(f, edges):
         f = replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal,
                     fit=fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma))
         budget -= 1
+
+
+def one_polarity(f, corr_length, min_points=6):
+    """A mixed-polarity arc restricted to its points of the arc's own polarity, refitted; None if too few remain.
+
+    Across a broken (rounded or chamfered) rim the grey level is not one
+    step but a profile over the band: where the band is lit brighter than
+    both the face and the wall (or darker than both) it shows as a ridge,
+    whose two flanks are steps of opposite polarity about a blurred band's
+    width apart, and where the wall changes from lit to shadowed the step
+    changes side across the band. A rim's pieces of opposite polarity then
+    lie on different curves, and each camera may follow either: a pair
+    measured on both would triangulate one image's flank against the
+    other's, out of round by the flanks' distance. On a sharp rim the two
+    polarities are one curve (``mixed_polarity``); only a broken one is
+    restricted.
+
+    Parameters
+    ----------
+    f : ImageFeature
+        An arc (``mixed_polarity`` True; otherwise returned as it is).
+    corr_length : float
+        The edge filter's scale, px: the refit's correlation length along
+        the edge, as :func:`image_features` fits.
+    min_points : int
+        Fewest points of the kept polarity for a fit.
+
+    Returns
+    -------
+    ImageFeature or None
+        The points whose edge normal (dark to bright) has the sign
+        ``f.polarity`` along the fitted ellipse's outward normal, in order,
+        with the ellipse and its covariance fitted again to them (ideal
+        px); ``mixed_polarity`` False.
+    """
+    if f.kind != "arc" or not f.mixed_polarity:
+        return f
+    _, n_out, _ = ellipse_geometry(f.ideal.xy, f.fit.params, f.fit.phases)
+    keep = np.flatnonzero(np.sign(np.einsum("ni,ni->n", n_out, f.ideal.normal)) == f.polarity)
+    if len(keep) < min_points:
+        return None
+    ideal = IdealPoints(*(getattr(f.ideal, name)[keep] for name in IDEAL_FIELDS))
+    try:
+        fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=f.fit.params)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    return replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal, fit=fit,
+                   mixed_polarity=False)
 
 
 def _rms(f):

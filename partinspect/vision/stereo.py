@@ -68,6 +68,7 @@ from partinspect.vision.calibration_uncertainty import calibration_responses, re
 from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import ImageFeature, image_features
+from partinspect.vision.imagefeatures import one_polarity as split_polarity
 from partinspect.vision.line_profile import line_band_shift
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
@@ -228,13 +229,17 @@ def _with_edge_data(feature, edges, image):
     return EdgeFeature(**base, background_offset=mean[:, :2], background_bound=mean[:, 2], background_std=mean_std)
 
 
-def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options=None):
+def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options=None, one_polarity=False):
     """The 2D chain of one image (distorted pixels in, ideal-pixel features out).
 
     ``edge_options`` go to :func:`partinspect.vision.edges.edge_points`
     (e.g. the hysteresis factors ``k_low``, ``k_high``), ``segment_options``
     to :func:`partinspect.vision.contours.segment_contours` (e.g.
     ``alpha``, ``min_length``): the knobs the adaptive steps turn.
+    ``one_polarity``: the part's edges are broken, and an arc merged from
+    pieces of opposite polarity keeps only its own polarity's points
+    (:func:`partinspect.vision.imagefeatures.one_polarity`: across a band
+    the two polarities are two curves).
     """
     img = np.asarray(image)
     if img.ndim == 3:
@@ -243,7 +248,10 @@ def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options
     noise = level.noise
     edges = edge_points(img, sigma, noise=noise, noise_level=level, **(edge_options or {}))
     segments = segment_contours(edges, chain_edges(edges), **(segment_options or {}))
-    feats = [_with_edge_data(f, edges, img) for f in image_features(edges, segments, K, D)]
+    feats = image_features(edges, segments, K, D)
+    if one_polarity:
+        feats = [g for g in (split_polarity(f, edges.sigma) for f in feats) if g is not None]
+    feats = [_with_edge_data(f, edges, img) for f in feats]
     return ImageResult(noise, edges, segments, feats)
 
 
@@ -480,14 +488,17 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     edge_break : float, optional
         The part's edges are broken (rounded or chamfered): the RMS
         distance, mm, of the apparent step from the sharp edge. Each point
-        of every feature then carries it as a Type B (:func:`edge_band`).
+        of every feature then carries it as a Type B (:func:`edge_band`),
+        and an arc of both polarities is measured on its own polarity's
+        points (:func:`measure_images`).
 
     Returns
     -------
     StereoResult
     """
     say = progress or (lambda message: None)
-    options = dict(sigma=sigma, edge_options=edge_options, segment_options=segment_options)
+    options = dict(sigma=sigma, edge_options=edge_options, segment_options=segment_options,
+                   one_polarity=edge_break is not None)
     say("edges and segments: left image")
     if not parallel:
         L = measure_images(left, calib.K1, calib.D1, **options)
