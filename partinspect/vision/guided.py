@@ -25,8 +25,9 @@ from scipy.linalg import block_diag
 
 from partinspect.vision.contours import CLEARANCE, arc_length, end_runs
 from partinspect.vision.edges import BACKGROUND_DISTANCES
-from partinspect.vision.fitting import fit_ellipse, fit_line, line_with_covariance
+from partinspect.vision.fitting import fit_line, line_with_covariance
 from partinspect.vision.ideal import IDEAL_FIELDS
+from partinspect.vision.imagefeatures import arc_stretch
 from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, line_angles
 from partinspect.vision.stereo import measure_pair_feature
 
@@ -356,38 +357,6 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
         return stereo, {}, covered
     return replace(stereo, left=replace(L, features=lefts), right=replace(R, features=rights),
                    features=tuple(feats)), cleared, covered
-
-
-def arc_stretch(feature, keep, corr_length):
-    """An image arc feature restricted to some of its points and fitted again.
-
-    Parameters
-    ----------
-    feature : EdgeFeature
-        An arc (:class:`partinspect.vision.stereo.EdgeFeature`).
-    keep : ndarray of int, shape (K,)
-        Positions of the kept points in the feature's point arrays.
-    corr_length : float
-        Correlation length of the points' noise along the edge, px.
-
-    Returns
-    -------
-    EdgeFeature
-        Same kind, segments, polarity and blur; its points and their per
-        point data (ideal coordinates, edge normals, background readings)
-        those at ``keep``; its ellipse (with covariance) fitted to those
-        points alone, from the whole arc's ellipse as start, without the
-        smoothing-bias correction (as the chain fits arcs).
-    """
-    keep = np.asarray(keep, int)
-    ideal = _ideal_at(feature, keep)
-    fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
-    per_point = {name: getattr(feature, name)[keep] for name in _ARC_POINT_FIELDS if getattr(feature, name) is not None}
-    return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
-                   ideal=ideal, fit=fit, **per_point)
-
-
-_ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
 
 
 def clear_arc_ends(stereo, calib, arcs, images, *, meets=None, min_points=12):

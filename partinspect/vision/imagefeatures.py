@@ -60,6 +60,7 @@ __all__ = [
     "ImageFeature",
     "image_features",
     "one_polarity",
+    "arc_stretch",
     "chauvenet_z",
     "OUTLIER_ALPHA",
     "OUTLIER_Z_MAX",
@@ -440,13 +441,45 @@ def one_polarity(f, corr_length, min_points=6):
     keep = np.flatnonzero(np.sign(np.einsum("ni,ni->n", n_out, f.ideal.normal)) == f.polarity)
     if len(keep) < min_points:
         return None
-    ideal = IdealPoints(*(getattr(f.ideal, name)[keep] for name in IDEAL_FIELDS))
     try:
-        fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=f.fit.params)
+        return replace(arc_stretch(f, keep, corr_length), mixed_polarity=False)
     except (np.linalg.LinAlgError, ValueError):
         return None
-    return replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal, fit=fit,
-                   mixed_polarity=False)
+
+
+def arc_stretch(feature, keep, corr_length):
+    """An image arc feature restricted to some of its points and fitted again.
+
+    Parameters
+    ----------
+    feature : ImageFeature
+        An arc (an :class:`partinspect.vision.stereo.EdgeFeature` too: its
+        per point edge data are kept alike).
+    keep : ndarray of int, shape (K,)
+        Positions of the kept points in the feature's point arrays.
+    corr_length : float
+        Correlation length of the points' noise along the edge, px.
+
+    Returns
+    -------
+    ImageFeature
+        Same kind, segments, polarity and blur; its points and their per
+        point data (ideal coordinates, edge normals, background readings)
+        those at ``keep``; its ellipse (with covariance) fitted to those
+        points alone, from the whole arc's ellipse as start, without the
+        smoothing-bias correction (as the chain fits arcs).
+    """
+    keep = np.asarray(keep, int)
+    ideal = IdealPoints(*(getattr(feature.ideal, name)[keep] for name in IDEAL_FIELDS))
+    fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
+    per_point = {name: getattr(feature, name)[keep] for name in _ARC_POINT_FIELDS
+                 if getattr(feature, name, None) is not None}
+    return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
+                   ideal=ideal, fit=fit, **per_point)
+
+
+_ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
+"""An :class:`partinspect.vision.stereo.EdgeFeature`'s per point data beside its points."""
 
 
 def _rms(f):
