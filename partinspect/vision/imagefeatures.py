@@ -60,6 +60,7 @@ __all__ = [
     "ImageFeature",
     "image_features",
     "one_polarity",
+    "point_polarity",
     "arc_stretch",
     "chauvenet_z",
     "OUTLIER_ALPHA",
@@ -402,49 +403,63 @@ def _without_ripple(f, edges):
         budget -= 1
 
 
-def one_polarity(f, corr_length, min_points=6):
-    """A mixed-polarity arc restricted to its points of the arc's own polarity, refitted; None if too few remain.
+def point_polarity(f):
+    """Each point's polarity on an arc: +1 where brighter outside its fitted ellipse, -1 where brighter inside.
+
+    The sign of the edge normal (dark to bright) along the ellipse's
+    outward normal at the point's foot, as :func:`_feature` reads the
+    arc's polarity, shape (N,).
+    """
+    _, n_out, _ = ellipse_geometry(f.ideal.xy, f.fit.params, f.fit.phases)
+    return np.sign(np.einsum("ni,ni->n", n_out, f.ideal.normal))
+
+
+def one_polarity(fl, fr, corr_length, min_points=6):
+    """A matched pair of arcs, either of mixed polarity, restricted to one polarity in both images, refitted.
 
     Across a broken (rounded or chamfered) rim the grey level is not one
     step but a profile over the band: where the band is lit brighter than
     both the face and the wall (or darker than both) it shows as a ridge,
     whose two flanks are steps of opposite polarity about a blurred band's
     width apart, and where the wall changes from lit to shadowed the step
-    changes side across the band. A rim's pieces of opposite polarity then
+    changes place across the band. A rim's pieces of opposite polarity then
     lie on different curves, and each camera may follow either: a pair
-    measured on both would triangulate one image's flank against the
-    other's, out of round by the flanks' distance. On a sharp rim the two
-    polarities are one curve (``mixed_polarity``); only a broken one is
-    restricted.
+    measured on both triangulates one image's flank against the other's,
+    out of round by the flanks' distance. On a sharp rim the two
+    polarities are one curve (``mixed_polarity``); only a broken one's pair
+    is restricted, to the polarity both images see most of (the larger of
+    the two polarities' smaller counts in the two images).
 
     Parameters
     ----------
-    f : ImageFeature
-        An arc (``mixed_polarity`` True; otherwise returned as it is).
+    fl, fr : ImageFeature
+        The left and right arcs of one matched pair.
     corr_length : float
         The edge filter's scale, px: the refit's correlation length along
         the edge, as :func:`image_features` fits.
     min_points : int
-        Fewest points of the kept polarity for a fit.
+        Fewest points of the kept polarity in each image.
 
     Returns
     -------
-    ImageFeature or None
-        The points whose edge normal (dark to bright) has the sign
-        ``f.polarity`` along the fitted ellipse's outward normal, in order,
-        with the ellipse and its covariance fitted again to them (ideal
-        px); ``mixed_polarity`` False.
+    (ImageFeature, ImageFeature) or None
+        Each arc with only its points of that polarity (:func:`arc_stretch`:
+        the ellipse and its covariance fitted again, ideal px; an arc with
+        no point of the other polarity is returned as it is), or None where
+        an image has fewer than ``min_points`` of it.
     """
-    if f.kind != "arc" or not f.mixed_polarity:
-        return f
-    _, n_out, _ = ellipse_geometry(f.ideal.xy, f.fit.params, f.fit.phases)
-    keep = np.flatnonzero(np.sign(np.einsum("ni,ni->n", n_out, f.ideal.normal)) == f.polarity)
-    if len(keep) < min_points:
-        return None
-    try:
-        return replace(arc_stretch(f, keep, corr_length), mixed_polarity=False)
-    except (np.linalg.LinAlgError, ValueError):
-        return None
+    if fl.kind != "arc" or not (fl.mixed_polarity or fr.mixed_polarity):
+        return fl, fr
+    signs = [point_polarity(f) for f in (fl, fr)]
+    keep = max((1.0, -1.0), key=lambda s: min(np.count_nonzero(p == s) for p in signs))
+    out = []
+    for f, p in zip((fl, fr), signs):
+        at = np.flatnonzero(p == keep)
+        if len(at) < min_points:
+            return None
+        out.append(f if len(at) == len(p) else replace(arc_stretch(f, at, corr_length), mixed_polarity=False,
+                                                       polarity=int(keep)))
+    return tuple(out)
 
 
 def arc_stretch(feature, keep, corr_length):

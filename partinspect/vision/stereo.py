@@ -67,8 +67,7 @@ from partinspect.vision.calibration_points import point_responses
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
 from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
-from partinspect.vision.imagefeatures import ImageFeature, image_features
-from partinspect.vision.imagefeatures import one_polarity as split_polarity
+from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
 from partinspect.vision.line_profile import line_band_shift
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
@@ -229,17 +228,13 @@ def _with_edge_data(feature, edges, image):
     return EdgeFeature(**base, background_offset=mean[:, :2], background_bound=mean[:, 2], background_std=mean_std)
 
 
-def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options=None, one_polarity=False):
+def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options=None):
     """The 2D chain of one image (distorted pixels in, ideal-pixel features out).
 
     ``edge_options`` go to :func:`partinspect.vision.edges.edge_points`
     (e.g. the hysteresis factors ``k_low``, ``k_high``), ``segment_options``
     to :func:`partinspect.vision.contours.segment_contours` (e.g.
     ``alpha``, ``min_length``): the knobs the adaptive steps turn.
-    ``one_polarity``: the part's edges are broken, and an arc merged from
-    pieces of opposite polarity keeps only its own polarity's points
-    (:func:`partinspect.vision.imagefeatures.one_polarity`: across a band
-    the two polarities are two curves).
     """
     img = np.asarray(image)
     if img.ndim == 3:
@@ -248,10 +243,7 @@ def measure_images(image, K, D, *, sigma=1.0, edge_options=None, segment_options
     noise = level.noise
     edges = edge_points(img, sigma, noise=noise, noise_level=level, **(edge_options or {}))
     segments = segment_contours(edges, chain_edges(edges), **(segment_options or {}))
-    feats = image_features(edges, segments, K, D)
-    if one_polarity:
-        feats = [g for g in (split_polarity(f, edges.sigma) for f in feats) if g is not None]
-    feats = [_with_edge_data(f, edges, img) for f in feats]
+    feats = [_with_edge_data(f, edges, img) for f in image_features(edges, segments, K, D)]
     return ImageResult(noise, edges, segments, feats)
 
 
@@ -489,16 +481,15 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         The part's edges are broken (rounded or chamfered): the RMS
         distance, mm, of the apparent step from the sharp edge. Each point
         of every feature then carries it as a Type B (:func:`edge_band`),
-        and an arc of both polarities is measured on its own polarity's
-        points (:func:`measure_images`).
+        and a pair of arcs either of which has both polarities is measured
+        on one polarity's points (:func:`measure_pair_feature`).
 
     Returns
     -------
     StereoResult
     """
     say = progress or (lambda message: None)
-    options = dict(sigma=sigma, edge_options=edge_options, segment_options=segment_options,
-                   one_polarity=edge_break is not None)
+    options = dict(sigma=sigma, edge_options=edge_options, segment_options=segment_options)
     say("edges and segments: left image")
     if not parallel:
         L = measure_images(left, calib.K1, calib.D1, **options)
@@ -621,6 +612,15 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
         Why there is no feature: too few corresponding points, two arcs
         that are not one circle, or a failed fit.
     """
+    if edge_break is not None:
+        # Across a broken rim the two polarities are two curves (one_polarity).
+        try:
+            pair = one_polarity(fl, fr, corr_length)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            return None, f"refit on one polarity failed: {exc}"
+        if pair is None:
+            return None, "the two images' arcs have too few points of one polarity (a broken rim's two steps)"
+        fl, fr = pair
     corr = correspond(fl, fr, geo)
     if len(corr) < 6:
         return None, f"only {len(corr)} corresponding points"
