@@ -164,6 +164,10 @@ def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owne
     right, bit depth), the grey images as recorded, to name saturation
     where no edge was found (:func:`saturated_along`).
     """
+    # A feature measured and then taken out says why, though its visibility says little of it is in sight.
+    withdrawn = dict(getattr(stereo, "withdrawn", ())).get(feature.id)
+    if withdrawn:
+        return f"measured, then taken out: {withdrawn}"
     if not vis.in_view:
         return "not visible: " + vis.reason()
     noise = max(float(stereo.left.noise), float(stereo.right.noise))
@@ -172,9 +176,6 @@ def unmeasured_reason(feature, vis, calib, pose, stereo, unmatched_reasons, owne
         why = next((c for c in clipped if c), "its two faces look alike under this lighting")
         return (f"in view, but with too little grey-level step across it to be detected ({vis.contrast[0]:.0f} and "
                 f"{vis.contrast[1]:.0f} grey levels in the left and right image; image noise {noise:.1f}): {why}")
-    withdrawn = dict(getattr(stereo, "withdrawn", ())).get(feature.id)
-    if withdrawn:
-        return f"measured, then taken out: {withdrawn}"
     from scipy.spatial import cKDTree
 
     found, longer_sides = [], 0

@@ -398,7 +398,7 @@ def settle(inputs, stereo, registration, progress):
     if ends:
         progress(f"{len(ends)} edge(s) fitted again clear of other edges at their ends")
     if withdrawn:
-        progress(f"{len(withdrawn)} line(s) taken out: another edge's image paired with theirs")
+        progress(f"{len(withdrawn)} edge(s) taken out: another edge's image paired with theirs or crowding theirs")
     if found:
         progress(f"measuring {len(found)} edge(s) on their stretches of longer image lines")
     try:

@@ -99,3 +99,20 @@ def test_a_moved_hole_in_a_render_is_reported_displaced(repo, tmp_path):
     assert entry["measured"] is None and entry["reason"].startswith("measured, but 0.8"), entry["reason"]
     size = next(c for c in report["characteristics"] if c["id"] == "circle-2.diameter")
     assert size["decision"] == "inconclusive" and "from its nominal place" in size["reason"]
+
+
+def test_a_feature_measured_then_taken_out_says_so_before_its_visibility():
+    """Issue 38, NIST ftc_09 circle-59: a rim a third in sight (below the fraction that counts as in view) was
+    measured and matched, then taken out as crowded in one image: its reason says that, not "not visible"."""
+    from types import SimpleNamespace as NS
+
+    from partinspect.cad.visibility import FeatureVisibility
+    from partinspect.diagnosis import unmeasured_reason
+
+    vis = FeatureVisibility((1.0, 1.0), (0.31, 0.37), (0.31, 0.37))
+    assert not vis.in_view
+    stereo = NS(withdrawn=(("circle-59", "in the left image 26 of its 26 points lie within 7.6 px of circle-61's "
+                                         "image"),))
+    why = unmeasured_reason(NS(id="circle-59"), vis, None, None, stereo, {})
+    assert why.startswith("measured, then taken out: in the left image 26 of its 26") and "circle-61" in why
+    assert unmeasured_reason(NS(id="circle-57"), vis, None, None, stereo, {}).startswith("not visible: hidden")

@@ -48,6 +48,7 @@ from partinspect.vision.fitting import (
     direct_residuals,
     ellipse_geometry,
     ellipse_with_covariance,
+    fit_ellipse,
     fit_ellipses,
     fit_line,
     line_with_covariance,
@@ -58,6 +59,9 @@ from partinspect.vision.pixel_phase import without_phase_ripple
 __all__ = [
     "ImageFeature",
     "image_features",
+    "one_polarity",
+    "point_polarity",
+    "arc_stretch",
     "chauvenet_z",
     "OUTLIER_ALPHA",
     "OUTLIER_Z_MAX",
@@ -397,6 +401,100 @@ def _without_ripple(f, edges):
         f = replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal,
                     fit=fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma))
         budget -= 1
+
+
+def point_polarity(f):
+    """Each point's polarity on an arc: +1 where brighter outside its fitted ellipse, -1 where brighter inside.
+
+    The sign of the edge normal (dark to bright) along the ellipse's
+    outward normal at the point's foot, as :func:`_feature` reads the
+    arc's polarity, shape (N,).
+    """
+    _, n_out, _ = ellipse_geometry(f.ideal.xy, f.fit.params, f.fit.phases)
+    return np.sign(np.einsum("ni,ni->n", n_out, f.ideal.normal))
+
+
+def one_polarity(fl, fr, corr_length, min_points=6):
+    """A matched pair of arcs, either of mixed polarity, restricted to one polarity in both images, refitted.
+
+    Across a broken (rounded or chamfered) rim the grey level is not one
+    step but a profile over the band: where the band is lit brighter than
+    both the face and the wall (or darker than both) it shows as a ridge,
+    whose two flanks are steps of opposite polarity about a blurred band's
+    width apart, and where the wall changes from lit to shadowed the step
+    changes place across the band. A rim's pieces of opposite polarity then
+    lie on different curves, and each camera may follow either: a pair
+    measured on both triangulates one image's flank against the other's,
+    out of round by the flanks' distance. On a sharp rim the two
+    polarities are one curve (``mixed_polarity``); only a broken one's pair
+    is restricted, to the polarity both images see most of (the larger of
+    the two polarities' smaller counts in the two images).
+
+    Parameters
+    ----------
+    fl, fr : ImageFeature
+        The left and right arcs of one matched pair.
+    corr_length : float
+        The edge filter's scale, px: the refit's correlation length along
+        the edge, as :func:`image_features` fits.
+    min_points : int
+        Fewest points of the kept polarity in each image.
+
+    Returns
+    -------
+    (ImageFeature, ImageFeature) or None
+        Each arc with only its points of that polarity (:func:`arc_stretch`:
+        the ellipse and its covariance fitted again, ideal px; an arc with
+        no point of the other polarity is returned as it is), or None where
+        an image has fewer than ``min_points`` of it.
+    """
+    if fl.kind != "arc" or not (fl.mixed_polarity or fr.mixed_polarity):
+        return fl, fr
+    signs = [point_polarity(f) for f in (fl, fr)]
+    keep = max((1.0, -1.0), key=lambda s: min(np.count_nonzero(p == s) for p in signs))
+    out = []
+    for f, p in zip((fl, fr), signs):
+        at = np.flatnonzero(p == keep)
+        if len(at) < min_points:
+            return None
+        out.append(f if len(at) == len(p) else replace(arc_stretch(f, at, corr_length), mixed_polarity=False,
+                                                       polarity=int(keep)))
+    return tuple(out)
+
+
+def arc_stretch(feature, keep, corr_length):
+    """An image arc feature restricted to some of its points and fitted again.
+
+    Parameters
+    ----------
+    feature : ImageFeature
+        An arc (an :class:`partinspect.vision.stereo.EdgeFeature` too: its
+        per point edge data are kept alike).
+    keep : ndarray of int, shape (K,)
+        Positions of the kept points in the feature's point arrays.
+    corr_length : float
+        Correlation length of the points' noise along the edge, px.
+
+    Returns
+    -------
+    ImageFeature
+        Same kind, segments, polarity and blur; its points and their per
+        point data (ideal coordinates, edge normals, background readings)
+        those at ``keep``; its ellipse (with covariance) fitted to those
+        points alone, from the whole arc's ellipse as start, without the
+        smoothing-bias correction (as the chain fits arcs).
+    """
+    keep = np.asarray(keep, int)
+    ideal = IdealPoints(*(getattr(feature.ideal, name)[keep] for name in IDEAL_FIELDS))
+    fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
+    per_point = {name: getattr(feature, name)[keep] for name in _ARC_POINT_FIELDS
+                 if getattr(feature, name, None) is not None}
+    return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
+                   ideal=ideal, fit=fit, **per_point)
+
+
+_ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
+"""An :class:`partinspect.vision.stereo.EdgeFeature`'s per point data beside its points."""
 
 
 def _rms(f):

@@ -98,7 +98,9 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     another edge's image is taken out, with the reason: that image's
     feature is the other edge's, paired with this one's in the other
     image (a face seen nearly edge-on puts two edges on one image line,
-    and the "line" measured would lie between two edges).
+    and the "line" measured would lie between two edges). So is a rim
+    that one image sees only crowded by another edge's image
+    (:func:`partinspect.vision.guided.clear_arc_ends`'s ``crowded``).
 
     Returns
     -------
@@ -130,11 +132,11 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     at = [k for k, f in enumerate(stereo.features) if f.kind != "line"]
     free = {f.id for f in inv.features if f.kind != "line" and f.id not in arcs.values()}
     arcs = {**arcs, **rims_along(stereo, [at[i] for i in registration.unmatched["circle"]], free, steps)}
-    stereo, arc_cleared = clear_arc_ends(stereo, calib, arcs, steps,
-                                         meets={cid: meeting(by_id[cid], inv.features) for cid in arcs.values()})
+    stereo, arc_cleared, crowded = clear_arc_ends(stereo, calib, arcs, steps,
+                                                  meets={cid: meeting(by_id[cid], inv.features) for cid in arcs.values()})
     stereo, cleared, covered = clear_line_ends(stereo, calib, lines, images)
     cleared = {**arc_cleared, **cleared}
-    withdrawn = {}
+    withdrawn = dict(crowded)
     for cid, (side, other) in covered.items():
         if cid in registration.outliers and other is not None:
             c2, n = registration.outliers[cid]
@@ -143,7 +145,7 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
                               f"residuals): {other}'s image paired with its own in the other image")
     if not withdrawn:
         return stereo, cleared, {}
-    gone = {k for k, cid in lines.items() if cid in withdrawn}
+    gone = {k for k, cid in (*lines.items(), *arcs.items()) if cid in withdrawn}
     stereo = replace(stereo, features=tuple(f for k, f in enumerate(stereo.features) if k not in gone),
                      withdrawn=tuple(withdrawn.items()))
     return stereo, cleared, withdrawn

@@ -67,7 +67,7 @@ from partinspect.vision.calibration_points import point_responses
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
 from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
-from partinspect.vision.imagefeatures import ImageFeature, image_features
+from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
 from partinspect.vision.line_profile import line_band_shift
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
@@ -480,7 +480,9 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     edge_break : float, optional
         The part's edges are broken (rounded or chamfered): the RMS
         distance, mm, of the apparent step from the sharp edge. Each point
-        of every feature then carries it as a Type B (:func:`edge_band`).
+        of every feature then carries it as a Type B (:func:`edge_band`),
+        and a pair of arcs either of which has both polarities is measured
+        on one polarity's points (:func:`measure_pair_feature`).
 
     Returns
     -------
@@ -610,6 +612,15 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
         Why there is no feature: too few corresponding points, two arcs
         that are not one circle, or a failed fit.
     """
+    if edge_break is not None:
+        # Across a broken rim the two polarities are two curves (one_polarity).
+        try:
+            pair = one_polarity(fl, fr, corr_length)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            return None, f"refit on one polarity failed: {exc}"
+        if pair is None:
+            return None, "the two images' arcs have too few points of one polarity (a broken rim's two steps)"
+        fl, fr = pair
     corr = correspond(fl, fr, geo)
     if len(corr) < 6:
         return None, f"only {len(corr)} corresponding points"

@@ -194,3 +194,40 @@ def test_a_stretch_found_but_not_measured_keeps_its_reason(plate_lines):
     more, found, failed = guided_lines(stereo, rig, {"edge-x": (left, right)}, owned=set())
     assert not found and "corresponding points" in failed["edge-x"]
     assert dict(more.guided_failed) == failed and more.features is stereo.features
+
+
+def test_a_rim_seen_only_crowded_in_one_image_is_refused_not_kept_whole():
+    """Issue 38, NIST ftc_09 circle-59 (exact render): a countersink's lower rim seen from below.
+
+    In the left image the cone between it and the upper rim is edge-on, and the upper rim's
+    image runs 2 px inside the lower one's along the whole arc seen: every point of the arc
+    is crowded (the two steps smoothed into one, the points 0.2-0.7 px off the rim). Clearing
+    would leave none, and the arc was kept whole and measured (diameter 4.1 u off: a false
+    reject). It is now refused, naming the edge that crowds it; a rim crowded at a few points
+    only is not, and the right image's arc, clear, does not make it so.
+    """
+    from types import SimpleNamespace as NS
+
+    from partinspect.vision.guided import clear_arc_ends
+
+    t = np.radians(np.arange(0.0, 360.0, 0.5))
+    ring = lambda c, r: np.c_[c[0] + r * np.cos(t), c[1] + r * np.sin(t)]  # noqa: E731
+    a = np.radians(np.arange(300.0, 370.0, 2.7))  # the 26 points of the arc seen, as in ftc_09
+    arc = np.c_[200 + 25 * np.cos(a), 150 + 25 * np.sin(a)]
+    edges = NS(sigma=1.0, width=np.full(10, 1.2))
+    images = {"lower": (ring((200, 150), 25.0), ring((600, 150), 25.0)),
+              "upper": (ring((200, 150), 23.0), ring((600, 150), 45.0))}
+    left = NS(edges=edges, features=[NS(uv=arc)])
+    right = NS(edges=edges, features=[NS(uv=arc + [400.0, 0.0])])
+    stereo = NS(left=left, right=right, geometry=None, features=[NS(kind="arc", left=0, right=0)])
+    out, cleared, crowded = clear_arc_ends(stereo, None, {0: "lower"}, images)
+    assert out is stereo and cleared == {}
+    assert list(crowded) == ["lower"]
+    assert "left image 26 of its 26 points" in crowded["lower"] and "upper's image" in crowded["lower"]
+    # The upper rim 2 px away only over a few degrees: the arc keeps enough clear points.
+    far = ring((200, 150), 45.0)
+    far[(t > np.radians(300)) & (t < np.radians(310))] = ring((200, 150), 23.0)[(t > np.radians(300))
+                                                                                & (t < np.radians(310))]
+    images["upper"] = (far, images["upper"][1])
+    _, _, crowded = clear_arc_ends(stereo, None, {0: "lower"}, images, min_points=1000)
+    assert crowded == {}

@@ -184,3 +184,61 @@ def test_chauvenet_threshold_grows_with_the_points_and_is_capped():
         assert 2 * n * norm.sf(chauvenet_z(n)) == pytest.approx(OUTLIER_ALPHA, rel=1e-6)
     assert chauvenet_z(150) == pytest.approx(3.59, abs=0.01) and chauvenet_z(500) == pytest.approx(3.89, abs=0.01)
     assert chauvenet_z(10**9) == OUTLIER_Z_MAX
+
+
+def _ridge_rim(seed=0):
+    """An arc image feature of a broken rim (centre (100, 80), radius 40 px) merged from two steps.
+
+    Round most of the rim (100-330 deg) the step lies on the rim, brighter outside; over
+    -30..70 deg the band is lit brighter than both the face and the wall, and the piece
+    found there is the ridge's outer flank, 1.2 px further out and brighter inside.
+    """
+    from partinspect.vision.fitting import fit_ellipse
+    from partinspect.vision.ideal import IdealPoints
+    from partinspect.vision.imagefeatures import ImageFeature
+
+    rng = np.random.default_rng(seed)
+    c = np.array([100.0, 80.0])
+    a_rim, a_flank = np.radians(np.arange(100.0, 330.0, 2.0)), np.radians(np.arange(-30.0, 70.0, 2.0))
+    t = np.r_[a_rim, a_flank]
+    out = np.c_[np.cos(t), np.sin(t)]
+    r = np.r_[np.full(len(a_rim), 40.0), np.full(len(a_flank), 41.2)] + rng.normal(0.0, 0.02, len(t))
+    xy = c + r[:, None] * out
+    normal = out * np.r_[np.ones(len(a_rim)), -np.ones(len(a_flank))][:, None]  # dark to bright
+    cov = np.tile(np.eye(2) * 0.02**2, (len(t), 1, 1))
+    ideal = IdealPoints(xy, cov, normal, np.full(len(t), 0.02), np.tile(np.eye(2), (len(t), 1, 1)))
+    fit = fit_ellipse(xy, cov, corr_length=1.0)
+    f = ImageFeature("arc", (0, 1), np.arange(len(t)), xy.copy(), cov, ideal, fit, 1.5, 1, True)
+    return f, c, len(a_rim)
+
+
+def test_a_broken_rims_pair_is_measured_on_one_polarity():
+    """Issue 38, NIST ftc_09 circle-26: pieces of opposite polarity on a broken rim are two curves.
+
+    The union's ellipse follows neither: merged, the flank's piece pulls its centre off the
+    rim's by tenths of a pixel (what one camera following the flank and the other the rim
+    turns into out-of-roundness). Paired with an arc of the rim's polarity alone, the mixed
+    arc keeps exactly the rim's points and fits the rim: centre and radius within the points'
+    noise; the other arc is left as it is.
+    """
+    from dataclasses import replace
+
+    from partinspect.vision.imagefeatures import arc_stretch, one_polarity
+
+    f, c, n_rim = _ridge_rim()
+    assert np.hypot(*(f.fit.params[:2] - c)) > 0.2  # the mechanism: merged, the fit is off the rim
+    # The other image's arc, of the rim's polarity alone (here the same points: only its identity is used).
+    rim_only = replace(arc_stretch(f, np.arange(n_rim), 1.0), mixed_polarity=False)
+    left, right = one_polarity(rim_only, f, 1.0)
+    assert left is rim_only
+    assert not right.mixed_polarity and right.polarity == 1
+    assert np.array_equal(right.index, np.arange(n_rim))
+    assert np.hypot(*(right.fit.params[:2] - c)) < 0.02
+    assert abs(right.fit.params[2] - 40.0) < 0.02 and abs(right.fit.params[3] - 40.0) < 0.02
+    assert np.max(np.abs(right.fit.residuals)) < 0.1
+    # Both mixed: the polarity both images see most of (here the rim's, 115 points against 50).
+    left, right = one_polarity(f, f, 1.0)
+    assert len(left.index) == len(right.index) == n_rim
+    # Too few points of it in an image: no pair; sharp rims' arcs (neither mixed) are left as they are.
+    assert one_polarity(f, f, 1.0, min_points=n_rim + 1) is None
+    assert one_polarity(rim_only, rim_only, 1.0) == (rim_only, rim_only)
