@@ -76,11 +76,6 @@ def stretch_along(uv, polyline, *, max_distance=MAX_DISTANCE, trim=0.0):
     return (d <= max_distance) & (s >= trim) & (s <= length[-1] - trim), s
 
 
-def _ideal_at(feature, keep):
-    """The feature's ideal (undistorted) point data at the positions ``keep``."""
-    return replace(feature.ideal, **{f: getattr(feature.ideal, f)[keep] for f in IDEAL_FIELDS})
-
-
 def line_stretch(feature, keep, corr_length):
     """An image line feature restricted to some of its points and fitted again.
 
@@ -102,7 +97,7 @@ def line_stretch(feature, keep, corr_length):
         fit (with covariance) that of those points alone.
     """
     keep = np.asarray(keep, int)
-    ideal = _ideal_at(feature, keep)
+    ideal = feature.ideal.at(keep)
     fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False), ideal.xy,
                                corr_length)
     extra = {name: getattr(feature, name)[keep] for name in _LINE_POINT_FIELDS
@@ -409,11 +404,10 @@ def clear_arc_ends(stereo, calib, arcs, images, *, meets=None, min_points=12):
     min_points : int
         Points each image must keep; an arc that would keep fewer stays as
         it was, unless most of its points in that image are crowded: then
-        the rim is not seen clear of the other edge there at all, and it is
-        returned in ``crowded`` (a countersink's lower rim seen from below,
-        the cone between it and the upper rim edge-on, 2 px wide in the
-        image: NIST ftc_09's circle-59, whose left arc's 26 points all lay
-        0.2-0.7 px off it while stating 0.01-0.02 px).
+        the rim is not seen clear of the other edge there at all (a
+        countersink's lower rim seen from below, the cone between it and the
+        upper rim edge-on, a few px wide in the image, the two steps smoothed
+        into one), and it is returned in ``crowded``.
 
     Returns
     -------

@@ -51,6 +51,10 @@ class IdealPoints:
     normal_std: np.ndarray
     jacobian: np.ndarray
 
+    def at(self, keep):
+        """The points at positions ``keep`` (ndarray of int or bool), every field alike."""
+        return IdealPoints(*(getattr(self, name)[keep] for name in IDEAL_FIELDS))
+
 
 IDEAL_FIELDS = tuple(f.name for f in fields(IdealPoints))
 """The fields of :class:`IdealPoints`, in order: all are per point (first

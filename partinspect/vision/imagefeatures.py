@@ -397,7 +397,7 @@ def _without_ripple(f, edges):
         if z[worst] <= _outlier_threshold(z) or budget == 0:
             return g
         keep = np.delete(np.arange(len(f.index)), worst)
-        ideal = IdealPoints(*(getattr(f.ideal, name)[keep] for name in IDEAL_FIELDS))
+        ideal = f.ideal.at(keep)
         f = replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal,
                     fit=fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma))
         budget -= 1
@@ -485,7 +485,7 @@ def arc_stretch(feature, keep, corr_length):
         smoothing-bias correction (as the chain fits arcs).
     """
     keep = np.asarray(keep, int)
-    ideal = IdealPoints(*(getattr(feature.ideal, name)[keep] for name in IDEAL_FIELDS))
+    ideal = feature.ideal.at(keep)
     fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
     per_point = {name: getattr(feature, name)[keep] for name in _ARC_POINT_FIELDS
                  if getattr(feature, name, None) is not None}
