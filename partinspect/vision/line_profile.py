@@ -138,7 +138,7 @@ def two_step_fit(t, grey):
             lo = [-1.0, 0.3, 0.5, 0.3, 0.5] if side > 0 else [-1.0, 0.3, -REACH, 0.3, 0.5]
             hi = [1.0, 2.0, REACH, 2.5, 4 * REACH] if side > 0 else [1.0, 2.0, -0.5, 2.5, 4 * REACH]
             r = least_squares(lambda q: _projected_residuals(t, grey, q[None])[0], [0.0, 0.8, side * d0, 0.8, 2.0],
-                              jac=lambda q: _forward_jacobian(t, grey, q, hi), bounds=(lo, hi), ftol=1e-6, xtol=1e-6)
+                              jac=lambda q: _projected_jacobian(t, grey, q), bounds=(lo, hi), ftol=1e-6, xtol=1e-6)
             if best is None or r.cost < best.cost:
                 best = r
     if best is None or not np.isfinite(best.cost):
@@ -148,7 +148,7 @@ def two_step_fit(t, grey):
     lin = np.linalg.lstsq(A, grey, rcond=None)[0]
     # The standard error of h with the nonlinear parameters free too: the
     # full Jacobian at the solution, the residuals' variance.
-    J = np.c_[A, _numeric_jacobian(t, best.x, lin)]
+    J = np.c_[A, _model_jacobian(t, best.x, lin)]
     dof = max(len(t) - J.shape[1], 1)
     var = 2.0 * best.cost / dof
     cov = np.linalg.pinv(J.T @ J) * var
@@ -163,21 +163,40 @@ def _projected_residuals(t, grey, Q):
     return np.einsum("kmi,ki->km", A, lin) - grey
 
 
-def _forward_jacobian(t, grey, q, hi):
-    """Forward differences of :func:`_projected_residuals` in every parameter at once, stepped away from ``hi``."""
-    step = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(q))
-    step = np.where(q + step > np.asarray(hi), -step, step)
-    R = _projected_residuals(t, grey, np.vstack([q, q + np.diag(step)]))
-    return ((R[1:] - R[0]) / step[:, None]).T
+def _projected_jacobian(t, grey, q):
+    """Derivatives of :func:`_projected_residuals` at ``q`` (5,): (M, 5), Golub and Pereyra's [2]_.
+
+    ``dr = P dA lin - A (A^T A)^-1 dA^T r``, P the projector off A's
+    columns, ``dA`` the design's derivative (:func:`_model_jacobian` of its
+    edge and band columns).
+    """
+    A = _design(t, *q)
+    AtA = A.T @ A + 1e-9 * np.eye(3)
+    lin = np.linalg.solve(AtA, A.T @ grey)
+    r = A @ lin - grey
+    D = _model_jacobian(t, q, lin)
+    dAtr = np.stack([np.zeros(5), _model_jacobian(t, q, (0.0, 1.0, 0.0)).T @ r,
+                     _model_jacobian(t, q, (0.0, 0.0, 1.0)).T @ r])
+    return D - A @ np.linalg.solve(AtA, A.T @ D + dAtr)
 
 
-def _numeric_jacobian(t, q, lin, eps=1e-5):
-    cols = []
-    for k in range(len(q)):
-        dq = np.zeros(len(q))
-        dq[k] = eps
-        cols.append((_design(t, *(q + dq)) @ lin - _design(t, *(q - dq)) @ lin) / (2 * eps))
-    return np.stack(cols, axis=1)
+def _model_jacobian(t, q, lin):
+    """Derivatives of the model ``_design(t, *q) @ lin`` in its nonlinear parameters ``q = (t0, s, d, s2, w)``: (M, 5).
+
+    Analytic: each flank ``Phi(z)`` changes by ``phi(z) dz``; the edge
+    ``c Phi(u / s)`` moves with t0 and s, the band's flanks
+    ``h Phi(z1)`` and ``-h Phi(z2)`` (``z1 = e (u - d) / s2``,
+    ``z2 = e (u - d - e w) / s2``) with t0, d, s2 and w; ``e = sign(d)`` is
+    constant within the fit's bounds (``|d| >= 0.5``).
+    """
+    t0, s, d, s2, w = q
+    _, c, h = lin
+    u, e = t - t0, np.sign(d)
+    ze, z1, z2 = u / s, e * (u - d) / s2, e * (u - d - e * w) / s2
+    pe, p1, p2 = (np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi) for z in (ze, z1, z2))
+    shift = -h * e * (p1 - p2) / s2  # the band moved outwards, flanks together
+    return np.stack([-c * pe / s + shift, -c * pe * ze / s, shift, -h * (z1 * p1 - z2 * p2) / s2, h * p2 / s2],
+                    axis=1)
 
 
 def band_displacement(c, h, d, s, s2, w=np.inf, sigma=1.0):

@@ -152,3 +152,18 @@ def test_the_band_model_moves_the_detector_towards_a_dark_band_and_not_without_o
     # ... and a bright one towards it; mirrored, the same amount
     assert band_displacement(160.0, 60.0, 1.5, 0.7, 0.7, 2.0) > 0
     assert band_displacement(-160.0, -60.0, -1.5, 0.7, 0.7, 2.0) == pytest.approx(-near, abs=0.01)
+
+
+@pytest.mark.parametrize("q, lin", [((0.2, 0.8, 2.1, 0.9, 1.7), (40.0, 160.0, -60.0)),
+                                    ((-0.1, 0.6, -1.5, 1.3, 3.0), (200.0, -150.0, 30.0))])
+def test_the_band_models_derivatives_are_its_central_differences(q, lin):
+    from partinspect.vision.line_profile import _design, _model_jacobian, _projected_jacobian, _projected_residuals
+
+    t, q, lin = np.arange(-6.0, 6.01, 0.25), np.array(q), np.array(lin)
+    grey = _design(t, *q) @ lin + 5.0 * np.sin(3.0 * t)  # a misfit, so the projection's second term counts
+    dq = 1e-6 * np.eye(5)
+    model = np.stack([(_design(t, *(q + e)) - _design(t, *(q - e))) @ lin / 2e-6 for e in dq], axis=1)
+    assert _model_jacobian(t, q, lin) == pytest.approx(model, abs=1e-6 * np.abs(model).max())
+    R = _projected_residuals(t, grey, np.vstack([q + dq, q - dq]))
+    projected = ((R[:5] - R[5:]) / 2e-6).T
+    assert _projected_jacobian(t, grey, q) == pytest.approx(projected, abs=1e-6 * np.abs(projected).max())
