@@ -43,7 +43,9 @@ __all__ = [
     "Feature",
     "Inventory",
     "canonical_direction",
+    "cylinder_sides",
     "face_inventory",
+    "faces_of",
     "inventory",
     "nearest_feature",
     "occ_edges",
@@ -304,6 +306,23 @@ class Inventory:
             "degenerated": int(self.degenerated_edges),
             "skipped": dict(sorted(self.skipped_edges.items())),
         }
+
+
+def faces_of(inv, feature_ids):
+    """The faces (``FaceInfo``) the features bound, those ``inv`` holds, in the features' order."""
+    return [inv[x] for fid in feature_ids for x in inv[fid].faces if x in inv]
+
+
+def cylinder_sides(faces):
+    """The material sides of the cylinders among ``faces``: the set of their ``FaceInfo.convex``.
+
+    ``{False}`` one hole, ``{True}`` one boss (a STEP file often splits one
+    wall into half cylinders, which share a side); empty, no cylinder; two
+    elements, a hole and a boss both; None in it, a cylinder whose side is
+    unknown. What depends on a size's side (a broken rim's correction, a
+    material condition's bonus) asks for exactly one.
+    """
+    return {f.convex for f in faces if f.surface == "cylinder"}
 
 
 def canonical_direction(v):

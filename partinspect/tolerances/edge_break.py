@@ -37,6 +37,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from partinspect.cad.features import cylinder_sides, faces_of
+
 __all__ = ["band_offset", "band_rms", "size_on_broken_rim", "apparent_edge_rms", "broken_rims", "broken_lines",
            "with_band_places", "cylinder_side", "seen_from_its_face"]
 
@@ -166,8 +168,7 @@ def broken_rims(characteristics, inventory, part_to_camera):
             if s.edge_break is None or s.type not in ("diameter", "radius") or s.features[0] in out:
                 continue
             f = inventory[s.features[0]]
-            faces = [inventory[fid] for fid in f.faces if fid in inventory]
-            planes = [g for g in faces if g.surface == "plane"]
+            planes = [g for g in faces_of(inventory, [s.features[0]]) if g.surface == "plane"]
             # A STEP file often splits a hole's wall into two half cylinders: one wall still, if one side.
             side = cylinder_side(inventory, s.features[0])
             if len(planes) == 1 and side is not None and seen_from_its_face(inventory, s.features[0], part_to_camera):
@@ -274,8 +275,7 @@ def with_band_places(characteristics, places):
 
 def cylinder_side(inventory, feature_id):
     """``FaceInfo.convex`` of the cylinder a circle bounds (False a hole, True a boss), None if none or several."""
-    faces = [inventory[fid] for fid in inventory[feature_id].faces if fid in inventory]
-    sides = {f.convex for f in faces if f.surface == "cylinder"}
+    sides = cylinder_sides(faces_of(inventory, [feature_id]))
     return sides.pop() if len(sides) == 1 else None
 
 

@@ -69,6 +69,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from partinspect.cad.features import cylinder_sides
 from partinspect.tolerances.geometry import feature_distance, line_angle, line_gap, lines_parallel
 from partinspect.tolerances.material import MODIFIERS
 
@@ -353,7 +354,7 @@ class _Mapper:
                           "no full circular edge bounds the toleranced cylinder")
                 return
             if material:
-                sides = {f.convex for f in faces if f.surface == "cylinder"}
+                sides = cylinder_sides(faces)
                 if len(sides) != 1 or None in sides:
                     self.skip(item.id, t, f"at {material[0]}, but its faces are not one hole or one boss: no size to "
                               "take the bonus from")

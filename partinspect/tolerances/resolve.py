@@ -32,6 +32,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from partinspect.cad.features import cylinder_sides, faces_of
 from partinspect.errors import InputError
 from partinspect.tolerances import iso2768
 from partinspect.tolerances.geometry import feature_distance, line_angle, line_tilt, lines_parallel
@@ -723,7 +724,7 @@ def with_material_sizes(characteristics, inventory, path=None):
             out.append(c)
             continue
         fid = c.features[0]
-        sides = {inventory[x].convex for x in inventory[fid].faces if x in inventory and inventory[x].surface == "cylinder"}
+        sides = cylinder_sides(faces_of(inventory, [fid]))
         if len(sides) != 1:
             problems.append(f"{c.id} at {c.material.modifier}: {fid} bounds "
                             f"{'no cylinder' if not sides else 'both a hole and a boss'}, so there is no size to take "
@@ -744,8 +745,7 @@ def _datum_size(d, sizes, inventory):
     if d.sizes or not d.features:
         return d
     rims = [fid for fid in d.features if fid in inventory and inventory[fid].kind != "line" and fid in sizes]
-    sides = {inventory[x].convex for fid in rims for x in inventory[fid].faces
-             if x in inventory and inventory[x].surface == "cylinder"}
+    sides = cylinder_sides(faces_of(inventory, rims))
     if not rims or len(sides) != 1 or None in sides:
         return d  # a plane, or no single feature of size: no shift from it
     return replace(d, sizes=tuple(sizes[fid] for fid in rims), internal=not sides.pop())
