@@ -16,6 +16,22 @@ from partinspect.reports.assemble import mat, vec
 __all__ = ["nominal_geometry", "characteristic_entry", "registration_entry", "ambiguity_entry", "feature_entries",
            "edge_break_entries", "curve_3d", "figure_data", "fused_feature_entries", "view_entry"]
 
+# The words report.json writes, in one place: the statuses and edge-break
+# readings a reader (and reports/html.py) matches on, and each reason
+# sentence, so that one wording serves every entry that gives it.
+MEASURED = "measured"
+NOT_MEASURED = "not measured"
+UNMATCHED = "unmatched"
+AT_APPARENT_EDGE = "apparent edge"
+AT_BAND_PLACE = "predicted band place"
+DECIDES_POSE = "; it would tell which of the poses that fit is right, were it measured (see the registration)"
+ON_ITS_STRETCH = ("measured on its own stretch of a longer straight edge in the images (edges in line with it merge "
+                  "into one there), the stretch its CAD edge's image covers")
+UNPREDICTED = ("its place across the band is not predicted: the chain predicts it on a toleranced rim seen from its "
+               "face and on a straight edge between two planar faces")
+NOT_PREDICTABLE = "its place across the band could not be predicted (too little of it or of its faces seen)"
+NO_BETTER_THAN_UNIFORM = "its place is predicted no better than uniform across the band"
+
 
 def nominal_geometry(feature):
     """The CAD geometry of a feature as report.json writes it (part frame, mm)."""
@@ -115,25 +131,20 @@ def feature_entries(inv, stereo, registration, seen, decisions, reasons, edge_br
         entry = _entry_of(f, seen)
         p = parts.get(f.id)
         if p is None:
-            entry.update(measured=None, status="not measured", reason=reasons[f.id])
+            entry.update(measured=None, status=NOT_MEASURED, reason=reasons[f.id])
             if f.id in deciding:
-                entry["reason"] += "; it would tell which of the poses that fit is right, were it measured (see the registration)"
+                entry["reason"] += DECIDES_POSE
         else:
             f3 = index[p.kind][p.index]
             m = _measured_geometry(p)
             m.update(n_points=int(len(f3.correspondences)), datum=bool(p.datum), measured_as=f3.kind)
-            entry.update(measured=m, status=worst.get(f.id, "measured"))
+            entry.update(measured=m, status=worst.get(f.id, MEASURED))
             if f3.guided is not None:
-                entry["reason"] = ("measured on its own stretch of a longer straight edge in the images (edges in "
-                                   "line with it merge into one there), the stretch its CAD edge's image covers")
+                entry["reason"] = ON_ITS_STRETCH
             if edge_break and f.id in edge_break:
                 entry["edge_break"] = edge_break[f.id]
         out.append(entry)
     return out
-
-
-UNPREDICTED = ("its place across the band is not predicted: the chain predicts it on a toleranced rim seen from its "
-               "face and on a straight edge between two planar faces")
 
 
 def edge_break_entries(stereo, registration, calib, rims, lines):
@@ -175,7 +186,7 @@ def edge_break_entries(stereo, registration, calib, rims, lines):
     if stereo.edge_break is None:
         return {}
     band = float(stereo.edge_break)
-    kept = {"measured_at": "apparent edge", "standard_uncertainty": round(band, 6), "reason": UNPREDICTED}
+    kept = {"measured_at": AT_APPARENT_EDGE, "standard_uncertainty": round(band, 6), "reason": UNPREDICTED}
     out = {}
     for p in registration.features_in_part_frame():
         if p.cad_id is None:
@@ -183,7 +194,7 @@ def edge_break_entries(stereo, registration, calib, rims, lines):
         place, edge, moved = (rims if p.kind == "circle" else lines).get(p.cad_id, (None, None, False))
         entry = dict(kept)
         if place is None and edge is not None:
-            entry["reason"] = "its place across the band could not be predicted (too little of it or of its faces seen)"
+            entry["reason"] = NOT_PREDICTABLE
         elif place is not None and p.kind == "circle":
             entry = _rim_entry(place, edge, moved, band, UNIFORM_STD)
         elif place is not None:
@@ -209,11 +220,11 @@ def _rim_entry(place, size, moved, band, uniform):
              "band_place_standard_uncertainty": round(place.u, 4),
              "offset": round(place.s * size, 6), "offset_px": _offset_ranges(place.offsets)}
     if moved:
-        return {"measured_at": "predicted band place", **entry,
+        return {"measured_at": AT_BAND_PLACE, **entry,
                 "standard_uncertainty": round(place.u_point * size, 6), "band_standard_uncertainty": round(band, 6)}
-    why = ("its place is predicted no better than uniform across the band" if max(place.u, place.u_point) >= uniform
+    why = (NO_BETTER_THAN_UNIFORM if max(place.u, place.u_point) >= uniform
            else "its fit at the predicted place failed")
-    return {"measured_at": "apparent edge", **entry, "standard_uncertainty": round(band, 6),
+    return {"measured_at": AT_APPARENT_EDGE, **entry, "standard_uncertainty": round(band, 6),
             "reason": f"{why}: its size is corrected by the place, its points keep the band"}
 
 
@@ -223,11 +234,11 @@ def _line_entry(place, line, moved, band, pixel):
     entry = {"break_size": round(line.size, 6), "offset": round(float(np.mean(medians)), 6),
              "offset_px": _offset_ranges(place.offsets), "towards_face": line.faces[0]}
     if moved:
-        return {"measured_at": "predicted band place", **entry, "standard_uncertainty": round(place.u, 6),
+        return {"measured_at": AT_BAND_PLACE, **entry, "standard_uncertainty": round(place.u, 6),
                 "standard_uncertainty_px": vec(place.u_px, 4), "band_standard_uncertainty": round(band, 6)}
-    why = ("its place is predicted no better than uniform across the band" if place.u >= band
+    why = (NO_BETTER_THAN_UNIFORM if place.u >= band
            else "its fit at the predicted place, or the pose registered on it, failed")
-    return {"measured_at": "apparent edge", **entry, "standard_uncertainty": round(band, 6), "reason": why}
+    return {"measured_at": AT_APPARENT_EDGE, **entry, "standard_uncertainty": round(band, 6), "reason": why}
 
 
 def _entry_of(f, seen):
@@ -281,7 +292,7 @@ def fused_feature_entries(inv, fused, measured, names, seen, decisions, reasons)
         entry = _entry_of(f, seen)
         p = fused.get(f.id)
         if p is None:
-            entry.update(measured=None, status="not measured", reason=reasons[f.id])
+            entry.update(measured=None, status=NOT_MEASURED, reason=reasons[f.id])
             out.append(entry)
             continue
         m = _measured_geometry(p)
@@ -296,7 +307,7 @@ def fused_feature_entries(inv, fused, measured, names, seen, decisions, reasons)
                  views=[names[v] for v in p.views])
         if p.rejected:
             m["left_out"] = [{"view": names[r["view"]], "reason": r["reason"]} for r in p.rejected]
-        entry.update(measured=m, status=worst.get(f.id, "measured"))
+        entry.update(measured=m, status=worst.get(f.id, MEASURED))
         out.append(entry)
     return out
 
@@ -375,11 +386,11 @@ def feature_overlays(calib, stereo, registration, features, sides=("left", "righ
             used[side].add(index)
             K, D, R, t = cams[side]
             overlays.append({"image": side, "xy": project_points(X, K, D, R, t), "kind": f.kind, "label": label,
-                             "status": status.get(label, "measured") if label else "unmatched"})
+                             "status": status.get(label, MEASURED) if label else UNMATCHED})
     for side in sides:
         for i, imf in enumerate((stereo.left if side == "left" else stereo.right).features):
             if i not in used[side]:
-                overlays.append({"image": side, "xy": imf.uv, "kind": imf.kind, "label": "", "status": "unmatched"})
+                overlays.append({"image": side, "xy": imf.uv, "kind": imf.kind, "label": "", "status": UNMATCHED})
     return overlays
 
 
@@ -403,7 +414,7 @@ def figure_data(left, right, calib, inv, stereo, registration, features):
             residuals.append({"label": label or f"unregistered {f.kind}", "image": side, "residuals": np.asarray(fit.residuals),
                               "sigma": float(np.median(fit.point_std))})
     overlays = feature_overlays(calib, stereo, registration, features)
-    points3d = [{"label": p.cad_id, "points": p.points, "covs": p.point_covs, "status": status.get(p.cad_id, "measured")}
+    points3d = [{"label": p.cad_id, "points": p.points, "covs": p.point_covs, "status": status.get(p.cad_id, MEASURED)}
                 for p in registration.features_in_part_frame() if p.cad_id is not None and p.points is not None]
     cad_edges = [{"label": f.id, "polyline": sample_edge(f.kind, feature_geometry(f), n=120)[0]} for f in inv.features]
     return {"left": left, "right": right, "overlays": overlays, "residuals": residuals, "points3d": points3d, "cad_edges": cad_edges}
