@@ -129,67 +129,85 @@ def forked(func, *args, **kwargs):
     >>> here, there, doubled
     (9, 6, 36)
     """
-    child, threads, blas = None, None, None
-    result = _Result(lambda: child, func, args, kwargs)
-    try:
+    child = None
+    result = _Result(lambda: child, "out", func, args, kwargs)
+    with contextlib.ExitStack() as stack:
         if can_fork():
-            threads = cv2.getNumThreads()
-            cv2.setNumThreads(1)  # stops OpenCV's workers (module notes)
-            blas = one_blas_thread()
-            # A Ctrl-C between the fork and the assignment would lose track
-            # of the child: SIGINT is held back until ``child`` is set.
-            held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-            try:
-                child = _start(func, args, kwargs)
-            finally:
-                signal.pthread_sigmask(signal.SIG_SETMASK, held)
+            stack.enter_context(_one_thread_each())
+            child = _start_held(stack, func, args, kwargs)
             if child is None:
-                cv2.setNumThreads(threads)
-                threads = None
-                blas.restore_original_limits()
-                blas = None
+                stack.close()  # no child: the thread counts back at once
         result.forked = child is not None
         yield result
+
+
+@contextlib.contextmanager
+def _one_thread_each():
+    """OpenCV and BLAS on one thread each while parent and child compute side by side; restored on leaving.
+
+    ``cv2.setNumThreads(1)`` also joins OpenCV's workers, whose pool a
+    forked child could block on (module notes).
+    """
+    threads, blas = cv2.getNumThreads(), None
+    cv2.setNumThreads(1)
+    try:
+        blas = one_blas_thread()
+        yield
     finally:
-        if child is not None:
-            _stop(child)
-        if threads is not None:
-            cv2.setNumThreads(threads)
+        cv2.setNumThreads(threads)
         if blas is not None:
             blas.restore_original_limits()
 
 
-class _Result:
-    """The callable :func:`forked` yields: the first call's outcome, and its follow-up (``then``)."""
+def _start_held(stack, func, args, kwargs):
+    """:func:`_start` with SIGINT held back until the child's stop is on ``stack``: a Ctrl-C then cannot lose it."""
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        child = _start(func, args, kwargs)
+        if child is not None:
+            stack.callback(_stop, child)
+        return child
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
-    def __init__(self, child, func, args, kwargs):
-        self._child, self._call, self._outcome = child, (func, args, kwargs), []
+
+class _Result:
+    """The callable :func:`forked` yields: one call's outcome from the child's pipe ``pipe``, or made here.
+
+    ``child`` returns the child's state (None: no child). The follow-up
+    (``then``) is one more of these, on the child's ``"then"`` pipe.
+    """
+
+    def __init__(self, child, pipe, func, args, kwargs):
+        self._child, self._pipe, self._call, self._outcome = child, pipe, (func, args, kwargs), []
         self.forked = False
 
     def __call__(self):
         if not self._outcome:
-            child = self._child()
-            got = _collect(child, "out") if child is not None else None
-            if got is None and child is not None:
-                child["lost"] = True
-            func, args, kwargs = self._call
-            # No child, or its outcome is lost: the same call, here.
-            self._outcome.append(got if got is not None else (True, func(*args, **kwargs), ()))
+            self._outcome.append(self._collect() or _here(*self._call))
         return _unpack(self._outcome[0])
+
+    def _collect(self):
+        """The child's outcome, or None (no child, or its outcome lost: it is then sent no follow-up)."""
+        child = self._child()
+        if child is None:
+            return None
+        got = _collect(child, self._pipe)
+        if got is None:
+            child["lost"] = True
+        return got
 
     def then(self, func, *args, **kwargs):
         """``func(value, *args, **kwargs)`` in the child that made the first call; a callable for its outcome."""
         value = self()
-        child, outcome = self._child(), []
+        child = self._child()
         sent = child is not None and not child.get("lost") and _send(child, (func, args, kwargs))
+        return _Result((lambda: child) if sent else (lambda: None), "then", func, (value, *args), kwargs)
 
-        def result():
-            if not outcome:
-                got = _collect(child, "then") if sent else None
-                outcome.append(got if got is not None else (True, func(value, *args, **kwargs), ()))
-            return _unpack(outcome[0])
 
-        return result
+def _here(func, args, kwargs):
+    """The call made in this process, as an outcome: its exception raised as it comes."""
+    return True, func(*args, **kwargs), ()
 
 
 def _unpack(outcome):
