@@ -38,6 +38,11 @@ parts; the same distance as the report uses to say an edge was found)."""
 MAX_ANGLE = np.deg2rad(3.0)
 """An image line runs along an expected edge when their directions differ
 by less than this (the merge's tolerance for pieces of one line)."""
+RIM_SHARE = 0.5
+"""An unmatched arc is taken as a rim's (:func:`rims_along`) when more than
+this share of its points have that rim's image the nearest of all the
+edges' images, in each image: a majority, so that one edge at most can
+claim an arc, whatever edges its other points lie nearest."""
 
 
 def stretch_along(uv, polyline, *, max_distance=MAX_DISTANCE, trim=0.0):
@@ -484,13 +489,13 @@ def rims_along(stereo, unmatched, rims, images):
     rim than the registration's gates allow, so it is left unmatched and
     never cleared. Its image points still lie on the rim's image, within
     the crowding's fraction of a px. An arc is taken as a rim's when, in
-    each image, more than half of its points have that rim's image as the
-    nearest of all the edges' images and the median distance of all its
-    points to it is within ``MAX_DISTANCE`` px (what makes a point an
-    edge's, :func:`stretch_along`); the same rim in both images, and each
-    rim taken by one arc at most (the nearest). By position alone: the
-    arc is then cleared and refitted, and the registration judges it
-    again with its unchanged gates.
+    each image, more than half of its points (``RIM_SHARE``) have that
+    rim's image as the nearest of all the edges' images and the median
+    distance of all its points to it is within ``MAX_DISTANCE`` px (what
+    makes a point an edge's, :func:`stretch_along`); the same rim in both
+    images, and each rim taken by one arc at most (the nearest). By
+    position alone: the arc is then cleared and refitted, and the
+    registration judges it again with its unchanged gates.
 
     Parameters
     ----------
@@ -527,7 +532,7 @@ def rims_along(stereo, unmatched, rims, images):
             _, j = crowds[side].tree.query(uv)
             owner = np.bincount(crowds[side].owner[j], minlength=len(crowds[side].ids))
             cid = crowds[side].ids[int(owner.argmax())]
-            if cid not in rims or owner.max() * 2 <= len(uv):
+            if cid not in rims or owner.max() <= RIM_SHARE * len(uv):
                 break
             poly = np.asarray(images[cid][side], float)
             poly = poly[np.isfinite(poly).all(axis=1)]
