@@ -154,28 +154,44 @@ class _Crowd:
         """Mask of the points ``uv`` farther than ``reach`` px from every edge's image but ``cid``'s (and ``ignore``'s)."""
         if self.tree is None or len(uv) == 0:
             return np.ones(len(uv), bool)
-        own = [self.ids.index(i) for i in (cid, *ignore) if i in self.ids]
+        own = self._indices((cid, *ignore))
         near = self.tree.query_ball_point(uv, reach)
         return np.array([np.isin(self.owner[n], own).all() for n in near], bool)
 
     def crowding(self, uv, cid, reach, ignore=()):
         """The edge other than ``cid`` (and ``ignore``) whose image lies within ``reach`` px of most of ``uv`` (None: none)."""
-        own = [self.ids.index(i) for i in (cid, *ignore) if i in self.ids]
+        own = self._indices((cid, *ignore))
         hits = [np.unique(self.owner[n]) for n in self.tree.query_ball_point(uv, reach)] if self.tree else []
-        others = np.concatenate([h[~np.isin(h, own)] for h in hits] + [np.zeros(0, int)])
-        return self.ids[int(np.bincount(others).argmax())] if len(others) else None
+        return self._most(np.concatenate([h[~np.isin(h, own)] for h in hits] + [np.zeros(0, int)]))[0]
 
     def nearest_other(self, uv, cid):
         """The edge other than ``cid`` whose image lies nearest to most of the points ``uv`` (None: no other)."""
-        k = self.ids.index(cid)
         _, j = self.tree.query(uv, k=min(16, len(self.owner)))
         own = self.owner[np.reshape(j, (len(uv), -1))]
-        other = own != k
+        other = own != self.ids.index(cid)
         rows = other.any(axis=1)
-        if not rows.any():
-            return None
-        first = own[rows, other[rows].argmax(axis=1)]
-        return self.ids[int(np.bincount(first).argmax())]
+        return self._most(own[rows, other[rows].argmax(axis=1)])[0]
+
+    def nearest(self, uv):
+        """The edge whose image lies nearest to most of the points ``uv``, and the share of them it is nearest to."""
+        _, j = self.tree.query(uv)
+        cid, n = self._most(self.owner[j])
+        return cid, n / len(uv)
+
+    def _indices(self, ids):
+        """Indices into ``ids`` of those of ``ids`` that have an image here."""
+        return [self.ids.index(i) for i in ids if i in self.ids]
+
+    def _most(self, owners):
+        """The edge most of ``owners`` (indices into ``ids``, each a point's vote) name, and its votes: (None, 0) if none.
+
+        Ties go to the edge first in ``ids``.
+        """
+        if not len(owners):
+            return None, 0
+        votes = np.bincount(owners)
+        k = int(votes.argmax())
+        return self.ids[k], int(votes[k])
 
 
 def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
@@ -529,10 +545,8 @@ def rims_along(stereo, unmatched, rims, images):
             uv = res.features[f3.left if side == 0 else f3.right].uv
             if crowds[side].tree is None or len(uv) == 0:
                 break
-            _, j = crowds[side].tree.query(uv)
-            owner = np.bincount(crowds[side].owner[j], minlength=len(crowds[side].ids))
-            cid = crowds[side].ids[int(owner.argmax())]
-            if cid not in rims or owner.max() <= RIM_SHARE * len(uv):
+            cid, share = crowds[side].nearest(uv)
+            if cid not in rims or share <= RIM_SHARE:
                 break
             poly = np.asarray(images[cid][side], float)
             poly = poly[np.isfinite(poly).all(axis=1)]
