@@ -278,18 +278,33 @@ def decided_together(views, inventory):
         return {}
     regs = [views[i].registration for i in placed]
     chars = [c.characteristic for c in views[0].characteristics]
-    todo = [k for k in range(len(chars)) if not any(_decides(p, k) for p in views)]
     fused = fuse([r.features_in_part_frame() for r in regs], inventory, registrations=regs)
+    todo = [k for k in range(len(chars)) if not any(_decides(p, k) for p in views) and _across_views(chars[k], fused)]
     evaluations, sources = evaluate_fused([chars[k] for k in todo], fused, regs, inventory)
     out = {}
     for k, ev, src in zip(todo, evaluations, sources):
         T = tolerance_width(chars[k])
-        if len(src) < 2 or ev.expanded_uncertainty is None or T is None:
+        if ev.expanded_uncertainty is None or T is None:
             continue
         U = float(ev.expanded_uncertainty)
         if math.isfinite(U) and U <= views[0].max_ratio * T:
             out[k] = (U, [placed[v] for v in src])
     return out
+
+
+def _across_views(c, fused):
+    """Whether the run evaluates characteristic ``c`` on two or more views of ``fused`` (:func:`~.fusion.fuse`).
+
+    Its features must all be combined, from two or more views between
+    them, and it must not be a form value, which is read in one view
+    (:func:`partinspect.tolerances.evaluate_fused.evaluate_fused`). Any
+    other is one view's measurement, which that view decides alone or not
+    at all.
+    """
+    from partinspect.tolerances.evaluate_fused import FORM_TYPES
+
+    fs = [fused.get(fid) for fid in c.features]
+    return c.type not in FORM_TYPES and all(f is not None for f in fs) and len({v for f in fs for v in f.views}) >= 2
 
 
 def plan_views(predict, start, center, max_views, *, step=30.0, tilts=(0.0, FLIP_TILT), inventory=None,

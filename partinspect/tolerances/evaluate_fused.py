@@ -37,7 +37,11 @@ from partinspect.tolerances.evaluate import (
 )
 from partinspect.tolerances.fusion import fused_cross_covariance
 
-__all__ = ["evaluate_fused", "pair_value"]
+__all__ = ["FORM_TYPES", "evaluate_fused", "pair_value"]
+
+FORM_TYPES = ("straightness", "circularity")
+"""Form values: read on one view's edge points (:func:`_form_evaluation`),
+never combined, as points are not merged across views."""
 
 
 def _rebuilt(kind, x, extent):
@@ -166,7 +170,7 @@ def evaluate_fused(characteristics, fused, registrations, inventory, *, k=COVERA
             continue
         views = sorted({v for f in fs for v in f.views})
         one = len(views) == 1
-        if c.type in ("straightness", "circularity") and not one:
+        if c.type in FORM_TYPES and not one:
             v, ev = _form_evaluation(c, fs[0], parts, registrations, inventory, k=k, seed=seed, n_mc=n_mc)
             evaluations.append(ev)
             used.append((v,))
