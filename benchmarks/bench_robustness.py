@@ -45,6 +45,7 @@ Usage::
     python3 benchmarks/bench_robustness.py                          # 100 plans, 30 inspections: hours
     python3 benchmarks/bench_robustness.py --n-plan 5 --n-inspect 3 --dir /tmp/robust
     python3 benchmarks/bench_robustness.py --dir /tmp/robust --summary   # tables from what is there
+    python3 benchmarks/bench_robustness.py --commands inspect --dir /tmp/robust   # the 30 renders only
 
 ``--dir`` keeps every part, output and result (one ``result.json`` per
 command run) and reuses them: an interrupted run continues where it
@@ -507,6 +508,9 @@ def _args():
                     help="seconds one command may take (default 1800)")
     ap.add_argument("--no-nist", action="store_true", help="leave the NIST files out")
     ap.add_argument("--summary", action="store_true", help="only print the tables from the results in --dir")
+    ap.add_argument("--commands", default="features,plan,inspect",
+                    help="the commands to run, of features, plan, inspect (default all); the others are passed "
+                         "over in their places, so every part keeps the pose and noise seed of the full run")
     return ap.parse_args()
 
 
@@ -517,7 +521,9 @@ def main():
     nist_dir = next((d for d in NIST_DIRS if d.is_dir()), None)
     nist = [] if args.no_nist or nist_dir is None else sorted(nist_dir.glob("*.stp")) + sorted(nist_dir.glob("*.step"))
     try:
-        n = max(args.n_plan, args.n_inspect)
+        commands = set(args.commands.split(","))
+        # Parts past the rendered ones only have features and plan jobs, after every rendered one's.
+        n = max(args.n_plan if commands & {"features", "plan"} else 0, args.n_inspect)
         if args.summary:
             found = sorted(base.glob("runs/*/*/result.json"))
             results = []
@@ -536,6 +542,8 @@ def main():
         results = []
         todo = jobs(parts, args.n_plan, args.n_inspect, nist)
         for k, job in enumerate(todo):
+            if job[2] not in commands:
+                continue
             for r in run_job(base, job, steps, args.timeout, args.seed * 100_000 + k):
                 results.append(r)
                 flag = " INTERNAL ERROR" if r["internal"] else (" TIMEOUT" if r["timeout"] else "")

@@ -404,7 +404,7 @@ def settle(inputs, stereo, registration, progress):
     try:
         # The pose is known: no new search (it is the expensive part).
         with inputs.timings.stage("registering"):
-            again = _register(more, inputs, registration.poses)
+            again = _register_again(more, inputs, registration)
     except InputError:
         return stereo, registration, seen
     return more, again, seen_at(again.part_to_camera)
@@ -521,7 +521,7 @@ def _at_band_places(characteristics, inputs, m, progress):
     if refitted or lines:
         try:
             with inputs.timings.stage("registering"):
-                m = replace(m, stereo=stereo, registration=_register(stereo, inputs, m.registration.poses))
+                m = replace(m, stereo=stereo, registration=_register_again(stereo, inputs, m.registration))
         except InputError:
             # Kept as measured before the moves: nothing was moved.
             refitted, lines = set(), set()
@@ -621,6 +621,19 @@ def _pose_hint(pose_hint, bounds, calib):
         return parse_pose(pose_hint, bounds, calib)
     except InputError as e:
         raise InputError(e.path, e.problem.replace("--pose", "--pose-hint")) from None
+
+
+def _register_again(stereo, inputs, registration):
+    """``stereo`` registered from ``registration``'s poses (no search), keeping what it said of the model's symmetry.
+
+    Started from the chosen pose, the registration sees none of the poses
+    the CAD model's own turns relate to it, so it cannot name them again;
+    they still explain the features equally well, the ones added since
+    included: the model, and so the images of its edges, map onto
+    themselves under those turns.
+    """
+    again = _register(stereo, inputs, registration.poses)
+    return replace(again, symmetry=again.symmetry or registration.symmetry)
 
 
 def _register(stereo, inputs, pose_hint=None):
