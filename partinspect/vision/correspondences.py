@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from partinspect.vision.edges import CURVATURE_SAMPLING_BIAS
-from partinspect.vision.fitting import ellipse_geometry
+from partinspect.vision.fitting import ellipse_curvature, ellipse_geometry
 from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE
 from partinspect.vision.psd import covariance_factor
 from partinspect.vision.triangulation import triangulate
@@ -122,11 +122,9 @@ def deblurred(xy, fit, blur):
     -------
     ndarray, shape (N, 2)
     """
-    xc, yc, a, b, th = fit.params
     phi = fit.phases
     _, n, _ = ellipse_geometry(xy, fit.params, phi)
-    sp, cp = np.sin(phi), np.cos(phi)
-    kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
+    kappa = ellipse_curvature(fit.params, phi)
     sin2phi_sq = 4.0 * (n[:, 0] * n[:, 1]) ** 2
     return xy + ((0.5 * blur * blur + CURVATURE_SAMPLING_BIAS * sin2phi_sq) * kappa)[:, None] * n
 

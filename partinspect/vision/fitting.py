@@ -59,6 +59,7 @@ __all__ = [
     "fit_circle",
     "fit_ellipse",
     "ellipse_points",
+    "ellipse_curvature",
     "line_kcr_bound",
     "ellipse_kcr_bound",
     "COVERAGE_95",
@@ -633,6 +634,17 @@ def fit_circle(xy, cov=None, *, corr_length=None, blur=None, max_iter=50, tol=1e
 
 # ---------------------------------------------------------------- ellipse
 
+def ellipse_curvature(params, phi):
+    """Curvature of the ellipse (xc, yc, a, b, theta) at phases phi, 1/px, shape (N,).
+
+    kappa = a b / (a^2 sin^2 phi + b^2 cos^2 phi)^(3/2), the curvature of
+    the parametric curve (a cos phi, b sin phi).
+    """
+    _, _, a, b, _ = params
+    sp, cp = np.sin(phi), np.cos(phi)
+    return a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
+
+
 def ellipse_points(params, phi):
     """Points (N, 2) of the ellipse (xc, yc, a, b, theta) at phases phi."""
     xc, yc, a, b, th = params
@@ -889,11 +901,8 @@ def fit_ellipses(jobs, max_iter=100, tol=1e-9, need_converged=False, with_cov=Tr
     for last in (False, True) if blurred else ():
         for k in blurred:
             f, blur = fits[k], jobs[k].blur
-            xc, yc, a, b, th = f.params
             _, n, _ = ellipse_geometry(jobs[k].xy, f.params, f.phases)
-            sp, cp = np.sin(f.phases), np.cos(f.phases)
-            kappa = a * b / (a * a * sp * sp + b * b * cp * cp) ** 1.5
-            xys[k] = jobs[k].xy + (0.5 * blur * blur * kappa)[:, None] * n
+            xys[k] = jobs[k].xy + (0.5 * blur * blur * ellipse_curvature(f.params, f.phases))[:, None] * n
             # The shift is a small fraction of a pixel: start from the fit
             # before it.
             p = _canonical(f.params)
