@@ -27,7 +27,7 @@ from partinspect.vision.contours import CLEARANCE, arc_length, end_runs
 from partinspect.vision.edges import BACKGROUND_DISTANCES
 from partinspect.vision.fitting import fit_line, line_with_covariance
 from partinspect.vision.ideal import IDEAL_FIELDS
-from partinspect.vision.imagefeatures import arc_stretch
+from partinspect.vision.imagefeatures import arc_stretch, at_points
 from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE, Match, line_angles
 from partinspect.vision.stereo import measure_pair_feature
 
@@ -101,14 +101,11 @@ def line_stretch(feature, keep, corr_length):
         coordinates, edge normals and shading bounds those at ``keep``; its
         fit (with covariance) that of those points alone.
     """
-    keep = np.asarray(keep, int)
-    ideal = feature.ideal.at(keep)
-    fit = line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False), ideal.xy,
-                               corr_length)
-    extra = {name: getattr(feature, name)[keep] for name in _LINE_POINT_FIELDS
-             if getattr(feature, name, None) is not None}
-    return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
-                   ideal=ideal, fit=fit, **extra)
+    def fit(ideal):
+        return line_with_covariance(fit_line(ideal.xy, ideal.cov, corr_length=corr_length, with_cov=False),
+                                    ideal.xy, corr_length)
+
+    return at_points(feature, keep, fit, _LINE_POINT_FIELDS)
 
 
 _LINE_POINT_FIELDS = ("edge_normal", "background_bound", "band_shift", "phase_factor")

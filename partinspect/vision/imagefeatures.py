@@ -62,6 +62,7 @@ __all__ = [
     "one_polarity",
     "point_polarity",
     "arc_stretch",
+    "at_points",
     "chauvenet_z",
     "OUTLIER_ALPHA",
     "OUTLIER_Z_MAX",
@@ -329,13 +330,7 @@ def _feature(t, edges):
     index = t.index[t.keep]
     uv, cov = edges.xy[index], edges.cov[index]
     blur = float(np.median(edges.width[index]))
-    # Edge normals point dark to bright: their component along the
-    # fit's normal (outward for arcs) tells each point's polarity.
-    if kind == "arc":
-        _, n_out, _ = ellipse_geometry(ideal.xy, fit.params, fit.phases)
-    else:
-        n_out = fit.normal[None, :]
-    along = np.einsum("ni,ni->n", n_out, ideal.normal)
+    along = _along_fit_normal(kind, ideal, fit)
     polarity = (1 if along.mean() > 0 else -1) if kind == "arc" else 0
     # Polarity per piece (the mean over its points), so that a stray
     # point does not make a feature mixed.
@@ -396,10 +391,8 @@ def _without_ripple(f, edges):
         worst = int(np.argmax(z))
         if z[worst] <= _outlier_threshold(z) or budget == 0:
             return g
-        keep = np.delete(np.arange(len(f.index)), worst)
-        ideal = f.ideal.at(keep)
-        f = replace(f, index=f.index[keep], uv=f.uv[keep], cov_uv=f.cov_uv[keep], ideal=ideal,
-                    fit=fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma))
+        f = at_points(f, np.delete(np.arange(len(f.index)), worst),
+                      lambda ideal: fit_line(ideal.xy, ideal.cov, corr_length=edges.sigma))
         budget -= 1
 
 
@@ -410,8 +403,16 @@ def point_polarity(f):
     outward normal at the point's foot, as :func:`_feature` reads the
     arc's polarity, shape (N,).
     """
-    _, n_out, _ = ellipse_geometry(f.ideal.xy, f.fit.params, f.fit.phases)
-    return np.sign(np.einsum("ni,ni->n", n_out, f.ideal.normal))
+    return np.sign(_along_fit_normal("arc", f.ideal, f.fit))
+
+
+def _along_fit_normal(kind, ideal, fit):
+    """Each point's edge normal (dark to bright) along its fit's normal (outward for arcs), shape (N,): its polarity's sign."""
+    if kind == "arc":
+        _, n_out, _ = ellipse_geometry(ideal.xy, fit.params, fit.phases)
+    else:
+        n_out = fit.normal[None, :]
+    return np.einsum("ni,ni->n", n_out, ideal.normal)
 
 
 def one_polarity(fl, fr, corr_length, min_points=6):
@@ -484,13 +485,35 @@ def arc_stretch(feature, keep, corr_length):
         points alone, from the whole arc's ellipse as start, without the
         smoothing-bias correction (as the chain fits arcs).
     """
+    return at_points(feature, keep, lambda ideal: fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length,
+                                                              start=feature.fit.params), _ARC_POINT_FIELDS)
+
+
+def at_points(feature, keep, fit, fields=()):
+    """A feature restricted to its points at positions ``keep`` and fitted again.
+
+    Parameters
+    ----------
+    feature : ImageFeature
+    keep : ndarray of int, shape (K,)
+        Positions of the kept points in the feature's point arrays.
+    fit : callable
+        ``fit(ideal)``: the new fit of the kept :class:`IdealPoints`.
+    fields : sequence of str
+        Further per point attributes (of an
+        :class:`partinspect.vision.stereo.EdgeFeature`) kept alike, those
+        the feature has.
+
+    Returns
+    -------
+    ImageFeature
+        Of the feature's type, its other attributes as they were.
+    """
     keep = np.asarray(keep, int)
     ideal = feature.ideal.at(keep)
-    fit = fit_ellipse(ideal.xy, ideal.cov, corr_length=corr_length, start=feature.fit.params)
-    per_point = {name: getattr(feature, name)[keep] for name in _ARC_POINT_FIELDS
-                 if getattr(feature, name, None) is not None}
+    per_point = {name: getattr(feature, name)[keep] for name in fields if getattr(feature, name, None) is not None}
     return replace(feature, index=feature.index[keep], uv=feature.uv[keep], cov_uv=feature.cov_uv[keep],
-                   ideal=ideal, fit=fit, **per_point)
+                   ideal=ideal, fit=fit(ideal), **per_point)
 
 
 _ARC_POINT_FIELDS = ("edge_normal", "background_offset", "background_bound", "background_std")
