@@ -22,7 +22,8 @@ than six independent constraints, or the refinement does not converge,
 features to the part frame to first order, their covariance including the
 pose's and, for datum features, their cross-covariance with the pose
 estimate [1]_; the covariance between two transformed features through the
-shared pose is :meth:`Registration.cross_covariance`.
+shared pose is :meth:`Registration.cross_covariance`, and between a
+transformed feature and the pose error :meth:`Registration.pose_covariance`.
 
 References
 ----------
@@ -286,6 +287,34 @@ class Registration:
             out = out + Aa @ Ka @ b.pose_jacobian.T
         if Kb is not None:
             out = out + a.pose_jacobian @ Kb.T @ Ab.T
+        return out
+
+    def pose_covariance(self, pf):
+        """Covariance between a PartFeature's parameters and the pose error ``xi``.
+
+        Parameters
+        ----------
+        pf : PartFeature
+            One of :meth:`features_in_part_frame`.
+
+        Returns
+        -------
+        ndarray, shape (len(pf.params), 6)
+            ``Cov(p, xi) = A K + B S``, part frame (mm and unit-vector
+            components against rad and mm): ``p = A m + B xi`` to first
+            order (:meth:`features_in_part_frame`), ``S`` the pose
+            covariance and ``K = Cov(m, xi)`` the measured rig parameters'
+            cross-covariance with the pose estimate, non-zero for a datum
+            (the pose was fitted to it) and through the calibration's shared
+            error [1]_. Together with ``pf.param_cov`` and ``S`` it is the
+            joint covariance of ``(p, xi)``, so the feature's error given
+            the pose is ``Cov(p, xi) S^-1 xi`` plus a part independent of
+            it (:func:`partinspect.tolerances.fusion.given_pose`).
+        """
+        out = pf.pose_jacobian @ self.pose_cov
+        K = self._pose_cross(pf.kind, pf.index)
+        if K is not None:
+            out = out + self._rig_to_part(pf.kind) @ K
         return out
 
     def calibration_part(self, pf):

@@ -21,6 +21,12 @@ out for that feature and named, and the test repeated. Of two views that
 disagree neither is more suspect by the test alone: the one the caller
 ranks lower (e.g. the worse registration fit) is left out.
 
+Whole views are tested before (:func:`consistent_view_set`): a view's pose
+error against the features it shares with the others, in the directions of
+its pose those features determine (:func:`view_motion`,
+:func:`motion_test`), each feature's error taken given the pose
+(:func:`given_pose`) [3]_ [5]_, and their residuals one by one [6]_.
+
 The consistent estimates are combined by generalised least squares,
 ``C = (sum C_v^-1)^-1``, ``y = C sum C_v^-1 y_v`` (:func:`combine`) [1]_;
 a circle's radius is weighted apart from its centre and axis
@@ -49,7 +55,21 @@ References
 ----------
 .. [1] Aitken, A. C. (1935). On least squares and linear combination of
        observations. Proc. Royal Society of Edinburgh 55, 42-48.
-.. [2] JCGM 100:2008 (GUM), 5.2: correlated input quantities.
+.. [2] JCGM 100:2008 (GUM), 5.2: correlated input quantities; JCGM
+       101:2008, 5.6 and 6: propagation of distributions, the first-order
+       (linear) law for a vector measurand.
+.. [3] Anderson, T. W. (2003). An Introduction to Multivariate Statistical
+       Analysis, 3rd ed., Wiley, theorem 2.5.1: the conditional
+       distribution of a multivariate normal vector.
+.. [4] Higham, N. J. (1988). Computing a nearest symmetric positive
+       semidefinite matrix. Linear Algebra and its Applications 103,
+       103-118.
+.. [5] Teunissen, P. J. G. (2000). Testing Theory: an Introduction. Delft
+       University Press, chapter 3: the generalised likelihood ratio test of
+       a hypothesis of q dimensions, chi-square on q degrees of freedom.
+.. [6] Baarda, W. (1968). A Testing Procedure for Use in Geodetic Networks.
+       Netherlands Geodetic Commission, Publications on Geodesy 2(5): data
+       snooping, one observation at a time, worst first.
 """
 
 from __future__ import annotations
@@ -63,7 +83,8 @@ from partinspect.frames import orthonormal_frame
 from partinspect.tolerances.evaluate import pick_feature
 
 __all__ = ["SIGNIFICANCE", "VIEW_P", "SIZE_APART", "FusedFeature", "reduce", "expand", "combine",
-           "consistent_views", "view_motion", "consistent_view_set", "fuse_feature", "fuse", "fused_cross_covariance"]
+           "consistent_views", "DETERMINED", "given_pose", "pose_information",
+           "motion_test", "view_motion", "consistent_view_set", "fuse_feature", "fuse", "fused_cross_covariance"]
 
 SIGNIFICANCE = 0.99
 """Probability that a consistent view passes the test (per view and feature)."""
@@ -348,38 +369,186 @@ views, or its features' disagreement with theirs, is less likely than this
 by chance; a feature within a view is an outlier of that motion below it."""
 
 
-def _without_pose(C, B, S):
-    """A feature's covariance less its view's pose part ``B S B^T``, floored positive.
+DETERMINED = 1.0
+"""A direction of a view's pose is tested when the features it shares with
+the other views carry at least this much information on it, in units of
+the pose's own (:func:`pose_information`): the motion they fit in that
+direction is then known at least as well as the registration knows the
+pose, so a pose error of one standard deviation there adds at least half a
+unit to its chi-square. Below it, the fit's own scatter dominates: testing
+there adds degrees of freedom that carry noise rather than the pose's error
+and dilutes a real error in the directions that are determined."""
 
-    The pose's cross terms with the feature can leave the difference
-    slightly indefinite: its eigenvalues are floored at 1e-3 of the largest.
+
+def given_pose(cov, cross, pose_cov):
+    """A feature's error split into its response to its view's pose error and a part independent of it.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (n, n)
+        Covariance of the feature's parameters (the pose's part included).
+    cross : ndarray, shape (n, 6)
+        Their covariance with the pose error ``xi``
+        (:meth:`~partinspect.cad.registration.Registration.pose_covariance`,
+        in the same parameters).
+    pose_cov : ndarray, shape (6, 6)
+        ``S = Cov(xi)``, rad and mm.
+
+    Returns
+    -------
+    response : ndarray, shape (n, 6)
+        ``G = Cov(p, xi) S^-1``: the error's expectation given ``xi`` is
+        ``G xi``.
+    rest_cov : ndarray, shape (n, n)
+        ``cov - G Cov(p, xi)^T``, the covariance of what is left,
+        independent of ``xi``.
+
+    Notes
+    -----
+    The conditional distribution of jointly normal errors [3]_: with
+    ``(p, xi)`` of joint covariance ``[[cov, cross], [cross^T, S]]``, ``p``
+    given ``xi`` has mean ``cross S^-1 xi`` and covariance the Schur
+    complement, positive semi-definite when the joint covariance is. For a
+    datum (the pose was fitted to it) ``G`` is not the motion's effect
+    ``B``: its part-frame value is its registration residual, uncorrelated
+    with the pose estimate, so ``G`` is near nil; ``cov - B S B^T`` is not
+    its covariance given the pose and can be indefinite [2]_.
+
+    The joint covariance is not exactly positive semi-definite: the pose
+    fit weights a datum by its point's (centre's) and axis's covariances
+    apart (:mod:`partinspect.cad.pose_refine`), so ``Cov(p, xi)`` is that
+    of a fit that left out the correlations between the blocks, while
+    ``cov`` keeps them. The Schur complement is then projected onto the
+    positive semi-definite cone in the feature's parameters scaled by
+    ``cov``'s diagonal (so that mm and slopes compare): its negative
+    eigenvalues set to zero, the nearest such matrix in the Frobenius norm
+    [4]_.
     """
-    w, V = np.linalg.eigh(0.5 * (C - B @ S @ B.T + (C - B @ S @ B.T).T))
-    return (V * np.maximum(w, 1e-3 * w.max())) @ V.T
+    response = np.linalg.solve(pose_cov, cross.T).T
+    rest = cov - response @ cross.T
+    scale = np.sqrt(np.diag(cov))
+    w, V = np.linalg.eigh(0.5 * (rest + rest.T) / np.outer(scale, scale))
+    rest = (V * np.maximum(w, 0.0)) @ V.T * np.outer(scale, scale)
+    return response, rest
 
 
-def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_P):
-    """The rigid motion between one view and the others, from the features they share, and its test.
+def pose_information(responses, covs, pose_cov):
+    """What features that respond to a view's pose error tell of it, direction by direction.
+
+    Parameters
+    ----------
+    responses : sequence of ndarray, shape (n_f, 6)
+        Per feature, ``G_f`` (:func:`given_pose`).
+    covs : sequence of ndarray, shape (n_f, n_f)
+        Per feature, the covariance of its difference's part independent of
+        the pose error (its own less the pose's, plus the other views').
+    pose_cov : ndarray, shape (6, 6)
+        ``S``.
+
+    Returns
+    -------
+    info : ndarray, shape (6,)
+        Eigenvalues, ascending, of the information matrix of the pose error
+        whitened by ``S`` (``xi = L z``, ``S = L L^T``):
+        ``F = L^T (sum G_f^T E_f^-1 G_f) L``. ``info >= 1``: the features
+        know that direction at least as well as ``S`` does.
+    directions : ndarray, shape (6, 6)
+        Columns ``u_i``, whitened, orthonormal.
+    whiten : ndarray, shape (6, 6)
+        ``L``.
+
+    Notes
+    -----
+    The eigenvalues are those of ``A S`` (``A = sum G^T E^-1 G``), whatever
+    square root of ``S`` is taken. Weighted least squares in the whitened
+    pose error, first order (JCGM 100 5.2, JCGM 101 for the propagation
+    [2]_).
+    """
+    L = np.linalg.cholesky(pose_cov)
+    F = sum((G @ L).T @ np.linalg.solve(E, G @ L) for G, E in zip(responses, covs))
+    info, U = np.linalg.eigh(0.5 * (F + F.T))
+    return info, U, L
+
+
+def motion_test(diffs, responses, covs, pose_cov, threshold=DETERMINED):
+    """A view's pose error tested in the directions its shared features determine; their residuals.
+
+    Parameters
+    ----------
+    diffs : sequence of ndarray, shape (n_f,)
+        Per shared feature, the view's minimal parameters less the other
+        views' combination.
+    responses, covs, pose_cov
+        As :func:`pose_information`.
+    threshold : float
+        Least information for a direction to be tested (``DETERMINED``).
+
+    Returns
+    -------
+    dict
+        ``chi2``, ``dof`` (directions tested, 0 to 6), ``info`` (the
+        information in each of the six directions, ascending), ``motion`` (the fitted pose error in
+        those directions, ``xi``, shape (6,)), ``residuals`` (per feature
+        ``(r_f, N_f)``: its difference less the motion's effect and that
+        residual's covariance).
+
+    Notes
+    -----
+    The model is ``d_f = G_f xi + e_f``, ``xi = L z`` with ``z`` of unit
+    covariance when the view's pose is as stated, ``e_f`` independent of it
+    with covariance ``E_f``. With ``F = U diag(info) U^T`` and
+    ``g = U^T sum (G_f L)^T E_f^-1 d_f``, ``g_i`` has variance
+    ``info_i (1 + info_i)`` and the ``g_i`` are uncorrelated, so
+    ``chi2 = sum g_i^2 / (info_i (1 + info_i))`` over the ``dof`` tested
+    directions is chi-square on ``dof`` [5]_. Over all six directions it is
+    ``delta^T (S + A^-1)^-1 delta`` of the unrestricted fit; a direction of
+    small ``info`` adds a degree of freedom whose term is mostly the fit's
+    noise. The motion is subtracted in the tested directions only; in the
+    others it stays part of each residual's covariance at its prior,
+    ``N_f = E_f + G_f L U_o U_o^T L^T G_f^T``. Each residual is judged
+    against ``N_f``, its covariance were the motion known (the fit's
+    leverage, which makes a residual smaller, is left out: with many
+    features it is small, and it makes the test lenient, not strict) [6]_.
+    """
+    info, U, L = pose_information(responses, covs, pose_cov)
+    tested = info >= threshold
+    Ws = [G @ L for G in responses]
+    g = U.T @ sum(W.T @ np.linalg.solve(E, d) for W, E, d in zip(Ws, covs, diffs))
+    chi2 = float(np.sum(g[tested] ** 2 / (info[tested] * (1.0 + info[tested]))))
+    Ut, Uo = U[:, tested], U[:, ~tested]
+    z = Ut @ (g[tested] / info[tested])
+    residuals = [(d - W @ z, E + (W @ Uo) @ (W @ Uo).T) for W, E, d in zip(Ws, covs, diffs)]
+    return {"chi2": chi2, "dof": int(tested.sum()), "info": info, "motion": L @ z, "residuals": residuals}
+
+
+def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_P, threshold=DETERMINED):
+    """One view's pose against the others, from the features they share, and its features' residuals.
 
     Each shared feature's difference ``d_f`` (view ``v``'s minimal
     parameters less the other views' combination) is modelled as
-    ``B_f delta + e_f``: ``delta`` a small motion of view v's part frame
-    (its pose error, 6 parameters as in :mod:`partinspect.cad.pose_refine`),
-    ``B_f`` the feature's response to it, ``e_f`` its own and the others'
-    errors. ``delta`` is the weighted least-squares fit; features whose
-    residual is less likely than ``p_outlier`` are left out one by one (a
-    rim the model misjudges must not pass for a moved view). A view that is
-    right has ``delta`` within its pose covariance ``S`` plus the fit's:
-    ``chi2 = delta^T (S + (B^T E^-1 B)^-1)^-1 delta`` on 6 degrees of freedom.
+    ``G_f xi + e_f``: ``xi`` the view's pose error (6 parameters as in
+    :mod:`partinspect.cad.pose_refine`), ``G_f`` its feature's error's
+    response to it given the registration (:func:`given_pose`) and ``e_f``
+    the rest of its error and the others', independent of ``xi``. The pose
+    error is tested only in the directions the shared features determine
+    (:func:`motion_test`, ``threshold``): a datum's part-frame value is its
+    registration residual, uncorrelated with the pose (``G`` near nil), so a
+    view whose shared features are all its datums has no direction tested
+    and its motion is not fitted at all; its features are then judged as
+    residuals. Features whose residual is less likely than ``p_outlier``
+    are left out one by one, worst first, and the test repeated (a rim the
+    model misjudges must not pass for a moved view).
 
     Returns
     -------
     dict or None
-        ``chi2``, ``p``, ``shared`` (features), ``outliers`` (their ids);
-        None with fewer than 3 shared features.
+        ``chi2``, ``dof`` (directions tested), ``p`` (1 when none is),
+        ``info`` (the information in each direction, :func:`motion_test`), ``shared`` (features), ``outliers``
+        (their ids); None with fewer than 3 shared features.
     """
     from scipy.special import chdtrc
 
+    S = registrations[v].pose_cov
     rows = []
     for f in inventory.features:
         mine = pick_feature(view_parts[v], f.id)
@@ -389,38 +558,33 @@ def view_motion(v, others, view_parts, registrations, inventory, p_outlier=VIEW_
         y, J, C = _reduced(mine, f)
         reds = [_reduced(p, f) for p in theirs]
         y_o, C_o, _ = combine([r[0] for r in reds], [r[2] for r in reds])
-        B = J @ mine.pose_jacobian
-        rows.append((f.id, y - y_o, B, _without_pose(C + C_o, B, registrations[v].pose_cov)))
+        G, rest = given_pose(C, J @ registrations[v].pose_covariance(mine), S)
+        rows.append((f.id, y - y_o, G, rest + C_o))
     if len(rows) < 3:
         return None
-    S = registrations[v].pose_cov
     keep = list(range(len(rows)))
     while True:
-        A = sum(rows[i][2].T @ np.linalg.solve(rows[i][3], rows[i][2]) for i in keep)
-        delta = np.linalg.solve(A, sum(rows[i][2].T @ np.linalg.solve(rows[i][3], rows[i][1]) for i in keep))
-        tests = []
-        for i in keep:
-            r = rows[i][1] - rows[i][2] @ delta
-            tests.append((float(chdtrc(len(r), r @ np.linalg.solve(rows[i][3], r))), i))
+        t = motion_test(*([rows[i][k] for i in keep] for k in (1, 2, 3)), S, threshold)
+        tests = [(float(chdtrc(len(r), r @ np.linalg.solve(N, r))), i) for (r, N), i in zip(t["residuals"], keep)]
         p, worst = min(tests)
         if p >= p_outlier or len(keep) <= 3:
             break
         keep.remove(worst)
-    chi2 = float(delta @ np.linalg.solve(S + np.linalg.inv(A), delta))
-    return {"chi2": chi2, "p": float(chdtrc(6, chi2)), "shared": len(rows),
-            "outliers": [rows[i][0] for i in range(len(rows)) if i not in keep]}
+    return {"chi2": t["chi2"], "dof": t["dof"], "p": float(chdtrc(t["dof"], t["chi2"])) if t["dof"] else 1.0,
+            "info": t["info"], "shared": len(rows), "outliers": [rows[i][0] for i in range(len(rows)) if i not in keep]}
 
 
 def consistent_view_set(view_parts, registrations, inventory, rank=None, p_min=VIEW_P):
     """The views that agree with the others as rigid bodies; the others left out, worst first, with the reason.
 
-    A view is left out when :func:`view_motion` finds it moved beyond chance
-    (``p < p_min``) or more than half of the features it shares with the
-    others disagree with theirs even after that motion (a bumped camera
-    deforms what it measures, not only moves it). The worst view goes first
-    (largest chi-square, then most outliers) and the rest are tested again
-    without it: one bad view makes the others look bad against it. Of two
-    views that disagree, the one ranked lower goes.
+    A view is left out when :func:`view_motion` finds its pose moved beyond
+    chance (``p < p_min``) in the directions the shared features determine,
+    or more than half of the features it shares with the others disagree
+    with theirs (a bumped camera deforms what it measures, not only moves
+    it). The worst view goes first (least ``p``, then the largest share of
+    outliers) and the rest are tested again without it: one bad view makes
+    the others look bad against it. Of two views that disagree, the one
+    ranked lower goes.
 
     Parameters
     ----------
@@ -434,7 +598,7 @@ def consistent_view_set(view_parts, registrations, inventory, rank=None, p_min=V
     -------
     kept : list of int
     rejected : list of dict
-        ``{"view", "chi2", "p", "reason"}``.
+        ``{"view", "chi2", "dof", "p", "reason"}``.
     """
     kept = list(range(len(view_parts)))
     rank = {v: v for v in kept} if rank is None else rank
@@ -444,7 +608,7 @@ def consistent_view_set(view_parts, registrations, inventory, rank=None, p_min=V
         for v in kept:
             t = view_motion(v, [u for u in kept if u != v], view_parts, registrations, inventory)
             if t is not None and (t["p"] < p_min or 2 * len(t["outliers"]) > t["shared"]):
-                tests.append((t["chi2"], len(t["outliers"]), v, t))
+                tests.append((-t["p"], len(t["outliers"]) / t["shared"], v, t))
         if not tests:
             break
         _, _, v, t = max(tests)
@@ -453,12 +617,13 @@ def consistent_view_set(view_parts, registrations, inventory, rank=None, p_min=V
             t = next((x for *_, u, x in tests if u == v), t)
         p_text = f"p = {t['p']:.1e}" if t["p"] >= 1e-12 else "p < 1e-12"
         moved = f"moved against {'the one other view' if len(kept) == 2 else 'the others'} beyond chance " \
-                f"(chi-square {t['chi2']:.1f} on 6 degrees of freedom, {p_text})"
+                f"(chi-square {t['chi2']:.1f} on the {t['dof']} directions of its pose the shared features " \
+                f"determine, {p_text})"
         split = f"{len(t['outliers'])} of the {t['shared']} features it shares with them disagree"
         why = (f"{moved}; {split}" if t["p"] < p_min else split) + ": a camera moved since calibrating, or a wrong pose"
         if len(kept) == 2:
             why += "; of the two, this view ranks lower"
-        rejected.append({"view": v, "chi2": t["chi2"], "p": t["p"], "reason": why})
+        rejected.append({"view": v, "chi2": t["chi2"], "dof": t["dof"], "p": t["p"], "reason": why})
         kept.remove(v)
     return kept, rejected
 

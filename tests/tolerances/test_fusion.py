@@ -9,7 +9,17 @@ from partinspect.cad.registration import register
 from partinspect.poses import turned_pose
 from partinspect.simulate.measured import measure_features
 from partinspect.tolerances.evaluate_fused import evaluate_fused, pair_value
-from partinspect.tolerances.fusion import combine, consistent_views, expand, fuse, reduce
+from partinspect.tolerances.fusion import (
+    VIEW_P,
+    combine,
+    consistent_views,
+    expand,
+    fuse,
+    motion_test,
+    pose_information,
+    reduce,
+    view_motion,
+)
 from partinspect.tolerances.geometry import feature_distance
 from partinspect.tolerances.resolve import Characteristic
 
@@ -246,3 +256,62 @@ def test_a_form_is_judged_in_the_view_that_judges_it_best(plate):
     single = [evaluate_characteristic(c, r.features_in_part_frame(), r, inv, n_mc=200) for r in regs]
     assert used == (1,) and single[1].standard_uncertainty < 0.5 * single[0].standard_uncertainty
     assert ev.standard_uncertainty == pytest.approx(single[1].standard_uncertainty)
+
+
+def _partly_determined(rng, n=12):
+    """A pose covariance and 12 features of 4 parameters that see the whitened pose error strongly in 2 directions
+    (information about 200 each) and weakly in the 4 others (under 0.1), unit covariance apart from the pose."""
+    A = rng.standard_normal((6, 6))
+    S = 1e-6 * (A @ A.T + np.eye(6))
+    L = np.linalg.cholesky(S)
+    Q, _ = np.linalg.qr(rng.standard_normal((6, 6)))
+    responses = [(2.0 * rng.standard_normal((4, 2)) @ Q[:, :2].T + 0.02 * rng.standard_normal((4, 6)))
+                 @ np.linalg.inv(L) for _ in range(n)]
+    return S, L, Q, responses, [np.eye(4)] * n
+
+
+def test_the_motion_is_tested_in_the_directions_the_shared_features_determine():
+    """A view's pose error tested only where the shared features know it at least as well as its own covariance:
+    2 of 6 directions here. Right views: the statistic is chi-square on 2 (mean 2, refused at VIEW_P's rate). A pose
+    5 u off in a determined direction (non-centrality 24.9): refused with probability 0.92 on 2 degrees of freedom,
+    0.78 if all six directions are tested as before (the same statistic over all six); 5 u off in an undetermined
+    direction: not refused (the features cannot see it)."""
+    from scipy.special import chdtrc
+
+    rng = np.random.default_rng(39)
+    S, L, Q, responses, covs = _partly_determined(rng)
+    info, _, _ = pose_information(responses, covs, S)
+    assert (info >= 1).sum() == 2 and info[-2] > 100 and info[:4].max() < 0.1
+
+    def refused(offset, threshold, n):
+        out = []
+        for _ in range(n):
+            xi = L @ (rng.standard_normal(6) + offset)
+            t = motion_test([G @ xi + rng.standard_normal(4) for G in responses], responses, covs, S, threshold)
+            out.append((t["chi2"], t["dof"], chdtrc(t["dof"], t["chi2"]) < VIEW_P))
+        return out
+
+    right = refused(np.zeros(6), 1.0, 1000)
+    assert {d for _, d, _ in right} == {2}
+    assert 1.75 < np.mean([c for c, _, _ in right]) < 2.25  # chi-square on 2: mean 2, its sd over 1000 draws 0.063
+    assert np.mean([r for *_, r in right]) < 0.005
+    new = np.mean([r for *_, r in refused(5 * Q[:, 0], 1.0, 300)])
+    six = np.mean([r for *_, r in refused(5 * Q[:, 0], 0.0, 300)])
+    assert new > 0.85 and new - six > 0.07, (new, six)  # expected 0.92 and 0.78 (binomial sd 0.016 and 0.024)
+    assert np.mean([r for *_, r in refused(5 * Q[:, 4], 1.0, 300)]) < 0.01
+
+
+def test_a_view_whose_shared_features_are_all_its_datums_has_no_motion_to_test(plate):
+    """On the plate every feature a view shares with the others is a datum of its pose: its part-frame value is
+    its registration residual, uncorrelated with the pose estimate, so the features tell nothing of the pose error
+    (information below 0.05 of the pose's own in every direction) and no motion is fitted or tested."""
+    inv = plate[0]
+    regs = _views(plate, [(0, 0, 0), (0, 0, 25), (0, 0, -25)], np.random.default_rng(12))
+    parts = [r.features_in_part_frame() for r in regs]
+    for v in range(3):
+        shared = [pf for pf in parts[v] if pf.cad_id and any(q.cad_id == pf.cad_id for u in range(3) if u != v
+                                                             for q in parts[u])]
+        assert len(shared) >= 3 and all(pf.datum for pf in shared)
+        t = view_motion(v, [u for u in range(3) if u != v], parts, regs, inv)
+        assert t["info"].max() < 0.05, t["info"]
+        assert t["dof"] == 0 and t["p"] == 1.0 and not t["outliers"]
