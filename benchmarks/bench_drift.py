@@ -1,7 +1,10 @@
 """A drifted rig: the sample parts inspected with a stated calibration that no longer fits the images.
 
 The bundled pairs (``examples/*/images``, rendered with the exact rig of
-their ``calibration.yaml``), or a NIST part rendered once the way
+their ``calibration.yaml``: one noise draw each), with ``--seeds N`` the
+sample parts rendered at the bundled pose and rig with ``N`` noise seeds
+(noise 2, 2448 x 2048, ``inspect render --seed`` 101, 102, ...; the rays
+cast once and kept in ``--dir``), or a NIST part rendered once the way
 ``bench_stress.py`` renders it (framed on one of its holes, noise 2,
 ``NIST_VIEW``, or the part's own view in ``NIST_FRAMING``; ``--size``),
 are inspected with that calibration moved as a rig drifts after
@@ -30,10 +33,20 @@ from the part's circles (``inspect --refine-rig``), and the row adds the
 refinement's rotation correction, deg, and its joint chi-square against the
 stated calibration.
 
+Those rows are printed per inspection without ``--seeds`` (or with
+``--verbose``). After each part and kind, the runs are pooled per drift
+level over the pairs, the exact calibration apart from the drawn ones:
+runs (stopped), features and circles measured (mean, min), false accepts,
+and per characteristic type within +-U and the RMS of err/u; then every
+characteristic outside +-U in more than half of the runs that judged it,
+with its err/u in each pair's runs. Last, the drawn calibrations' runs
+pooled over parts and pairs per kind and level.
+
 Usage::
 
     python3 benchmarks/bench_drift.py                         # plate and bracket, both kinds, 0-2 px
     python3 benchmarks/bench_drift.py --parts plate --kinds shift --levels 0,0.5,2
+    python3 benchmarks/bench_drift.py --seeds 4 --draws 2 --levels 0,1,2 --dir /tmp/drift-seeds
     python3 benchmarks/bench_drift.py --parts plate --kinds roll --levels 1 --draws 1 --refine-rig
     python3 benchmarks/bench_drift.py --parts ftc_09 --kinds roll --levels 0,0.5,1,2 --draws 1
 """
@@ -200,14 +213,14 @@ def row(report, truth, true_res):
     if rr is not None:
         out["rig"] = (f"rig {rr['rotation_correction_deg']:.5f} deg, chi2 {rr['chi_square']:.1f}/{rr['dof']}"
                       if rr["refined"] else f"rig not refined: {rr['reason']}")
-    cover, z = defaultdict(list), defaultdict(list)
+    judged = []
     false_accepts = 0
     for c in report["characteristics"]:
         tv = true_value(c, truth)
         if tv is None or c["measured"] is None:
             continue
-        cover[c["type"]].append(abs(c["measured"] - tv) <= c["expanded_uncertainty"])
-        z[c["type"]].append((c["measured"] - tv) / c["standard_uncertainty"])
+        judged.append((c["type"], c["id"], abs(c["measured"] - tv) <= c["expanded_uncertainty"],
+                       (c["measured"] - tv) / c["standard_uncertainty"]))
         lo, up = c.get("lower_limit"), c.get("upper_limit")
         outside = (lo is not None and tv < lo) or (up is not None and tv > up)
         false_accepts += int(c["decision"] == "pass" and outside)
@@ -217,10 +230,8 @@ def row(report, truth, true_res):
             continue
         e = np.asarray(m["center"], float) - np.asarray(t["rendered"]["center"], float)
         d2 = float(e @ np.linalg.solve(np.asarray(m["covariance"], float), e))
-        cover["centre"].append(d2 <= CHI2_3)
-        z["centre"].append(np.sqrt(d2 / 3.0))
-    out["cover"] = {t: (sum(v), len(v)) for t, v in cover.items()}
-    out["z_rms"] = {t: float(np.sqrt(np.mean(np.square(v)))) for t, v in z.items()}
+        judged.append(("centre", f"{f['id']}.centre", d2 <= CHI2_3, np.sqrt(d2 / 3.0)))
+    out["judged"] = judged
     out["false_accepts"] = false_accepts
     return out
 
@@ -234,6 +245,96 @@ def field_text(r):
     return f"; field: at pp {a:+.3f} +- {ua:.3f} (true {ta:+.3f}), slope {b:+.3f} +- {ub:.3f} (true {1000 * tb:+.3f})/1000 px"
 
 
+def by_type(judged):
+    """{type: (within +-U, judged, RMS of err/u)} of ``(type, id, inside, z)`` tuples (:func:`row`)."""
+    out = {}
+    for t in sorted({j[0] for j in judged}):
+        v = [j for j in judged if j[0] == t]
+        out[t] = (sum(j[2] for j in v), len(v), float(np.sqrt(np.mean([j[3] ** 2 for j in v]))))
+    return out
+
+
+def types_text(judged):
+    """``type within/n (z RMS)`` per type, comma separated."""
+    return ", ".join(f"{t} {a}/{n} ({z:.2f})" for t, (a, n, z) in by_type(judged).items())
+
+
+def run_text(d, name, pair, r, dt):
+    """One inspection's printed row (``--verbose``)."""
+    if "features" not in r:
+        return f"{d:8.2f} {name:>11} {pair:>9} {r['true_res']:9.3f}   run stopped: {r['message']}"
+    est = "-" if r["est"] is None else f"{r['est']:9.3f}"
+    u = "-" if r["u"] is None else f"{r['u']:7.3f}"
+    spread = "-" if r["spread"] is None else f"{r['spread']:6.3f}"
+    return (f"{d:8.2f} {name:>11} {pair:>9} {r['true_res']:9.3f} {r['true_measured']:8.3f} {est:>9} {u:>7} "
+            f"{spread:>6} {r['verdict'] or '-':>12} "
+            f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types_text(r['judged'])}"
+            + (f"; {r['rig']}" if "rig" in r else "") + field_text(r))
+
+
+def pooled_text(rows):
+    """Runs pooled: runs (stopped), features and circles measured (mean, min), false accepts, per type."""
+    done = [r for r in rows if "features" in r]
+    if not done:
+        return f"{len(rows):4d} runs, every one stopped"
+    f = [r["features"] for r in done]
+    c = [r["circles"] for r in done]
+    return (f"{len(rows):4d} ({len(rows) - len(done)}) {np.mean(f):6.1f} ({min(f):2d}) {np.mean(c):5.1f} ({min(c):2d}) "
+            f"{sum(r['false_accepts'] for r in done):5d}  {types_text([j for r in done for j in r['judged']])}")
+
+
+def often_outside(runs, share=0.5):
+    """Characteristics outside +-U in more than ``share`` of the runs that judged them, with each pair's z.
+
+    ``runs``: (pair, row) tuples. Returns ``[(id, outside, judged, {pair: [z, ...]})]``.
+    """
+    seen = defaultdict(list)
+    for pair, r in runs:
+        for _, cid, inside, z in r.get("judged", ()):
+            seen[cid].append((pair, inside, z))
+    out = []
+    for cid, v in sorted(seen.items()):
+        bad = sum(not inside for _, inside, _ in v)
+        if bad > share * len(v):
+            zs = defaultdict(list)
+            for pair, _, z in v:
+                zs[pair].append(z)
+            out.append((cid, bad, len(v), dict(zs)))
+    return out
+
+
+def seed_pairs(part, seeds, work, size=(2448, 2048), noise=2.0):
+    """``part``'s pair at its bundled pose and rig, one per noise seed: ([(label, images folder)], truth).
+
+    The rays are cast once (:func:`bench_views.radiance`, cached in
+    ``work``); seed ``s``'s pair is what ``inspect render --seed s`` senses
+    from them (the left image's noise drawn first), written with the exact
+    rig's calibration.yaml.
+    """
+    import cv2
+
+    from bench_views import radiance
+    from partinspect.simulate.render import sensor
+    from partinspect.vision.calibration import write_calibration
+
+    left, right, rig, truth = radiance(part, 0, (0.0, 0.0, 0.0), size, work)
+    pairs = []
+    for s in range(SEED0, SEED0 + seeds):
+        folder = work / f"{part}-{size[0]}x{size[1]}-noise{noise:g}-seed{s}"
+        if not (folder / "calibration.yaml").is_file():
+            folder.mkdir(parents=True, exist_ok=True)
+            rng = np.random.default_rng(s)
+            for name, img in (("left.png", left), ("right.png", right)):
+                cv2.imwrite(str(folder / name), sensor(img, noise, rng))
+            write_calibration(folder / "calibration.yaml", rig)
+        pairs.append((f"seed {s}", folder))
+    return pairs, truth
+
+
+SEED0 = 101
+"""The first noise seed of ``--seeds`` (the bundled pairs are ``inspect render --seed 1``)."""
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--parts", default="plate,bracket",
@@ -241,60 +342,66 @@ def main():
     ap.add_argument("--kinds", default="shift,roll")
     ap.add_argument("--levels", default="0,0.25,0.5,1,2")
     ap.add_argument("--draws", type=int, default=3, help="calibrations drawn as a board session states them")
+    ap.add_argument("--seeds", type=int, default=0,
+                    help="plate and bracket: render N noise draws at the bundled pose (0: the bundled pair)")
+    ap.add_argument("--verbose", action="store_true", help="print every inspection's row (always without --seeds)")
     ap.add_argument("--refine-rig", action="store_true", help="inspect with --refine-rig")
     ap.add_argument("--size", default="2448x2048", help="a NIST part's render size (the sample parts' pairs are bundled)")
-    ap.add_argument("--dir", help="keep a NIST part's render here (reused when there)")
+    ap.add_argument("--dir", help="keep renders here (reused when there): a NIST part's, or --seeds' pairs")
     args = ap.parse_args()
     from partinspect.simulate.calibration import simulated_calibration
     from partinspect.vision.calibration import read_calibration
 
     levels = [float(v) for v in args.levels.split(",")]
-    pooled = defaultdict(lambda: defaultdict(list))
+    verbose = args.verbose or args.seeds == 0
+    pooled = defaultdict(list)
     size = tuple(int(v) for v in args.size.split("x"))
     with tempfile.TemporaryDirectory() as tmp:
         for part in args.parts.split(","):
             step, images, truth, tolerances = part_inputs(part, args.dir or tmp, size)
-            calib = read_calibration(images)
+            pairs = [("bundled", images)]
+            if args.seeds and part in ("plate", "bracket"):
+                pairs, truth = seed_pairs(part, args.seeds, Path(args.dir or tmp))
+            calib = read_calibration(pairs[0][1])
             stated0 = [("exact", calib)] + [
                 (f"draw {k}", simulated_calibration(calib, np.random.default_rng(k))) for k in range(args.draws)]
             for kind in args.kinds.split(","):
-                print(f"\n== {part}, drift {kind}")
-                print(f"{'drift px':>8} {'calibration':>11} {'true res':>9} {'measured':>8} {'estimate':>9} {'u':>7} {'spread':>6} "
-                      f"{'verdict':>12} "
-                      f"{'features':>8} {'circles':>7} {'false acc':>9} {'s':>5}  coverage / z RMS per type")
+                print(f"\n== {part}, drift {kind}, {len(pairs)} pair(s)", flush=True)
+                if verbose:
+                    print(f"{'drift px':>8} {'calibration':>11} {'pair':>9} {'true res':>9} {'measured':>8} {'estimate':>9} "
+                          f"{'u':>7} {'spread':>6} {'verdict':>12} "
+                          f"{'features':>8} {'circles':>7} {'false acc':>9} {'s':>5}  coverage / z RMS per type")
+                runs = defaultdict(list)
                 for d in levels:
                     for name, base in stated0:
                         stated = stated_calibration(base, kind, d)
-                        t0 = time.perf_counter()
-                        report, message = inspect(step, images, stated, Path(tmp) / f"{part}-{kind}-{d}-{name}",
-                                                  tolerances, args.refine_rig)
-                        r = row(report, truth, true_residual(calib, stated, truth))
-                        if report is not None:
-                            ids = {f["id"] for f in report["features"] if f["measured"]}
-                            r["true_measured"] = true_residual(calib, stated, truth, ids)
-                            r["true_field"] = true_field(calib, stated, truth, ids)
-                        dt = time.perf_counter() - t0
-                        if report is None:
-                            print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f}   run stopped: {message}")
-                            continue
-                        types = ", ".join(f"{t} {a}/{n} ({r['z_rms'][t]:.2f})" for t, (a, n) in sorted(r["cover"].items()))
-                        est = "-" if r["est"] is None else f"{r['est']:9.3f}"
-                        u = "-" if r["u"] is None else f"{r['u']:7.3f}"
-                        spread = "-" if r["spread"] is None else f"{r['spread']:6.3f}"
-                        print(f"{d:8.2f} {name:>11} {r['true_res']:9.3f} {r['true_measured']:8.3f} {est:>9} {u:>7} "
-                              f"{spread:>6} {r['verdict'] or '-':>12} "
-                              f"{r['features']:8d} {r['circles']:7d} {r['false_accepts']:9d} {dt:5.1f}  {types}"
-                              + (f"; {r['rig']}" if "rig" in r else "") + field_text(r),
-                              flush=True)
-                        if name != "exact":
-                            for t, (a, n) in r["cover"].items():
-                                pooled[(kind, d)][t].append((a, n, r["z_rms"][t] ** 2 * n))
-    print("\n== pooled over parts and drawn calibrations: within +-U (z RMS)")
-    for (kind, d), types in sorted(pooled.items()):
-        parts = ", ".join(f"{t} {100 * sum(a for a, _, _ in v) / max(1, sum(n for _, n, _ in v)):.1f} % of "
-                          f"{sum(n for _, n, _ in v)} ({np.sqrt(sum(s for _, _, s in v) / max(1, sum(n for _, n, _ in v))):.2f})"
-                          for t, v in sorted(types.items()))
-        print(f"{kind} {d:.2f} px: {parts}")
+                        for pair, folder in pairs:
+                            t0 = time.perf_counter()
+                            report, message = inspect(step, folder, stated, Path(tmp) / f"{part}-{kind}-{d}-{name}",
+                                                      tolerances, args.refine_rig)
+                            r = row(report, truth, true_residual(calib, stated, truth))
+                            r["message"] = message
+                            if report is not None:
+                                ids = {f["id"] for f in report["features"] if f["measured"]}
+                                r["true_measured"] = true_residual(calib, stated, truth, ids)
+                                r["true_field"] = true_field(calib, stated, truth, ids)
+                            if verbose:
+                                print(run_text(d, name, pair, r, time.perf_counter() - t0), flush=True)
+                            runs[(d, name == "exact")].append((pair, r))
+                            if name != "exact":
+                                pooled[(kind, d)].append(r)
+                print(f"-- pooled over {len(pairs)} pair(s): runs (stopped), features mean (min), circles mean (min), "
+                      "false accepts, within +-U (z RMS) per type")
+                for (d, exact), v in sorted(runs.items()):
+                    print(f"{d:8.2f} {'exact' if exact else 'drawn':>6} " + pooled_text([r for _, r in v]), flush=True)
+                for cid, bad, n, zs in often_outside([x for v in runs.values() for x in v]):
+                    print(f"   outside +-U in {bad} of {n} runs: {cid}, z per pair: "
+                          + "; ".join(f"{p} {' '.join(f'{z:+.1f}' for z in v)}" for p, v in zs.items()))
+    print("\n== pooled over parts, pairs and drawn calibrations: within +-U (z RMS)")
+    for (kind, d), rows in sorted(pooled.items()):
+        done = [r for r in rows if "features" in r]
+        print(f"{kind} {d:.2f} px: {len(rows) - len(done)} of {len(rows)} runs stopped; false accepts "
+              f"{sum(r['false_accepts'] for r in done)}; {types_text([j for r in done for j in r['judged']])}")
 
 
 if __name__ == "__main__":
