@@ -310,6 +310,10 @@ def type_b_scale(views, fit):
     # Residuals too noisy to bound the level leave the stated one; they raise
     # it only where their best guess itself lies above it.
     upper = min(upper, max(1.0, k2))
+    # Residuals smaller than the stated noise alone (an over-stated noise, a
+    # short rim) put the bound below zero: no evidence of a systematic part,
+    # which leaves the floor, never the square root of a negative number.
+    upper = max(upper, 0.0)
     stated = np.sqrt(np.mean(np.concatenate([np.square(v.bias) for v in biased])))
     return float(max(np.sqrt(upper), RIM_DETECTOR_ERROR / stated))
 

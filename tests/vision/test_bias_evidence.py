@@ -54,3 +54,17 @@ def test_no_systematic_part_gives_none():
     views, _ = _views()
     plain = [View(v.xy, v.sigma, v.P, v.corr_length) for v in views]
     assert bias_evidence(plain, np.zeros(2 * N), np.ones((2 * N, 1))) is None
+
+
+def test_type_b_scale_is_floored_when_the_residuals_show_less_than_the_noise(monkeypatch):
+    # k2 far below zero (residuals smaller than the stated noise predicts) once
+    # made the bound negative and the scale NaN, which reached the centre's
+    # covariance and stopped the run in an eigen-decomposition.
+    from partinspect.vision import rim_errors
+
+    views, _ = _views()
+    monkeypatch.setattr(rim_errors, "circle_residuals_at", lambda views, fit: (np.zeros(2 * N), np.zeros((2 * N, 6))))
+    monkeypatch.setattr(rim_errors, "bias_evidence", lambda views, r, J: (-0.5, 0.01))
+    scale = rim_errors.type_b_scale(views, None)
+    assert np.isfinite(scale)
+    assert scale == pytest.approx(rim_errors.RIM_DETECTOR_ERROR / 0.02)
