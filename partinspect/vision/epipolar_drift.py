@@ -24,16 +24,17 @@ Two turns of the right camera about its centre move the epipolar lines
 across themselves: about the baseline, alike everywhere, and about its
 optical axis, in proportion to the distance along them. Fitted to the
 residuals (weighted least squares; the second only where six or more
-tangencies are seen), they correct the rig, and their covariance is added
+tangencies are seen, or three where their scatter about a constant asks
+for it), they correct the rig, and their covariance is added
 to the calibration's (Type B), so what the correction leaves uncertain is
 carried into every 3D result.
 
 The verdict follows the residuals' scatter about the field as well: one
 beyond what their variances and the stated calibration allow
-(:func:`field_scatter`) is not "consistent". Where too few tangencies are
-seen to fit the roll, the roll that scatter asks for is carried as a Type
-B uncertainty of the rig (:func:`unexplained_roll`), or the run refused
-where it exceeds what a run carries.
+(:func:`field_scatter`) is not "consistent". Where even then too few
+tangencies are seen to fit the roll, the roll that scatter asks for is
+carried as a Type B uncertainty of the rig (:func:`unexplained_roll`), or
+the run refused where it exceeds what a run carries.
 
 Pixels are ideal (undistorted) pixel coordinates; angles in radians.
 
@@ -58,11 +59,11 @@ from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.psd import covariance_factor
 from partinspect.vision.rim_errors import EDGE_BIAS_FLOOR
 
-__all__ = ["TANGENT_REACH", "MIN_SIGNIFICANCE", "DriftEstimate", "tangent_offsets", "tangency_residuals",
-           "estimate_drift", "drift_axes", "rotated_right_camera", "fit_drift", "predicted_residual_std",
-           "MAX_DRIFT", "OUTLIER_Z", "SCATTER_P", "stated_moves", "field_scatter", "unexplained_roll",
-           "CalibrationCheck", "check_calibration", "consistent_tangencies", "matched_arcs", "matched_edge_points",
-           "tangency_along", "along_lines"]
+__all__ = ["TANGENT_REACH", "MIN_SIGNIFICANCE", "MIN_ROLL_TANGENCIES", "MIN_ROLL_DEMANDED", "SCATTER_P", "OUTLIER_Z",
+           "MAX_DRIFT", "DriftEstimate", "tangent_offsets", "tangency_residuals", "estimate_drift", "drift_axes",
+           "rotated_right_camera", "fit_drift", "predicted_residual_std", "stated_moves", "field_scatter",
+           "unexplained_roll", "CalibrationCheck", "check_calibration", "consistent_tangencies", "matched_arcs",
+           "matched_edge_points", "tangency_along", "along_lines"]
 
 TANGENT_REACH = 2.0
 """px: a tangency is read only where the feature's own edge points come
@@ -78,8 +79,15 @@ run of twenty; 3 leaves that to 0.3 %, and a drift that loses features
 (0.05 px and more) stands well above it."""
 
 MIN_ROLL_TANGENCIES = 6
-"""The roll is fitted only from this many tangencies on: with fewer, a
-slope across the image is read from the rims' own scatter."""
+"""The roll is fitted from this many tangencies on: with fewer, a slope
+across the image would be read from the rims' own scatter. With fewer but
+at least ``MIN_ROLL_DEMANDED``, it is fitted where the tangencies' scatter
+about a constant rejects the constant (:data:`SCATTER_P`): the scatter
+then is the roll's, not the rims'."""
+
+MIN_ROLL_DEMANDED = 3
+"""Tangencies a demanded roll is fitted from: a constant and a slope, and
+one degree of freedom left to judge the fit by (its Birge ratio)."""
 
 SCATTER_P = math.erfc(MIN_SIGNIFICANCE / math.sqrt(2.0))
 """0.0027: the tangencies scatter about the fitted field beyond what their
@@ -329,7 +337,7 @@ class DriftEstimate:
     kept: np.ndarray = None
 
 
-def estimate_drift(residuals, variances, along=None, at=None):
+def estimate_drift(residuals, variances, along=None, at=None, min_roll=MIN_ROLL_TANGENCIES):
     """The epipolar residual at the part's edges: a field fitted to the tangencies, with its uncertainty.
 
     A shift of the epipolar lines moves every tangency alike; a turn of the
@@ -352,12 +360,14 @@ def estimate_drift(residuals, variances, along=None, at=None):
         As :func:`tangency_residuals` returns, px and px^2.
     along : array_like, shape (n,), optional
         The tangencies' place along the epipolar lines (:func:`tangency_along`),
-        px. Without it, or with fewer than ``MIN_ROLL_TANGENCIES`` kept, or
+        px. Without it, or with fewer than ``min_roll`` kept, or
         with the tangencies at one place, the field is a constant: the
         weighted mean.
     at : array_like, shape (m,), optional
         The part's edge points' place along the lines (:func:`along_lines`),
         px; default the tangencies'.
+    min_roll : int
+        Tangencies a slope is fitted from (:data:`MIN_ROLL_TANGENCIES`).
 
     Returns
     -------
@@ -369,12 +379,12 @@ def estimate_drift(residuals, variances, along=None, at=None):
     keep = consistent_tangencies(r_all, v_all)
     s_all = None if along is None else np.asarray(along, float)
     at = (s_all if at is None else np.asarray(at, float)) if s_all is not None else None
-    linear = s_all is not None and keep.sum() >= MIN_ROLL_TANGENCIES and np.ptp(s_all[keep]) > _MIN_REACH
+    linear = s_all is not None and keep.sum() >= min_roll and np.ptp(s_all[keep]) > _MIN_REACH
     coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep] if linear else None)
     if linear:
         again = keep.copy()
         again[keep] = consistent_tangencies(left, v_all[keep])
-        if not again.all() and again.sum() >= MIN_ROLL_TANGENCIES:
+        if not again.all() and again.sum() >= min_roll:
             keep = again
             coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep])
     x = np.array([1.0, float(np.median(at))]) if linear else np.array([1.0])
@@ -472,12 +482,12 @@ def rotated_right_camera(calib, rotation, rotation_cov=None):
     return with_extrinsic_covariance(turned, F @ F.T)
 
 
-def fit_drift(calib, pairs, tangencies=None, h=1e-5):
+def fit_drift(calib, pairs, tangencies=None, h=1e-5, min_roll=MIN_ROLL_TANGENCIES):
     """The turns of the right camera (:func:`drift_axes`) that bring the tangency residuals to zero.
 
     Weighted least squares on the residuals' central-difference Jacobian;
-    only the turn about the baseline when fewer than
-    ``MIN_ROLL_TANGENCIES`` tangencies are seen. The covariance is the
+    only the turn about the baseline when fewer than ``min_roll``
+    tangencies are seen. The covariance is the
     fit's, enlarged by the squared Birge ratio of what the turns leave where
     that exceeds 1. ``tangencies``: :func:`tangency_residuals` under
     ``calib``, if already read.
@@ -495,7 +505,7 @@ def fit_drift(calib, pairs, tangencies=None, h=1e-5):
     r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
     keep = consistent_tangencies(r, v)
     r, v, select = r[keep], v[keep], [s for s, k in zip(select, keep) if k]
-    axes = drift_axes(calib)[: 2 if len(r) >= MIN_ROLL_TANGENCIES else 1]
+    axes = drift_axes(calib)[: 2 if len(r) >= min_roll else 1]
     J = _turn_jacobian(calib, pairs, select, axes, h)
     w = 1.0 / v
     A, theta, left = _weighted_fit(J, r, w)
@@ -551,7 +561,8 @@ def stated_moves(calib, pairs, select):
     return moves
 
 
-def predicted_residual_std(calib, pairs, tangencies=None, along=None, at=None, moves=None):
+def predicted_residual_std(calib, pairs, tangencies=None, along=None, at=None, moves=None,
+                           min_roll=MIN_ROLL_TANGENCIES):
     """Standard deviation of the estimated residual (:func:`estimate_drift`) that the calibration's stated uncertainties allow, px.
 
     The calibration is moved along each principal direction of its stated
@@ -559,14 +570,14 @@ def predicted_residual_std(calib, pairs, tangencies=None, along=None, at=None, m
     states only standard uncertainties), and the residual estimated as the
     check estimates it (the same tangencies, places and edge points); 0
     when it states none. ``tangencies`` as :func:`fit_drift`'s; ``along``,
-    ``at`` as :func:`estimate_drift`'s; ``moves`` :func:`stated_moves`, if
-    already read.
+    ``at``, ``min_roll`` as :func:`estimate_drift`'s; ``moves``
+    :func:`stated_moves`, if already read.
     """
     geo = epipolar_geometry(calib)
     r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
-    base = estimate_drift(r, v, along, at).shift
+    base = estimate_drift(r, v, along, at, min_roll).shift
     moves = stated_moves(calib, pairs, select) if moves is None else moves
-    return float(np.sqrt(sum((estimate_drift(rm, vm, along, at).shift - base) ** 2 for rm, vm in moves)))
+    return float(np.sqrt(sum((estimate_drift(rm, vm, along, at, min_roll).shift - base) ** 2 for rm, vm in moves)))
 
 
 def field_scatter(residuals, variances, responses, design):
@@ -613,8 +624,9 @@ def field_scatter(residuals, variances, responses, design):
 def unexplained_roll(calib, pairs, select, Q, dof, P, h=1e-5):
     """The roll of the right camera that a constant field's excess scatter asks for, rad (its standard uncertainty).
 
-    With fewer than ``MIN_ROLL_TANGENCIES`` tangencies no roll is fitted
-    (:func:`fit_drift`) and the field is a constant. If the tangencies then
+    With fewer than ``MIN_ROLL_DEMANDED`` tangencies, or with all of them
+    at one place along the lines, no roll is fitted (:func:`fit_drift`) and
+    the field is a constant. If the tangencies then
     scatter about it beyond what their variances and the stated
     calibration allow (:func:`field_scatter`, :data:`SCATTER_P`), the
     residual varies across the image by more than the rims' errors explain,
@@ -811,13 +823,15 @@ def _within_stated(calib, rotation, cov, drift, predicted):
 def check_calibration(calib, pairs, edges=None):
     """Check the stated calibration against matched ellipse pairs, and correct a significant drift.
 
-    A residual scatter about the fitted field beyond what the tangencies'
-    variances and the stated calibration allow (:data:`SCATTER_P`) makes the
-    rig "drifted" whatever the turns' significance: the fitted turns are
-    applied with their covariance, and without a fitted slope the roll the
-    scatter asks for is carried too (:func:`unexplained_roll`), so that every
-    3D result and the arc-pair test see it; "invalid" where that roll moves
-    the image's sides by more than ``MAX_DRIFT``.
+    A scatter about a constant field beyond what the tangencies' variances
+    and the stated calibration allow (:data:`SCATTER_P`) asks for the slope:
+    it and the roll are fitted from ``MIN_ROLL_DEMANDED`` tangencies on. A
+    scatter about the fitted field beyond it makes the rig "drifted"
+    whatever the turns' significance: the fitted turns are applied with
+    their covariance, and without a fitted slope the roll the scatter asks
+    for is carried too (:func:`unexplained_roll`), so that every 3D result
+    and the arc-pair test see it; "invalid" where that roll moves the
+    image's sides by more than ``MAX_DRIFT``.
 
     Parameters
     ----------
@@ -845,21 +859,24 @@ def check_calibration(calib, pairs, edges=None):
     if drift.n == 0:
         return CalibrationCheck("not checked", drift, 0.0, *none, 1.0, calib)
     moves = stated_moves(calib, pairs, tangencies[2])
-    predicted = predicted_residual_std(calib, pairs, tangencies, along, at, moves)
+    min_roll = MIN_ROLL_TANGENCIES
+    Q, dof, P, p = _scatter(drift, tangencies, along, moves)
+    if p < SCATTER_P and not drift.field_cov[1, 1] > 0:
+        # The scatter rejects a constant: the slope it asks for is fitted from as few as MIN_ROLL_DEMANDED.
+        sloped = estimate_drift(*tangencies[:2], along, at, MIN_ROLL_DEMANDED)
+        if sloped.field_cov[1, 1] > 0:
+            min_roll, drift = MIN_ROLL_DEMANDED, sloped
+            Q, dof, P, p = _scatter(drift, tangencies, along, moves)
+    predicted = predicted_residual_std(calib, pairs, tangencies, along, at, moves, min_roll)
     # Beyond the matcher's reach on the whole (a roll may put a few tangents further).
     if abs(drift.shift) > MAX_DRIFT or np.percentile(np.abs(drift.residuals), 75) > MAX_DRIFT:
         return CalibrationCheck("invalid", drift, predicted, *none, 1.0, calib)
-    rotation, cov, birge = fit_drift(calib, pairs, tangencies)
-    r, v, select = tangencies
-    k, sloped = drift.kept, drift.field_cov[1, 1] > 0
-    design = np.c_[np.ones(k.sum()), along[k]] if sloped else np.ones((k.sum(), 1))
-    D = np.stack([rm[k] - r[k] for rm, _ in moves], 1) if moves else np.zeros((k.sum(), 0))
-    Q, dof, P = field_scatter(r[k], v[k], D, design)
-    p = float(chdtrc(dof, Q)) if dof > 0 else 1.0
+    rotation, cov, birge = fit_drift(calib, pairs, tangencies, min_roll=min_roll)
     if p < SCATTER_P:
         # The field does not explain the residuals: not consistent, whatever the turns' significance. The turns
         # are carried with their Birge-enlarged covariance; without a fitted slope, the roll the scatter asks for too.
-        roll = 0.0 if sloped else unexplained_roll(calib, pairs, [t for t, keep in zip(select, k) if keep], Q, dof, P)
+        select = [t for t, keep in zip(tangencies[2], drift.kept) if keep]
+        roll = 0.0 if drift.field_cov[1, 1] > 0 else unexplained_roll(calib, pairs, select, Q, dof, P)
         axis = drift_axes(calib)[1]
         check = CalibrationCheck("drifted", drift, predicted, rotation, cov, birge, calib, roll, p)
         if not np.isfinite(roll) or roll * check.half_width > MAX_DRIFT:
@@ -874,6 +891,16 @@ def check_calibration(calib, pairs, edges=None):
     verdict = "consistent" if _within_stated(calib, rotation, cov, drift, predicted) else "drifted"
     return CalibrationCheck(verdict, drift, predicted, rotation, cov, birge, rotated_right_camera(calib, rotation, cov),
                             scatter_p=p)
+
+
+def _scatter(drift, tangencies, along, moves):
+    """:func:`field_scatter` of the tangencies ``drift`` kept about its field: (Q, dof, P, upper tail of Q)."""
+    r, v, _ = tangencies
+    k = drift.kept
+    design = np.c_[np.ones(k.sum()), along[k]] if drift.field_cov[1, 1] > 0 else np.ones((k.sum(), 1))
+    D = np.stack([rm[k] - r[k] for rm, _ in moves], 1) if moves else np.zeros((k.sum(), 0))
+    Q, dof, P = field_scatter(r[k], v[k], D, design)
+    return Q, dof, P, (float(chdtrc(dof, Q)) if dof > 0 else 1.0)
 
 
 def matched_edge_points(stereo):
