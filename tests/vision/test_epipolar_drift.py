@@ -116,66 +116,6 @@ def test_a_drift_beyond_correction_is_invalid(plate):
     assert check_calibration(_shifted(calib, 4.0), pairs).verdict == "invalid"
 
 
-def _rolled_and_levelled(calib, pairs, px):
-    """Rolled by ``px`` at the image's sides, the right principal point moved so that the rims' mean residual is
-    about zero: as on the bracket's renders, where a roll about the rims' middle leaves the mean unmoved."""
-    rolled = _rolled(calib, px)
-    return _shifted(rolled, -check_calibration(rolled, pairs).drift.shift)
-
-
-def test_a_roll_three_tangencies_ask_for_is_fitted_and_corrected(plate):
-    """Two rims, 3 tangencies (fewer than MIN_ROLL_TANGENCIES), rolled 1 px: about a constant they scatter
-    far beyond their variances (Birge ratio 20). Before, no slope was fitted, the mean read zero and the check
-    said "consistent", the roll left in every result; now the scatter asks for the slope, and the roll is
-    fitted and taken out."""
-    from partinspect.vision.epipolar_drift import SCATTER_P, drift_axes
-
-    calib, pairs = plate
-    two = [pairs[0], pairs[3]]
-    stated = _rolled_and_levelled(calib, two, 1.0)
-    check = check_calibration(stated, two)
-    assert check.drift.n == 3 and check.corrected
-    roll = float(check.correction @ drift_axes(stated)[1]) * check.half_width
-    assert roll == pytest.approx(-1.0, abs=0.15), roll  # px at the image's sides
-    assert check.verdict == "drifted" and check.scatter_p > SCATTER_P and check.roll_type_b == 0.0
-    assert _left_over(check, two) < 0.02
-
-
-def test_a_roll_too_few_tangencies_fit_is_carried_not_called_consistent(plate):
-    """Two rims, 2 tangencies: no slope can be fitted and their difference scatters beyond its variance
-    (Birge ratio 27). The scatter is carried as a roll of the right camera, its size (1 px at the image's
-    sides) read from the scatter itself, where before the check said "consistent" and carried nothing."""
-    from partinspect.vision.calibration_uncertainty import full_covariance
-    from partinspect.vision.epipolar_drift import SCATTER_P, drift_axes
-
-    calib, pairs = plate
-    two = [pairs[1], pairs[3]]
-    stated = _rolled_and_levelled(calib, two, 1.0)
-    check = check_calibration(stated, two)
-    assert check.drift.n == 2 and check.scatter_p < SCATTER_P and abs(check.drift.shift) < check.drift.u
-    assert check.verdict == "drifted"
-    axis = drift_axes(stated)[1]
-    carried = np.sqrt(axis @ full_covariance(check.calib)[-6:-3, -6:-3] @ axis) * check.half_width
-    assert 0.7 < carried < 1.5, carried  # px at the sides: the roll's, where the stated calibration states none
-    assert check.roll_type_b * check.half_width == pytest.approx(carried, rel=0.05)
-
-
-def test_the_same_rims_under_the_exact_rig_carry_nothing(plate):
-    calib, pairs = plate
-    for two in ([pairs[0], pairs[3]], [pairs[1], pairs[6]]):
-        check = check_calibration(calib, two)
-        assert check.verdict == "consistent" and check.roll_type_b == 0.0 and check.calib is calib
-
-
-def test_a_scatter_beyond_what_a_run_carries_is_invalid_with_one_line(plate):
-    calib, pairs = plate
-    two = [pairs[1], pairs[3]]
-    check = check_calibration(_rolled_and_levelled(calib, two, 4.0), two)
-    assert check.verdict == "invalid" and check.roll_type_b * check.half_width > 3.0
-    line = check.refusal()
-    assert "\n" not in line and "recalibrate" in line and "roll of" in line
-
-
 BRACKET = IMAGES.parents[1] / "bracket" / "images"
 
 
