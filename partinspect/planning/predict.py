@@ -875,6 +875,7 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     from partinspect.vision.arc_partner import corrected_correspondences
 
     from partinspect.vision.feature3d import make_feature3d
+    from partinspect.vision.rim_errors import radius_type_b_scale
     from partinspect.vision.stereo import fit_feature, views_of
     geo = geo if geo is not None else epipolar_geometry(calib)
     fid, kind = feature.id, feature.kind
@@ -947,7 +948,9 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     # The calibration bends a rim, not only moves it: the form's Monte Carlo
     # draws the points' responses, as the run's does.
     P = point_responses(corr, calib) if form and cal.shape[1] else None
-    f3 = make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0], point_response=P)
+    # The radius without the detector's per-point floor, as the run states it (no residuals to size the centre by).
+    scale = (1.0, radius_type_b_scale(fviews, fit)) if fl.kind == "arc" else 1.0
+    f3 = make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0], scale, P)
     return FeaturePrediction(status="measured", record=f3, **base)
 
 

@@ -42,7 +42,7 @@ from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE
 from partinspect.vision.psd import covariance_factor
 from partinspect.vision.triangulation import triangulate
 
-__all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred", "ARC_MIN_CROSSING"]
+__all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred", "curvature_bias", "ARC_MIN_CROSSING"]
 
 ARC_MIN_CROSSING = np.deg2rad(10.0)
 """Arc points whose epipolar line crosses an ellipse at less than this are dropped, rad.
@@ -107,7 +107,8 @@ def deblurred(xy, fit, blur):
     along a pixel axis adds ``c sin^2(2 phi) kappa`` (phi the angle between
     the normal and the nearest pixel axis, c =
     :data:`partinspect.vision.edges.CURVATURE_SAMPLING_BIAS`); both are
-    undone here, with kappa the fitted ellipse's curvature at each point.
+    undone here, with kappa the fitted ellipse's curvature at each point
+    (:func:`curvature_bias`).
 
     Parameters
     ----------
@@ -122,11 +123,36 @@ def deblurred(xy, fit, blur):
     -------
     ndarray, shape (N, 2)
     """
+    bias, n = curvature_bias(xy, fit, blur)
+    return xy + bias[:, None] * n
+
+
+def curvature_bias(xy, fit, blur):
+    """The detector's curvature bias at each point of an arc: its size and direction.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        Points, px (ideal).
+    fit : EllipseFit
+        Fit to those points.
+    blur : float
+        Width of the edge profile, px.
+
+    Returns
+    -------
+    bias : ndarray, shape (N,)
+        ``(blur^2 / 2 + c sin^2(2 phi)) kappa``, px: how far the detector
+        moved each point towards the centre of curvature (:func:`deblurred`).
+    normal : ndarray, shape (N, 2)
+        The ellipse's unit normal at each point, along which
+        :func:`deblurred` moves it back.
+    """
     phi = fit.phases
     _, n, _ = ellipse_geometry(xy, fit.params, phi)
     kappa = ellipse_curvature(fit.params, phi)
     sin2phi_sq = 4.0 * (n[:, 0] * n[:, 1]) ** 2
-    return xy + ((0.5 * blur * blur + CURVATURE_SAMPLING_BIAS * sin2phi_sq) * kappa)[:, None] * n
+    return (0.5 * blur * blur + CURVATURE_SAMPLING_BIAS * sin2phi_sq) * kappa, n
 
 
 def intersect_line(lines, params):

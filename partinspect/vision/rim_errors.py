@@ -13,7 +13,10 @@ correlated along the rim over ``EDGE_BIAS_CORR_ANGLE`` (neighbouring points
 are displaced alike): in the 3D fit, which weights and propagates it with
 the random part into the centre, normal and radius, the shading's bound
 read as a rectangular distribution's half-width with the detector's own
-error in quadrature (:func:`rim_type_b`, JCGM 100 4.3.7); in the form's
+error in quadrature (:func:`rim_type_b`, JCGM 100 4.3.7; the latter not in
+the radius, :func:`radius_type_b_scale`), and what the curvature
+correction leaves as one mode of the whole rim (:func:`curvature_mode`);
+in the form's
 point errors, whose zone single points set, ``EDGE_BIAS_FACTOR`` times the
 bound with ``EDGE_BIAS_FLOOR`` (:func:`form_view`). The correction's own
 noise is random, correlated over :func:`correction_corr_length`, shares part
@@ -40,11 +43,12 @@ import numpy as np
 
 from partinspect.vision.bias_evidence import bias_evidence
 from partinspect.vision.edges import BACKGROUND_POSITION_COUPLING, EDGE_BIAS_FACTOR
-from partinspect.vision.fit3d import circle_residuals_at
+from partinspect.vision.fit3d import circle_residuals_at, information_parts
 
 __all__ = ["BACKGROUND_CORRECTION", "BACKGROUND_SMOOTHING", "EDGE_BIAS_CORR_ANGLE", "RIM_DETECTOR_ERROR",
-           "RIM_BOUND_READING", "EDGE_BIAS_FLOOR", "smoothed_background", "smoothing_operators", "coupled_noise",
-           "rim_type_b", "type_b_scale", "correction_std_of", "correction_corr_length", "form_view"]
+           "RIM_BOUND_READING", "CURVATURE_REMAINDER", "EDGE_BIAS_FLOOR", "smoothed_background",
+           "smoothing_operators", "coupled_noise", "rim_type_b", "curvature_mode", "type_b_scale",
+           "radius_type_b_scale", "correction_std_of", "correction_corr_length", "form_view"]
 
 
 # Points of arcs: the corrections and the Type B component of the module
@@ -70,15 +74,30 @@ EDGE_BIAS_CORR_ANGLE = 0.2
 
 
 RIM_DETECTOR_ERROR = 0.005
-"""px: the detector's and the curvature correction's own error on a rim
-point beside flat shading, which no shading reading sees: the floor of a
-rim point's Type B in its 3D fit (:func:`rim_type_b`), in quadrature, and
-the least Type B a rim's residuals may size its centre's share down to
-(:func:`type_b_scale`). It is set above what the curvature correction
-leaves on exact discs under several blur shapes and what rim points beside
-flat shading show on noiseless renders (docs/validation.md,
-bench_psf_shape); without a floor the fit leans on those points as if they
-were exact."""
+"""px: the detector's own error on a rim point beside flat shading, which
+no shading reading sees (points there lie 0.003-0.006 px off the true rim
+on noiseless renders; the pixel's box and the bilinear samples are not the
+Gaussian profile the detector assumes): the floor of a rim point's Type B
+in its 3D fit (:func:`rim_type_b`), in quadrature. It weights the points
+and reaches the centre and normal, but not the radius
+(:func:`radius_type_b_scale`): the detector's share in the radius, an
+error common to the whole rim, is the curvature correction's remainder
+(``CURVATURE_REMAINDER``)."""
+
+
+CURVATURE_REMAINDER = 0.09
+"""Standard uncertainty of what the curvature correction
+(:func:`partinspect.vision.correspondences.deblurred`) leaves on a rim, as
+a fraction of the correction at each point. On exact discs (radii 15-80 px,
+three sub-pixel positions, Gaussian, disc and digital-Gaussian blurs; no
+noise; ``bench_psf_shape``) the remainder lies between -0.11 and +0.18 of
+the correction; read as a rectangular distribution over that range
+(JCGM 100 4.3.7), its second moment about zero is ``m^2 + a^2 / 3`` with
+m = 0.035, a = 0.145: u = 0.09. It is one unknown factor for the whole
+rim (the blur's shape), so it moves every point alike in proportion to its
+correction: a shared mode of the rim's two views
+(:func:`curvature_mode`), which goes to the radius, not a displacement
+that averages out round the rim."""
 
 
 RIM_BOUND_READING = 1.0 / np.sqrt(3.0)
@@ -97,8 +116,7 @@ EDGE_BIAS_FLOOR = 0.01
 point errors (``EDGE_BIAS_FACTOR`` times the bound, :func:`~partinspect.vision.feature3d.make_feature3d`)
 and in the calibration check (:mod:`partinspect.vision.epipolar_drift`): a
 form zone is set by single points' extremes, where these errors average out
-along the rim less than the correlation says. The 3D fit takes
-``RIM_DETECTOR_ERROR``."""
+along the rim less than the correlation says."""
 
 
 def smoothed_background(xy, values, std, corr_length, length=BACKGROUND_SMOOTHING):
@@ -246,9 +264,10 @@ def rim_type_b(bound):
     ``RIM_BOUND_READING`` times the bound (what the shading correction may
     have left, read as a rectangular distribution over +-bound, JCGM 100
     4.3.7), with ``RIM_DETECTOR_ERROR`` in quadrature (the detector's own
-    error on a curved edge). Correlated along the rim over
+    error beside flat shading). Correlated along the rim over
     ``EDGE_BIAS_CORR_ANGLE``, it sets the fit's weights and the systematic
-    part of its centre, normal and radius.
+    part of its centre, normal and radius (the radius without the floor,
+    :func:`radius_type_b_scale`).
 
     Parameters
     ----------
@@ -268,6 +287,24 @@ def rim_type_b(bound):
     return np.hypot(RIM_BOUND_READING * np.asarray(bound, float), RIM_DETECTOR_ERROR)
 
 
+def curvature_mode(correction):
+    """The displacement of a rim's points by one standard uncertainty of the curvature correction's remainder, px.
+
+    Parameters
+    ----------
+    correction : ndarray, shape (N,)
+        The curvature correction applied at each point, px
+        (:func:`partinspect.vision.correspondences.curvature_bias`).
+
+    Returns
+    -------
+    ndarray, shape (1, N)
+        ``CURVATURE_REMAINDER`` times it: one row of ``View.modes``, the
+        same unknown factor in both views of the rim.
+    """
+    return CURVATURE_REMAINDER * np.abs(np.asarray(correction, float))[None, :]
+
+
 def type_b_scale(views, fit):
     """The factor on a rim's stated Type B standard uncertainties that its fit's residuals support.
 
@@ -285,7 +322,7 @@ def type_b_scale(views, fit):
     residuals do not show, so the level is stated at what the residuals
     allow, not at their best guess, and not above the stated level unless
     the best guess is; never below ``RIM_DETECTOR_ERROR`` per point, the
-    detector's own error on a curved edge.
+    detector's own error.
 
     Parameters
     ----------
@@ -316,6 +353,50 @@ def type_b_scale(views, fit):
     upper = max(upper, 0.0)
     stated = np.sqrt(np.mean(np.concatenate([np.square(v.bias) for v in biased])))
     return float(max(np.sqrt(upper), RIM_DETECTOR_ERROR / stated))
+
+
+def radius_type_b_scale(views, fit):
+    """The factor on a rim's radius's systematic standard uncertainty that leaves out the detector's floor.
+
+    The fit's Type B per point is the shading's rest with
+    ``RIM_DETECTOR_ERROR`` in quadrature (:func:`rim_type_b`), correlated
+    over ``EDGE_BIAS_CORR_ANGLE``. Propagated so, the floor states the
+    detector's own error as a displacement varying round the rim whose
+    mean moves the radius; the detector's error common to the whole rim is
+    the curvature correction's remainder, which the views carry as their
+    shared mode (:func:`curvature_mode`). So the radius's systematic
+    variance is taken with the floor moved out of the Type B (into the
+    points' random part, which leaves their weights and the fit as they
+    are): the ratio of the two sandwich variances, through the fit's own
+    weighted Jacobian.
+
+    Parameters
+    ----------
+    views : sequence of View
+        The fit's views, with the Type B of :func:`rim_type_b` (a broken
+        rim's band in it is not separated: then 1).
+    fit : Circle3D
+
+    Returns
+    -------
+    float
+        The factor on the radius's row and column of the systematic
+        covariance, at most 1.
+    """
+    if not any(v.bias is not None for v in views):
+        return 1.0
+    _, J = circle_residuals_at(views, fit)
+    floor2 = RIM_DETECTOR_ERROR * RIM_DETECTOR_ERROR
+    moved = [v if v.bias is None else
+             replace(v, sigma=np.sqrt(np.square(v.sigma) + floor2),
+                     bias=np.sqrt(np.maximum(np.square(v.bias) - floor2, 0.0)))
+             for v in views]
+    S, _, Mb = information_parts(views, J)
+    _, _, Mb_rest = information_parts(moved, J)
+    Sinv = np.linalg.inv(S)
+    stated = float((Sinv @ Mb @ Sinv)[-1, -1])
+    rest = float((Sinv @ Mb_rest @ Sinv)[-1, -1])
+    return float(np.sqrt(min(rest / stated, 1.0))) if stated > 0 else 1.0
 
 
 def correction_std_of(f, corr_length):

@@ -59,7 +59,7 @@ import numpy as np
 
 from partinspect.vision.arc_partner import corrected_correspondences
 from partinspect.vision.contours import chain_edges, segment_contours
-from partinspect.vision.correspondences import correspond, deblurred
+from partinspect.vision.correspondences import correspond, curvature_bias
 from partinspect.vision.edges import EDGE_BIAS_FACTOR, background_shift_std, edge_points
 from partinspect.vision.feature3d import make_feature3d
 from partinspect.vision.forked import forked
@@ -72,8 +72,8 @@ from partinspect.vision.line_profile import line_band_shift
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
 from partinspect.vision.rim_errors import (BACKGROUND_CORRECTION, EDGE_BIAS_CORR_ANGLE, correction_corr_length,
-                                           correction_std_of, form_view, rim_type_b, smoothed_background,
-                                           type_b_scale)
+                                           correction_std_of, curvature_mode, form_view, radius_type_b_scale,
+                                           rim_type_b, smoothed_background, type_b_scale)
 
 __all__ = ["ImageResult", "EdgeFeature", "StereoResult", "measure_stereo", "measure_images", "feature_views",
            "views_of", "line_type_b", "edge_band", "fit_feature", "measure_pair_feature"]
@@ -300,8 +300,12 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
             if offset is not None:
                 pts = pts - BACKGROUND_CORRECTION * offset
             xy = to_ideal(pts, K, D)
+        modes, names = getattr(f, "band_modes", None), getattr(f, "band_mode_names", None)
         if arc:
-            xy = deblurred(xy, f.fit, f.blur)
+            curvature, normal = curvature_bias(xy, f.fit, f.blur)
+            xy = xy + curvature[:, None] * normal
+            # One unknown factor of the rim, shared by its two views (named by this pair).
+            modes, names = _with_mode(modes, names, curvature_mode(curvature), ("curvature", id(fl)))
         if offset is not None:
             bias = rim_type_b(f.background_bound)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
@@ -312,8 +316,15 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
             b = band[len(views)]
             bias = np.full(len(xy), b) if bias is None else np.hypot(bias, b)
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length),
-                          getattr(f, "band_modes", None), getattr(f, "band_mode_names", None)))
+                          modes, names))
     return views
+
+
+def _with_mode(modes, names, row, name):
+    """``View.modes`` and ``mode_names`` with one more row (1, N) and its name."""
+    if modes is None:
+        return row, (name,)
+    return np.vstack([modes, row]), tuple(names) + (name,)
 
 
 def line_type_b(bound, band=None):
@@ -648,7 +659,8 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
                               f"the two ellipses' by {delta:.0f} (p = {p:.1e}){hint}")
         # A broken edge's band moves the whole rim alike, which leaves no
         # residual: its stated level stands.
-        scale = type_b_scale(views, fit) if fl.kind == "arc" and band is None else 1.0
+        scale = ((type_b_scale(views, fit), radius_type_b_scale(views, fit)) if fl.kind == "arc" and band is None
+                 else 1.0)
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
