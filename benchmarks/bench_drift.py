@@ -398,10 +398,9 @@ def main():
                     print(f"   outside +-U in {bad} of {n} runs: {cid}, z per pair: "
                           + "; ".join(f"{p} {' '.join(f'{z:+.1f}' for z in v)}" for p, v in zs.items()))
     print("\n== pooled over parts, pairs and drawn calibrations: within +-U (z RMS)")
+    print("kind, drift px: runs (stopped), features mean (min), circles mean (min), false accepts, per type")
     for (kind, d), rows in sorted(pooled.items()):
-        done = [r for r in rows if "features" in r]
-        print(f"{kind} {d:.2f} px: {len(rows) - len(done)} of {len(rows)} runs stopped; false accepts "
-              f"{sum(r['false_accepts'] for r in done)}; {types_text([j for r in done for j in r['judged']])}")
+        print(f"{kind} {d:.2f} " + pooled_text(rows))
 
 
 if __name__ == "__main__":

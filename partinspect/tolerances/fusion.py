@@ -427,6 +427,7 @@ def given_pose(cov, cross, pose_cov):
     response = np.linalg.solve(pose_cov, cross.T).T
     rest = cov - response @ cross.T
     scale = np.sqrt(np.diag(cov))
+    scale = np.where(scale > 0, scale, 1.0)  # a parameter held exact has no scale to compare by
     w, V = np.linalg.eigh(0.5 * (rest + rest.T) / np.outer(scale, scale))
     rest = (V * np.maximum(w, 0.0)) @ V.T * np.outer(scale, scale)
     return response, rest

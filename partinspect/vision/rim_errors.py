@@ -345,12 +345,11 @@ def type_b_scale(views, fit):
     nu = sum(len(v.xy) / (2.0 * np.sqrt(np.pi) * v.bias_corr_length) for v in biased)
     upper = k2 + 2.0 * np.sqrt(se * se + 2.0 * max(k2, 0.0) ** 2 / max(nu, 1.0))
     # Residuals too noisy to bound the level leave the stated one; they raise
-    # it only where their best guess itself lies above it.
-    upper = min(upper, max(1.0, k2))
-    # Residuals smaller than the stated noise alone (an over-stated noise, a
-    # short rim) put the bound below zero: no evidence of a systematic part,
-    # which leaves the floor, never the square root of a negative number.
-    upper = max(upper, 0.0)
+    # it only where their best guess itself lies above it. Residuals smaller
+    # than the stated noise alone (an over-stated noise, a short rim) put the
+    # bound below zero: no evidence of a systematic part, which leaves the
+    # floor, never the square root of a negative number.
+    upper = float(np.clip(upper, 0.0, max(1.0, k2)))
     stated = np.sqrt(np.mean(np.concatenate([np.square(v.bias) for v in biased])))
     return float(max(np.sqrt(upper), RIM_DETECTOR_ERROR / stated))
 
