@@ -108,20 +108,12 @@ def deblurred(xy, fit, blur):
     the normal and the nearest pixel axis, c =
     :data:`partinspect.vision.edges.CURVATURE_SAMPLING_BIAS`); both are
     undone here, with kappa the fitted ellipse's curvature at each point
-    (:func:`curvature_bias`).
-
-    Parameters
-    ----------
-    xy : ndarray, shape (N, 2)
-        Points, px (ideal).
-    fit : EllipseFit
-        Fit to those points.
-    blur : float
-        Width of the edge profile, px.
+    (:func:`curvature_bias`, whose parameters these are).
 
     Returns
     -------
     ndarray, shape (N, 2)
+        The points moved back, px.
     """
     bias, n = curvature_bias(xy, fit, blur)
     return xy + bias[:, None] * n
