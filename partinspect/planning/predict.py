@@ -949,8 +949,9 @@ def predict_feature(feature, scene, calib, part_to_camera, model, geo=None, shad
     # draws the points' responses, as the run's does.
     P = point_responses(corr, calib) if form and cal.shape[1] else None
     # The radius without the detector's per-point floor, as the run states it (no residuals to size the centre by).
-    scale = (1.0, radius_type_b_scale(fviews, fit)) if fl.kind == "arc" and model.systematic else 1.0
-    f3 = make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0], scale, P)
+    radius_scale = radius_type_b_scale(fviews, fit) if fl.kind == "arc" and model.systematic else 1.0
+    f3 = make_feature3d(SimpleNamespace(left=0, right=0), fl, fr, fit, corr, cal, geo, fviews[0], point_response=P,
+                        radius_scale=radius_scale)
     return FeaturePrediction(status="measured", record=f3, **base)
 
 

@@ -172,18 +172,18 @@ def _angular_extent(points, center, normal):
     return float(start), float(start + extent), float(extent)
 
 
-def _image_param_cov(fit, kind, type_b_scale=1.0):
+def _image_param_cov(fit, kind, type_b_scale=1.0, radius_scale=1.0):
     """The fit's covariance of (point, direction) or (center, normal, radius): (image noise, systematic).
 
     A circle's systematic part has its centre and normal rows and columns
     multiplied by ``type_b_scale`` (:func:`~partinspect.vision.rim_errors.type_b_scale`): what the rim's
     residuals show of the Type B displacement's variation along the rim,
-    which moves the centre and tilts the normal. ``type_b_scale`` may be a
-    pair (centre and normal, radius): the radius's factor
-    (:func:`~partinspect.vision.rim_errors.radius_type_b_scale`) takes the
-    detector's per-point floor out of it, not the residuals' evidence: a
-    displacement common to the whole rim moves only the radius and leaves
-    no residual to judge it by.
+    which moves the centre and tilts the normal. The radius's row and
+    column take ``radius_scale``
+    (:func:`~partinspect.vision.rim_errors.radius_type_b_scale`), which
+    takes the detector's per-point floor out of it, not the residuals'
+    evidence: a displacement common to the whole rim moves only the radius
+    and leaves no residual to judge it by.
     """
     if kind == "line":
         C = np.zeros((6, 6))
@@ -206,8 +206,7 @@ def _image_param_cov(fit, kind, type_b_scale=1.0):
     _, _, M = minimal_residuals(fit, kind, [])
     sys = np.zeros_like(fit.param_cov) if fit.param_cov_systematic is None else fit.param_cov_systematic
     img, sys = M @ (fit.param_cov - sys) @ M.T, M @ sys @ M.T
-    centre, radius = (type_b_scale, 1.0) if np.ndim(type_b_scale) == 0 else type_b_scale
-    d = np.r_[np.full(6, centre), radius]
+    d = np.r_[np.full(6, type_b_scale), radius_scale]
     return img, sys * np.outer(d, d)
 
 
@@ -255,7 +254,8 @@ def _point_errors(fl, corr, view, calibration=None):
                              fl.phase_factor)
 
 
-def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_scale=1.0, point_response=None):
+def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_scale=1.0, point_response=None,
+                   radius_scale=1.0):
     """The :class:`Feature3D` record of a matched pair's two-view fit.
 
     Parameters
@@ -276,15 +276,16 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_sca
     view : View
         The left view of the fit (:func:`~partinspect.vision.stereo.feature_views`): the points'
         random and systematic parts for their error model.
-    type_b_scale : float or (float, float)
+    type_b_scale : float
         What a rim's residuals show of its stated Type B (:func:`~partinspect.vision.rim_errors.type_b_scale`),
-        applied to the centre and normal, and the radius's own factor
-        (:func:`~partinspect.vision.rim_errors.radius_type_b_scale`; 1 if
-        not given) (:func:`_image_param_cov`).
+        applied to the centre and normal (:func:`_image_param_cov`).
     point_response : ndarray, shape (N, 3, q), optional
         The triangulated points' responses to the calibration's uncertainty
         (:func:`partinspect.vision.calibration_points.point_responses`), which
         the points' error model draws for the form; None: not drawn.
+    radius_scale : float
+        The factor on a rim's radius's systematic part
+        (:func:`~partinspect.vision.rim_errors.radius_type_b_scale`).
 
     Returns
     -------
@@ -295,7 +296,7 @@ def make_feature3d(match, fl, fr, fit, corr, cal_response, geo, view, type_b_sca
         plane, cover at least 300 degrees of it.
     """
     kind = fl.kind
-    img_cov, sys_cov = _image_param_cov(fit, kind, type_b_scale)
+    img_cov, sys_cov = _image_param_cov(fit, kind, type_b_scale, radius_scale)
     G = np.asarray(cal_response, float)
     cal_cov = G @ G.T
     total = img_cov + cal_cov + sys_cov

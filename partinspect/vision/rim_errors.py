@@ -305,7 +305,7 @@ def curvature_mode(correction):
     return CURVATURE_REMAINDER * np.abs(np.asarray(correction, float))[None, :]
 
 
-def type_b_scale(views, fit):
+def type_b_scale(views, fit, at=None):
     """The factor on a rim's stated Type B standard uncertainties that its fit's residuals support.
 
     The centre and normal take it (:func:`~partinspect.vision.feature3d._image_param_cov`); the radius
@@ -329,12 +329,15 @@ def type_b_scale(views, fit):
     views : sequence of View
         The fit's views, with the stated Type B.
     fit : Circle3D
+    at : (ndarray, ndarray), optional
+        :func:`~partinspect.vision.fit3d.circle_residuals_at` of the views
+        and fit, if already computed.
 
     Returns
     -------
     float
     """
-    r, J = circle_residuals_at(views, fit)
+    r, J = circle_residuals_at(views, fit) if at is None else at
     ev = bias_evidence(views, r, J)
     if ev is None:
         return 1.0
@@ -354,7 +357,7 @@ def type_b_scale(views, fit):
     return float(max(np.sqrt(upper), RIM_DETECTOR_ERROR / stated))
 
 
-def radius_type_b_scale(views, fit):
+def radius_type_b_scale(views, fit, at=None):
     """The factor on a rim's radius's systematic standard uncertainty that leaves out the detector's floor.
 
     The fit's Type B per point is the shading's rest with
@@ -375,6 +378,8 @@ def radius_type_b_scale(views, fit):
         The fit's views, with the Type B of :func:`rim_type_b` (a broken
         rim's band in it is not separated: then 1).
     fit : Circle3D
+    at : (ndarray, ndarray), optional
+        As :func:`type_b_scale`'s.
 
     Returns
     -------
@@ -384,7 +389,7 @@ def radius_type_b_scale(views, fit):
     """
     if not any(v.bias is not None for v in views):
         return 1.0
-    _, J = circle_residuals_at(views, fit)
+    _, J = circle_residuals_at(views, fit) if at is None else at
     floor2 = RIM_DETECTOR_ERROR * RIM_DETECTOR_ERROR
     moved = [v if v.bias is None else
              replace(v, sigma=np.sqrt(np.square(v.sigma) + floor2),

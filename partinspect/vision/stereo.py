@@ -65,7 +65,7 @@ from partinspect.vision.feature3d import make_feature3d
 from partinspect.vision.forked import forked
 from partinspect.vision.calibration_points import point_responses
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
-from partinspect.vision.fit3d import View, circle_consistency, fit_circle_3d, fit_line_3d
+from partinspect.vision.fit3d import View, circle_consistency, circle_residuals_at, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
 from partinspect.vision.line_profile import line_band_shift
@@ -659,8 +659,10 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
                               f"the two ellipses' by {delta:.0f} (p = {p:.1e}){hint}")
         # A broken edge's band moves the whole rim alike, which leaves no
         # residual: its stated level stands.
-        scale = ((type_b_scale(views, fit), radius_type_b_scale(views, fit)) if fl.kind == "arc" and band is None
-                 else 1.0)
+        scale, radius_scale = 1.0, 1.0
+        if fl.kind == "arc" and band is None:
+            at = circle_residuals_at(views, fit)  # the one Jacobian both factors read
+            scale, radius_scale = type_b_scale(views, fit, at), radius_type_b_scale(views, fit, at)
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
@@ -668,7 +670,8 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
     # What the calibration's error does to the points themselves (it bends a
     # rim, not only moves it): the form's Monte Carlo draws it.
     P = point_responses(corr, calib) if G.shape[1] else None
-    return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band, fl.kind), scale, P), None
+    return make_feature3d(match, fl, fr, fit, corr, G, geo, _without_band(views[0], band, fl.kind), scale, P,
+                          radius_scale), None
 
 
 def _one_circle(fl, fr, views_under, calib, fit):

@@ -29,6 +29,17 @@ def measured(seed, distortion=False):
     return _RESULTS[key]
 
 
+def arc_views(seed=0):
+    """(feature, left, right, views) of every matched arc pair of ``measured(seed)``, as the 3D fit takes them."""
+    from partinspect.vision.stereo import feature_views
+
+    rig, res = measured(seed)
+    for f in res.features:
+        fl, fr = res.left.features[f.left], res.right.features[f.right]
+        if fl.kind == "arc":
+            yield f, fl, fr, feature_views(fl, fr, res.left.edges.sigma, rig)
+
+
 def errors(seed, distortion=False):
     """Per measured feature: (kind, id, error vector, covariance, radius error, radius std)."""
     rig, res = measured(seed, distortion)
@@ -160,15 +171,9 @@ def test_a_rims_curvature_remainder_is_one_mode_of_both_views():
     from partinspect.vision.correspondences import curvature_bias
     from partinspect.vision.fit3d import information_parts
     from partinspect.vision.rim_errors import CURVATURE_REMAINDER
-    from partinspect.vision.stereo import feature_views
 
-    rig, res = measured(0)
     checked = 0
-    for f in res.features:
-        fl, fr = res.left.features[f.left], res.right.features[f.right]
-        if fl.kind != "arc":
-            continue
-        views = feature_views(fl, fr, res.left.edges.sigma, rig)
+    for f, fl, fr, views in arc_views():
         for v, side in zip(views, (fl, fr)):
             (k,) = [j for j, name in enumerate(v.mode_names) if name[0] == "curvature"]
             assert np.allclose(v.modes[k], CURVATURE_REMAINDER * curvature_bias(side.ideal.xy, side.fit, side.blur)[0],
@@ -194,15 +199,9 @@ def test_the_radius_leaves_the_detectors_floor_out():
     from dataclasses import replace
 
     from partinspect.vision.rim_errors import RIM_DETECTOR_ERROR, radius_type_b_scale
-    from partinspect.vision.stereo import feature_views
 
-    rig, res = measured(0)
     checked = 0
-    for f in res.features:
-        fl, fr = res.left.features[f.left], res.right.features[f.right]
-        if fl.kind != "arc":
-            continue
-        views = feature_views(fl, fr, res.left.edges.sigma, rig)
+    for f, _, _, views in arc_views():
         for b in (0.0, 0.004, 0.02):
             total = np.hypot(b, RIM_DETECTOR_ERROR)
             flat = [replace(v, bias=np.full(len(v.xy), total), modes=None, mode_names=None) for v in views]
@@ -224,14 +223,11 @@ def test_the_form_keeps_its_point_level_type_b():
     from partinspect.vision.edges import EDGE_BIAS_FACTOR
     from partinspect.vision.rim_errors import EDGE_BIAS_FLOOR, rim_type_b
 
-    from partinspect.vision.stereo import feature_views
-    rig, res = measured(0)
     checked = 0
-    for f in res.features:
-        fl, fr = res.left.features[f.left], res.right.features[f.right]
-        if fl.kind != "arc" or fl.background_bound is None:
+    for f, fl, _, views in arc_views():
+        if fl.background_bound is None:
             continue
-        view = feature_views(fl, fr, res.left.edges.sigma, rig)[0]
+        view = views[0]
         assert np.allclose(view.bias, rim_type_b(fl.background_bound))
         model = f.point_errors
         stated = np.hypot(EDGE_BIAS_FACTOR * fl.background_bound, EDGE_BIAS_FLOOR)
