@@ -47,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from partinspect.vision.ramps import RAMP_SHARE
 from partinspect.vision.triangulation import fundamental_matrix, triangulate
 
 __all__ = [
@@ -90,6 +91,7 @@ REASONS = {
     "too_short": "too few edge points to be measured",
     "degenerate": "line nearly parallel to the epipolar lines: its position along them is undetermined",
     "edge_on": "circle seen nearly edge-on: its ellipse is too thin for a reliable radius",
+    "ramp": "a shading ramp's crest, not a step edge: it marks no edge of the part",
     "no_candidate": "no feature of the other image in its epipolar band",
     "kind_mismatch": "only features of another kind in its epipolar band",
     "shape_mismatch": "features in its band disagree in polarity, size or orientation",
@@ -506,7 +508,8 @@ def match_features(left, right, geo, *, min_points=12, min_angle=MIN_EPIPOLAR_AN
 
     Notes
     -----
-    A degenerate or edge-on feature takes part in no pair; a feature left
+    A degenerate or edge-on feature takes part in no pair, nor does a
+    shading ramp's crest (:mod:`partinspect.vision.ramps`); a feature left
     unmatched whose band holds such a feature of its kind and polarity is
     given that feature's reason, naming it. The cost of a candidate pair is ``(1 - IoU of the bands) + shape cost``;
     polarity disagreement (unless either feature is of mixed polarity), a
@@ -538,6 +541,8 @@ class _Side:
     """Lines: angle to the epipolar lines, rad (:func:`line_angles`); NaN for arcs."""
     long: np.ndarray
     """Whether it has at least ``min_points`` points."""
+    ramp: np.ndarray
+    """Whether it is a shading ramp's crest (``ramp_share`` above ``RAMP_SHARE``): no candidate of any pair."""
     unfit: list
     """None, or (reason, detail) for a degenerate line or an edge-on arc (:func:`_unfit`)."""
     usable: np.ndarray
@@ -554,11 +559,18 @@ def _side(geo, feats, side, min_points, min_angle, min_axis_ratio):
     angle = line_angles(geo, feats, side)
     ratio = _axis_ratios(feats)
     long = np.array([len(f) >= min_points for f in feats], bool)
+    ramp = np.array([_ramp_share(f) > RAMP_SHARE for f in feats], bool)
     unfit = [_unfit(angle[k], ratio[k], min_angle, min_axis_ratio) for k in range(len(feats))]
     usable = long & np.array([u is None for u in unfit], bool)
     polarity = [f.polarity if f.kind == "arc" else _line_polarity(geo, f, side) for f in feats]
     signed_angle = [_signed_line_angle(geo, f, side) if f.kind == "line" else 0.0 for f in feats]
-    return _Side(band, angle, long, unfit, usable, polarity, signed_angle)
+    return _Side(band, angle, long, ramp, unfit, usable, polarity, signed_angle)
+
+
+def _ramp_share(f):
+    """The feature's ``ramp_share``, or -inf where it was not read (features of the 2D chain alone)."""
+    share = getattr(f, "ramp_share", None)
+    return -np.inf if share is None or not np.isfinite(share) else share
 
 
 @dataclass(frozen=True)
@@ -597,9 +609,9 @@ def _candidates(geo, left, right, sl, sr, *, band_tolerance, min_overlap, radius
     in_band = np.zeros((nl, nr), bool)
     same_kind = np.zeros((nl, nr), bool)
     blocked = np.zeros((nl, nr), bool)
-    for i in np.flatnonzero(sl.long):
+    for i in np.flatnonzero(sl.long & ~sl.ramp):
         lo_i, hi_i = sl.band[i, 0] - band_tolerance, sl.band[i, 1] + band_tolerance
-        for j in np.flatnonzero(sr.long):
+        for j in np.flatnonzero(sr.long & ~sr.ramp):
             lo_j, hi_j = sr.band[j, 0] - band_tolerance, sr.band[j, 1] + band_tolerance
             inter = min(hi_i, hi_j) - max(lo_i, lo_j)
             if inter <= 0:
@@ -700,6 +712,9 @@ def _unmatched(side, feats, mine, theirs, taken, c, ambiguous, min_points):
         partners = [o for o in np.flatnonzero(c.blocked[k]) if theirs.unfit[o] is not None]
         if len(f) < min_points:
             out.append(Unmatched(side, k, "too_short", f"{len(f)} points < {min_points}", ang))
+        elif mine.ramp[k]:
+            out.append(Unmatched(side, k, "ramp", f"the grey-level slope on either side keeps "
+                                                  f"{100 * f.ramp_share:.0f} % of its peak gradient", ang))
         elif mine.unfit[k] is not None:
             out.append(Unmatched(side, k, mine.unfit[k][0], mine.unfit[k][1], ang))
         elif partners and not np.isfinite(c.cost[k]).any():

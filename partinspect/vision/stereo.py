@@ -69,6 +69,7 @@ from partinspect.vision.fit3d import View, circle_consistency, circle_residuals_
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
 from partinspect.vision.line_profile import line_band_shift
+from partinspect.vision.ramps import ramp_share
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
 from partinspect.vision.rim_errors import (BACKGROUND_CORRECTION, EDGE_BIAS_CORR_ANGLE, correction_corr_length,
@@ -170,6 +171,11 @@ class EdgeFeature(ImageFeature):
         Carlo of the feature draws with, kept on the feature so that one
         measured in another adaptive round than its neighbours
         (:mod:`partinspect.adaptive`) carries its own.
+    ramp_share : float or None
+        The share of its peak gradient that the grey-level slope beside it
+        keeps on both sides (:func:`partinspect.vision.ramps.ramp_share`):
+        above ``RAMP_SHARE`` it is a shading ramp's crest, not a step
+        edge, and the matching leaves it out.
 
     Arcs, averaged along the edge over ``BACKGROUND_SMOOTHING`` px (lines:
     ``background_bound`` alone, as read at each point; the others None):
@@ -205,6 +211,7 @@ class EdgeFeature(ImageFeature):
 
     edge_normal: np.ndarray | None = None
     corr_length: float | None = None
+    ramp_share: float | None = None
     background_offset: np.ndarray | None = None
     background_bound: np.ndarray | None = None
     background_std: np.ndarray | None = None
@@ -216,7 +223,8 @@ class EdgeFeature(ImageFeature):
 def _with_edge_data(feature, edges, image):
     base = {f.name: getattr(feature, f.name) for f in fields(ImageFeature)}
     i = feature.index
-    base.update(edge_normal=edges.normal[i], corr_length=float(edges.sigma))
+    base.update(edge_normal=edges.normal[i], corr_length=float(edges.sigma),
+                ramp_share=ramp_share(image, edges.xy[i], edges.normal[i], edges.strength[i]))
     if edges.background_shift is None:
         return EdgeFeature(**base)
     if feature.kind != "arc":
