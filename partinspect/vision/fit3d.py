@@ -281,7 +281,7 @@ def _covariance(views, J):
     return 0.5 * (cov + cov.T), 0.5 * (cov_b + cov_b.T)
 
 
-def information_parts(views, J):
+def information_parts(views, J, random=True):
     """The normal matrix of weighted residuals and the two middles of its sandwich covariance.
 
     Parameters
@@ -292,6 +292,9 @@ def information_parts(views, J):
         Jacobian of the residuals divided by each point's ``total_sigma``,
         in any p parameters (one feature's, or several features' and a
         rig's together).
+    random : bool
+        False leaves the random part out (None), for callers that want
+        only the systematic part.
 
     Returns
     -------
@@ -306,15 +309,16 @@ def information_parts(views, J):
         M_systematic) S^-1`` (:func:`_covariance`).
     """
     p = J.shape[1]
-    M, Mb = np.zeros((p, p)), np.zeros((p, p))
+    M, Mb = (np.zeros((p, p)) if random else None), np.zeros((p, p))
     shared = {}
     start = 0
     for v in views:
         n = len(v.xy)
         hw = J[start : start + n]
         t = v.total_sigma
-        M += _gram(hw * (v.sigma / t)[:, None], v.xy, v.corr_length)
-        if v.sigma_correction is not None:
+        if random:
+            M += _gram(hw * (v.sigma / t)[:, None], v.xy, v.corr_length)
+        if random and v.sigma_correction is not None:
             M += _gram(hw * (v.sigma_correction / t)[:, None], v.xy, v.correction_corr_length)
         if v.bias is not None:
             Mb += _gram_dense(hw * (v.bias / t)[:, None], v.xy, v.bias_corr_length)

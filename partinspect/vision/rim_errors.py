@@ -395,8 +395,8 @@ def radius_type_b_scale(views, fit, at=None):
              replace(v, sigma=np.sqrt(np.square(v.sigma) + floor2),
                      bias=np.sqrt(np.maximum(np.square(v.bias) - floor2, 0.0)))
              for v in views]
-    S, _, Mb = information_parts(views, J)
-    _, _, Mb_rest = information_parts(moved, J)
+    S, _, Mb = information_parts(views, J, random=False)
+    _, _, Mb_rest = information_parts(moved, J, random=False)
     Sinv = np.linalg.inv(S)
     stated = float((Sinv @ Mb @ Sinv)[-1, -1])
     rest = float((Sinv @ Mb_rest @ Sinv)[-1, -1])
