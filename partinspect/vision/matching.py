@@ -91,7 +91,8 @@ REASONS = {
     "too_short": "too few edge points to be measured",
     "degenerate": "line nearly parallel to the epipolar lines: its position along them is undetermined",
     "edge_on": "circle seen nearly edge-on: its ellipse is too thin for a reliable radius",
-    "ramp": "a shading ramp's crest, not a step edge: it marks no edge of the part",
+    "ramp": "a shading ramp's crest, not a step edge (a curved face's shading or a highlight's flank): "
+            "nothing to locate an edge by",
     "no_candidate": "no feature of the other image in its epipolar band",
     "kind_mismatch": "only features of another kind in its epipolar band",
     "shape_mismatch": "features in its band disagree in polarity, size or orientation",
