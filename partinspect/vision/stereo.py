@@ -53,6 +53,7 @@ References
 """
 
 from dataclasses import dataclass, fields, replace
+from itertools import count
 
 import cv2
 import numpy as np
@@ -291,6 +292,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
     views' ``modes``.
     """
     P1, P2 = camera_matrices(calib)
+    # The rim's curvature mode: one name for its two views, no other's (a
+    # joint fit of several rims keeps their modes apart).
+    curvature_name = ("curvature", next(_MODE_NAMES))
     if correction_std is None:
         correction_std = (correction_std_of(fl, corr_length), correction_std_of(fr, corr_length))
     views = []
@@ -312,8 +316,8 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
         if arc:
             curvature, normal = curvature_bias(xy, f.fit, f.blur)
             xy = xy + curvature[:, None] * normal
-            # One unknown factor of the rim, shared by its two views (named by this pair).
-            modes, names = _with_mode(modes, names, curvature_mode(curvature), ("curvature", id(fl)))
+            # One unknown factor of the rim, shared by its two views.
+            modes, names = _with_mode(modes, names, curvature_mode(curvature), curvature_name)
         if offset is not None:
             bias = rim_type_b(f.background_bound)
             bias_length = EDGE_BIAS_CORR_ANGLE * float(max(f.fit.params[2], f.fit.params[3]))
@@ -326,6 +330,9 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length),
                           modes, names))
     return views
+
+
+_MODE_NAMES = count()
 
 
 def _with_mode(modes, names, row, name):
