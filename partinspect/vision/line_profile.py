@@ -89,10 +89,11 @@ def across_profile(image, uv, normal, reach=REACH, step=STEP):
         The mean grey at each offset over the points.
     """
     t = np.arange(-reach, reach + 0.5 * step, step)
-    img = np.asarray(image, float)
     p = uv[:, None, :] + t[None, :, None] * normal[:, None, :]
-    # Bilinear, clamped at the borders (map_coordinates takes rows first).
-    grey = map_coordinates(img, [p[..., 1].ravel(), p[..., 0].ravel()], order=1, mode="nearest")
+    # Bilinear, clamped at the borders (map_coordinates takes rows first);
+    # computed in double whatever the image's type, which is not copied.
+    grey = map_coordinates(np.asarray(image), [p[..., 1].ravel(), p[..., 0].ravel()], order=1, mode="nearest",
+                           output=np.float64)
     return t, grey.reshape(len(uv), len(t)).mean(axis=0)
 
 

@@ -10,7 +10,7 @@ maxima of its gradient too, wherever the shading's slope peaks, and where
 that slope is above the detector's thresholds they chain into lines and
 arcs like edges. There the gradient 3-6 px either side is still most of
 the peak, on both sides and in the same direction: no step, a ramp's
-crest. Such a feature marks no CAD edge, yet its line can pair with an
+crest. Such a feature locates no edge of the part, yet its line can pair with an
 edge in the other image (a line pair always triangulates) and be fitted
 tens of mm off with a small stated uncertainty.
 
@@ -34,13 +34,17 @@ import numpy as np
 from partinspect.vision.edges import MAX_STEP_WIDTH
 from partinspect.vision.line_profile import REACH, across_profile
 
-__all__ = ["SIDE", "RAMP_SHARE", "side_slopes", "ramp_share"]
+__all__ = ["SIDE", "STEP", "RAMP_SHARE", "side_slopes", "ramp_share"]
 
 SIDE = 3.0
 """px: the profile beyond this on each side is the faces' own shading. A
 step's gradient there is under 0.05 of its peak for edge widths up to
 1.2 px (``exp(-9 / 2 W^2)``), the same distance the first-order shading
 reading starts from (:data:`partinspect.vision.edges.BACKGROUND_DISTANCES`)."""
+
+STEP = 0.5
+"""px between the profile's samples: seven per side, enough for a straight
+line's slope (the points' average is what makes it precise)."""
 
 RAMP_SHARE = float(np.exp(-(0.5 * (SIDE + REACH)) ** 2 / (2.0 * MAX_STEP_WIDTH**2)))
 """A feature is a ramp's crest when the grey-level slope on both of its
@@ -67,10 +71,11 @@ def side_slopes(image, uv, normal):
     -------
     ndarray, shape (2,)
         The slope along the normal of a straight line fitted by least
-        squares to the averaged profile from ``-REACH`` to ``-SIDE`` (the
-        dark side) and from ``SIDE`` to ``REACH`` (the bright side).
+        squares to the averaged profile, sampled every ``STEP`` px, from
+        ``-REACH`` to ``-SIDE`` (the dark side) and from ``SIDE`` to
+        ``REACH`` (the bright side).
     """
-    t, grey = across_profile(image, np.asarray(uv, float), np.asarray(normal, float))
+    t, grey = across_profile(image, np.asarray(uv, float), np.asarray(normal, float), step=STEP)
     dark, bright = t <= -SIDE, t >= SIDE
     return np.array([np.polyfit(t[s], grey[s], 1)[0] for s in (dark, bright)])
 
@@ -100,4 +105,3 @@ def ramp_share(image, uv, normal, strength):
     if not peak > 0.0 or len(uv) == 0:
         return float("nan")
     return float(side_slopes(image, uv, normal).min() / peak)
-

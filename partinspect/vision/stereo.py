@@ -70,9 +70,9 @@ from partinspect.vision.fit3d import View, circle_consistency, circle_residuals_
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
 from partinspect.vision.line_profile import line_band_shift
-from partinspect.vision.ramps import ramp_share
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
+from partinspect.vision.ramps import ramp_share
 from partinspect.vision.rim_errors import (BACKGROUND_CORRECTION, EDGE_BIAS_CORR_ANGLE, correction_corr_length,
                                            correction_std_of, curvature_mode, form_view, radius_type_b_scale,
                                            rim_type_b, smoothed_background, type_b_scale)
