@@ -199,7 +199,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x"))
     args.work.mkdir(parents=True, exist_ok=True)
-    assert (ROOT / "examples" / args.part).is_dir(), args.part
+    if not (ROOT / "examples" / args.part).is_dir():
+        ap.error(f"no sample part {args.part!r} in examples/")
     for noise in (float(v) for v in args.noise.split(",")):
         seeds = range(1 if noise == 0 else args.seeds)
         records = [r for s in seeds for r in rim_images(args.part, size, noise, s, args.work)]
