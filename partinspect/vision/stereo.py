@@ -66,8 +66,7 @@ from partinspect.vision.feature3d import make_feature3d
 from partinspect.vision.forked import forked
 from partinspect.vision.calibration_points import point_responses
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
-from partinspect.vision.fit3d import (View, circle_consistency, circle_residuals_at, fit_circle_3d, fit_line_3d,
-                                     information_parts)
+from partinspect.vision.fit3d import View, circle_consistency, circle_residuals_at, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
 from partinspect.vision.line_profile import line_band_shift
@@ -75,8 +74,8 @@ from partinspect.vision.matching import arc_circle, epipolar_geometry, match_fea
 from partinspect.vision.noise import noise_level_function
 from partinspect.vision.ramps import ramp_share
 from partinspect.vision.rim_errors import (BACKGROUND_CORRECTION, EDGE_BIAS_CORR_ANGLE, correction_corr_length,
-                                           correction_std_of, curvature_mode, form_view, radius_type_b_scale,
-                                           rim_type_b, smoothed_background, type_b_scale)
+                                           correction_std_of, curvature_mode, form_view, radius_share,
+                                           radius_type_b_scale, rim_type_b, smoothed_background, type_b_scale)
 
 __all__ = ["ImageResult", "EdgeFeature", "StereoResult", "measure_stereo", "measure_images", "feature_views",
            "views_of", "line_type_b", "edge_band", "band_radius_scale", "fit_feature", "measure_pair_feature"]
@@ -746,11 +745,7 @@ def band_radius_scale(views, band, at):
     """
     rest = [v if v.bias is None else replace(v, bias=np.sqrt(np.maximum(np.square(v.bias) - b * b, 0.0)))
             for v, b in zip(views, band)]
-    S, _, Mb = information_parts(views, at[1], random=False)
-    _, _, Mb_rest = information_parts(rest, at[1], random=False)
-    Sinv = np.linalg.inv(S)
-    stated = float((Sinv @ Mb @ Sinv)[-1, -1])
-    return float(np.sqrt(min(float((Sinv @ Mb_rest @ Sinv)[-1, -1]) / stated, 1.0))) if stated > 0 else 1.0
+    return radius_share(views, rest, at[1])
 
 
 def _without_band(view, band, kind=None):
