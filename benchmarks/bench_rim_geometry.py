@@ -10,7 +10,9 @@ view's pair measured (:func:`partinspect.vision.stereo.measure_stereo`) with
 images is matched to its true circle, and each of its points, moved as
 :func:`~partinspect.vision.stereo.feature_views` moves it (the shading
 shift times ``BACKGROUND_CORRECTION``, then the curvature bias), is set
-against the true rim's image along the outward normal (ideal px, + out).
+against the true rim's image along the outward normal (ideal px, + out);
+the points and their Type B are the fit's views
+(:func:`~partinspect.vision.stereo.feature_views`).
 
 Printed per noise level:
 
@@ -76,16 +78,6 @@ def true_rims(truth):
     return out
 
 
-def corrected_points(fe):
-    """A rim image's ideal points moved as ``feature_views`` moves them, and their Type B, px."""
-    from partinspect.vision.correspondences import curvature_bias
-    from partinspect.vision.rim_errors import BACKGROUND_CORRECTION, rim_type_b
-
-    xy = fe.ideal.xy - BACKGROUND_CORRECTION * np.einsum("nij,nj->ni", fe.ideal.jacobian, fe.background_offset)
-    bias, normal = curvature_bias(xy, fe.fit, fe.blur)
-    return xy + bias[:, None] * normal, rim_type_b(fe.background_bound)
-
-
 def point_errors(xy, P, centre, normal, radius, depth, eye):
     """Each point's error along the true rim's outward normal and the wall band's width beside it, px.
 
@@ -110,10 +102,12 @@ def point_errors(xy, P, centre, normal, radius, depth, eye):
     return np.einsum("ni,ni->n", xy - rim[k], out), band
 
 
-def mean_std(xy, type_b, length):
-    """Standard deviation of the points' mean error the Type B states, correlated as ``exp(-d^2 / 4 l^2)``."""
-    d2 = np.sum((xy[:, None, :] - xy[None, :, :]) ** 2, axis=-1)
-    return float(np.sqrt(type_b @ np.exp(-d2 / (4.0 * length * length)) @ type_b) / len(xy))
+def mean_std(d2, type_b, length):
+    """Standard deviation of the points' mean error the Type B states, correlated as ``exp(-d^2 / 4 l^2)``.
+
+    ``d2``: the points' squared distances, (N, N) px^2.
+    """
+    return float(np.sqrt(type_b @ np.exp(-d2 / (4.0 * length * length)) @ type_b) / len(type_b))
 
 
 def rim_images(part, size, noise, seed, work):
@@ -121,7 +115,7 @@ def rim_images(part, size, noise, seed, work):
     from partinspect.simulate.render import sensor
     from partinspect.vision.ideal import camera_matrices
     from partinspect.vision.rim_errors import BACKGROUND_SMOOTHING, EDGE_BIAS_CORR_ANGLE
-    from partinspect.vision.stereo import measure_stereo
+    from partinspect.vision.stereo import feature_views, measure_stereo
 
     out = []
     for k, turn in enumerate(TURNS, 1):
@@ -136,15 +130,17 @@ def rim_images(part, size, noise, seed, work):
             hit = [f for f in res.features if f.kind == "circle" and np.linalg.norm(f.center - c3) < 1.0
                    and abs(f.radius - r) < 0.3]
             for f in hit[:1]:
-                for side, image, index in ((0, res.left, f.left), (1, res.right, f.right)):
-                    fe = image.features[index]
-                    xy, type_b = corrected_points(fe)
-                    err, band = point_errors(xy, cams[side], c3, n3, r, depth, eyes[side])
+                fl, fr = res.left.features[f.left], res.right.features[f.right]
+                # The points as the 3D fit takes them: both corrections made, their Type B.
+                views = feature_views(fl, fr, res.left.edges.sigma, rig)
+                footprint = float(np.hypot(BACKGROUND_SMOOTHING, res.left.edges.sigma))
+                for side, (fe, view) in enumerate(zip((fl, fr), views)):
+                    err, band = point_errors(view.xy, cams[side], c3, n3, r, depth, eyes[side])
                     semi = float(max(fe.fit.params[2:4]))
-                    footprint = float(np.hypot(BACKGROUND_SMOOTHING, image.edges.sigma))
-                    out.append(dict(view=k, id=cid, side=side, semi=semi, xy=xy, err=err, band=band,
-                                    type_b=type_b, stated=mean_std(xy, type_b, EDGE_BIAS_CORR_ANGLE * semi),
-                                    footprint=mean_std(xy, type_b, footprint)))
+                    d2 = np.sum((view.xy[:, None, :] - view.xy[None, :, :]) ** 2, axis=-1)
+                    out.append(dict(view=k, id=cid, side=side, semi=semi, d=np.sqrt(d2), err=err, band=band,
+                                    type_b=view.bias, stated=mean_std(d2, view.bias, EDGE_BIAS_CORR_ANGLE * semi),
+                                    footprint=mean_std(d2, view.bias, footprint)))
     return out
 
 
@@ -168,8 +164,7 @@ def autocorrelation(records):
     for lag in LAGS:
         num = den = 0.0
         for r in records:
-            d = np.sqrt(np.sum((r["xy"][:, None, :] - r["xy"][None, :, :]) ** 2, axis=-1))
-            pair = np.abs(d - lag) <= 0.25 * lag
+            pair = np.abs(r["d"] - lag) <= 0.25 * lag
             num += float(np.sum(np.outer(r["err"], r["err"])[pair]))
             den += float(np.sum(r["err"] ** 2)) * pair.sum() / len(r["err"])
         out.append(num / den if den > 0 else np.nan)

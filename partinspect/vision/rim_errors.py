@@ -48,7 +48,7 @@ from partinspect.vision.fit3d import circle_residuals_at, information_parts
 __all__ = ["BACKGROUND_CORRECTION", "BACKGROUND_SMOOTHING", "EDGE_BIAS_CORR_ANGLE", "RIM_DETECTOR_ERROR",
            "RIM_BOUND_READING", "CURVATURE_REMAINDER", "EDGE_BIAS_FLOOR", "smoothed_background",
            "smoothing_operators", "coupled_noise", "rim_type_b", "curvature_mode", "type_b_scale",
-           "radius_type_b_scale", "radius_share", "correction_std_of", "correction_corr_length", "form_view"]
+           "radius_type_b_scale", "correction_std_of", "correction_corr_length", "form_view"]
 
 
 # Points of arcs: the corrections and the Type B component of the module
@@ -376,7 +376,8 @@ def radius_type_b_scale(views, fit, at=None):
     ----------
     views : sequence of View
         The fit's views, with the Type B of :func:`rim_type_b` (a broken
-        rim's band in it is not separated: then 1).
+        rim's band in it is not separated: such a rim's radius keeps the
+        stated level, 1).
     fit : Circle3D
     at : (ndarray, ndarray), optional
         As :func:`type_b_scale`'s.
@@ -395,33 +396,12 @@ def radius_type_b_scale(views, fit, at=None):
              replace(v, sigma=np.sqrt(np.square(v.sigma) + floor2),
                      bias=np.sqrt(np.maximum(np.square(v.bias) - floor2, 0.0)))
              for v in views]
-    return radius_share(views, moved, J)
-
-
-def radius_share(views, rest, J):
-    """How much of a circle fit's radius's systematic standard uncertainty ``rest`` keeps.
-
-    Parameters
-    ----------
-    views : sequence of View
-        The fit's views, with the Type B stated.
-    rest : sequence of View
-        The same with part of it taken out (their weights unchanged).
-    J : ndarray, shape (N, 7)
-        The fit's weighted Jacobian (:func:`~partinspect.vision.fit3d.circle_residuals_at`),
-        the radius last.
-
-    Returns
-    -------
-    float
-        The square root of the ratio of the radius's two systematic
-        sandwich variances, at most 1; 1 where nothing is stated.
-    """
     S, _, Mb = information_parts(views, J, random=False)
-    _, _, Mb_rest = information_parts(rest, J, random=False)
+    _, _, Mb_rest = information_parts(moved, J, random=False)
     Sinv = np.linalg.inv(S)
     stated = float((Sinv @ Mb @ Sinv)[-1, -1])
-    return float(np.sqrt(min(float((Sinv @ Mb_rest @ Sinv)[-1, -1]) / stated, 1.0))) if stated > 0 else 1.0
+    rest = float((Sinv @ Mb_rest @ Sinv)[-1, -1])
+    return float(np.sqrt(min(rest / stated, 1.0))) if stated > 0 else 1.0
 
 
 def correction_std_of(f, corr_length):

@@ -74,11 +74,11 @@ from partinspect.vision.matching import arc_circle, epipolar_geometry, match_fea
 from partinspect.vision.noise import noise_level_function
 from partinspect.vision.ramps import ramp_share
 from partinspect.vision.rim_errors import (BACKGROUND_CORRECTION, EDGE_BIAS_CORR_ANGLE, correction_corr_length,
-                                           correction_std_of, curvature_mode, form_view, radius_share,
-                                           radius_type_b_scale, rim_type_b, smoothed_background, type_b_scale)
+                                           correction_std_of, curvature_mode, form_view, radius_type_b_scale,
+                                           rim_type_b, smoothed_background, type_b_scale)
 
 __all__ = ["ImageResult", "EdgeFeature", "StereoResult", "measure_stereo", "measure_images", "feature_views",
-           "views_of", "line_type_b", "edge_band", "band_radius_scale", "fit_feature", "measure_pair_feature"]
+           "views_of", "line_type_b", "edge_band", "fit_feature", "measure_pair_feature"]
 
 MISMATCH_P = 1e-6
 """A matched pair of arcs whose 3D circle fits both images worse than their
@@ -294,7 +294,7 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
     P1, P2 = camera_matrices(calib)
     # The rim's curvature mode: one name for its two views, no other's (a
     # joint fit of several rims keeps their modes apart).
-    curvature_name = ("curvature", next(_MODE_NAMES))
+    curvature_name = ("curvature", next(_MODE_NAMES)) if fl.kind == "arc" else None
     if correction_std is None:
         correction_std = (correction_std_of(fl, corr_length), correction_std_of(fr, corr_length))
     views = []
@@ -673,14 +673,11 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
                 return None, (f"the two images' arcs are not one circle: its fit's chi-square exceeds "
                               f"the two ellipses' by {delta:.0f} (p = {p:.1e}){hint}")
         # A broken edge's band moves the whole rim alike, which leaves no
-        # residual: its stated level stands, but not in the radius.
+        # residual: its stated level stands.
         scale, radius_scale = 1.0, 1.0
-        if fl.kind == "arc":
-            at = circle_residuals_at(views, fit)  # the one Jacobian the factors read
-            if band is None:
-                scale, radius_scale = type_b_scale(views, fit, at), radius_type_b_scale(views, fit, at)
-            else:
-                radius_scale = band_radius_scale(views, band, at)
+        if fl.kind == "arc" and band is None:
+            at = circle_residuals_at(views, fit)  # the one Jacobian both factors read
+            scale, radius_scale = type_b_scale(views, fit, at), radius_type_b_scale(views, fit, at)
         corr = corrected_correspondences(fl, fr, views, corr, geo, corr_length)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return None, f"3D fit failed: {exc}"
@@ -715,37 +712,6 @@ def form_views_of(views_under, fl, fr):
         return [form_view(left, fl), form_view(right, fr)]
 
     return views
-
-
-def band_radius_scale(views, band, at):
-    """The factor on a broken rim's radius's systematic standard uncertainty that leaves out its band.
-
-    Where the step lies across the band moves a rim's radius as its
-    average place; the size characteristic carries that as its own
-    edge-break Type B (:func:`partinspect.tolerances.edge_break.size_on_broken_rim`),
-    so the fit's per-point band (:func:`feature_views`) would count it
-    twice there. It stays in the centre and normal, which its variation
-    round the rim and between the images moves. The ratio of the radius's
-    systematic sandwich variances without and with the band, through the
-    fit's weighted Jacobian ``at``
-    (:func:`~partinspect.vision.fit3d.circle_residuals_at`).
-
-    Parameters
-    ----------
-    views : sequence of View
-        With the band in their ``bias`` (:func:`feature_views`).
-    band : (float, float)
-        :func:`edge_band`, px per view.
-    at : (ndarray, ndarray)
-
-    Returns
-    -------
-    float
-        At most 1.
-    """
-    rest = [v if v.bias is None else replace(v, bias=np.sqrt(np.maximum(np.square(v.bias) - b * b, 0.0)))
-            for v, b in zip(views, band)]
-    return radius_share(views, rest, at[1])
 
 
 def _without_band(view, band, kind=None):

@@ -216,35 +216,6 @@ def test_the_radius_leaves_the_detectors_floor_out():
     assert checked >= 4
 
 
-def test_a_broken_rims_band_leaves_its_radius_to_the_sizes_edge_break_type_b():
-    # The band's place moves the radius as its average round the rim, which
-    # the size characteristic carries (size_on_broken_rim): the fit's radius
-    # keeps only the rest. With the rest alone in the views the factor is 1;
-    # a band that is the only Type B leaves none of it in the radius; the
-    # centre's systematic covariance is not touched by the factor.
-    from dataclasses import replace
-
-    from partinspect.vision.fit3d import circle_residuals_at
-    from partinspect.vision.stereo import band_radius_scale
-
-    scales = {"circle": [], "arc": []}
-    for f, fl, fr, views in arc_views():
-        at = circle_residuals_at(views, f.fit)
-        band = (0.3, 0.25)
-        banded = [replace(v, bias=np.hypot(v.bias, b)) for v, b in zip(views, band)]
-        only_band = [replace(v, bias=np.full(len(v.xy), b), modes=None, mode_names=None) for v, b in zip(views, band)]
-        assert band_radius_scale(views, (0.0, 0.0), at) == pytest.approx(1.0)
-        assert band_radius_scale(only_band, band, at) == pytest.approx(0.0, abs=1e-6)
-        scale = band_radius_scale(banded, band, at)
-        assert 0.0 < scale < 1.0
-        scales[f.kind].append(scale)
-    # A short arc's radius follows the band's variation along it most (its
-    # curvature, not only its mean): it loses more of its systematic part
-    # than a whole rim, whose curvature mode remains.
-    assert len(scales["circle"]) >= 4 and scales["arc"]
-    assert max(scales["arc"]) < min(scales["circle"])
-
-
 def test_the_form_keeps_its_point_level_type_b():
     # The rims' point errors (what the form's zone is simulated with) keep
     # EDGE_BIAS_FACTOR times the bound with EDGE_BIAS_FLOOR; only the 3D
