@@ -269,10 +269,7 @@ def check_calibration(inputs, progress):
     with inputs.timings.stage("checking the calibration"):
         result = check(inputs.calib, matched_arcs(stereo), matched_edge_points(stereo))
     if result.verdict == "invalid":
-        d = result.drift
-        raise InputError(inputs.calib_file or inputs.images,
-                         f"the calibration does not fit these images: their epipolar lines are {d.shift:+.2f} px off "
-                         f"(u {d.u:.2f} px), more than a run corrects; recalibrate the rig")
+        raise InputError(inputs.calib_file or inputs.images, result.refusal())
     progress(result.summary())
     if result.calib is inputs.calib:
         return result, stereo

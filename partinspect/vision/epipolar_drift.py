@@ -24,9 +24,17 @@ Two turns of the right camera about its centre move the epipolar lines
 across themselves: about the baseline, alike everywhere, and about its
 optical axis, in proportion to the distance along them. Fitted to the
 residuals (weighted least squares; the second only where six or more
-tangencies are seen), they correct the rig, and their covariance is added
+tangencies are seen, or three where their scatter about a constant asks
+for it), they correct the rig, and their covariance is added
 to the calibration's (Type B), so what the correction leaves uncertain is
 carried into every 3D result.
+
+The verdict follows the residuals' scatter about the field as well: one
+beyond what their variances and the stated calibration allow
+(:func:`field_scatter`) is not "consistent". Where even then too few
+tangencies are seen to fit the roll, the roll that scatter asks for is
+carried as a Type B uncertainty of the rig (:func:`unexplained_roll`), or
+the run refused where it exceeds what a run carries.
 
 Pixels are ideal (undistorted) pixel coordinates; angles in radians.
 
@@ -40,18 +48,21 @@ References
 .. [3] JCGM 100:2008 (GUM), 4.2 (Type A) and 4.3 (Type B evaluation).
 """
 
+import math
 from dataclasses import dataclass, field as dataclass_field, replace
 
 import numpy as np
+from scipy.special import chdtrc  # what scipy.stats.chi2.sf evaluates, without scipy.stats' import time
 
 from partinspect.vision.calibration_uncertainty import full_covariance, with_extrinsic_covariance
 from partinspect.vision.matching import epipolar_geometry
 from partinspect.vision.psd import covariance_factor
-from partinspect.vision.rim_errors import EDGE_BIAS_FLOOR
+from partinspect.vision.rim_errors import BACKGROUND_CORRECTION, EDGE_BIAS_FLOOR, RIM_BOUND_READING
 
-__all__ = ["TANGENT_REACH", "MIN_SIGNIFICANCE", "DriftEstimate", "tangent_offsets", "tangency_residuals",
-           "estimate_drift", "drift_axes", "rotated_right_camera", "fit_drift", "predicted_residual_std",
-           "MAX_DRIFT", "OUTLIER_Z", "CalibrationCheck", "check_calibration", "consistent_tangencies", "matched_arcs",
+__all__ = ["TANGENT_REACH", "MIN_SIGNIFICANCE", "MIN_ROLL_TANGENCIES", "MIN_ROLL_DEMANDED", "SCATTER_P", "OUTLIER_Z",
+           "MAX_DRIFT", "DriftEstimate", "tangent_offsets", "tangency_residuals", "estimate_drift", "drift_axes",
+           "rotated_right_camera", "fit_drift", "predicted_residual_std", "stated_moves", "field_scatter",
+           "unexplained_roll", "CalibrationCheck", "check_calibration", "consistent_tangencies", "matched_arcs",
            "matched_edge_points", "tangency_along", "along_lines"]
 
 TANGENT_REACH = 2.0
@@ -68,8 +79,22 @@ run of twenty; 3 leaves that to 0.3 %, and a drift that loses features
 (0.05 px and more) stands well above it."""
 
 MIN_ROLL_TANGENCIES = 6
-"""The roll is fitted only from this many tangencies on: with fewer, a
-slope across the image is read from the rims' own scatter."""
+"""The roll is fitted from this many tangencies on: with fewer, a slope
+across the image would be read from the rims' own scatter. With fewer but
+at least ``MIN_ROLL_DEMANDED``, it is fitted where the tangencies' scatter
+about a constant rejects the constant (:data:`SCATTER_P`): the scatter
+then is the roll's, not the rims'."""
+
+MIN_ROLL_DEMANDED = 3
+"""Tangencies a demanded roll is fitted from: a constant and a slope, and
+one degree of freedom left to judge the fit by (its Birge ratio)."""
+
+SCATTER_P = math.erfc(MIN_SIGNIFICANCE / math.sqrt(2.0))
+"""0.0027: the tangencies scatter about the fitted field beyond what their
+variances and the stated calibration allow when the upper tail of its
+chi-square (:func:`field_scatter`) is below this, the two-sided tail of a
+normal distribution beyond ``MIN_SIGNIFICANCE`` standard deviations: the
+level at which a turn is corrected."""
 
 OUTLIER_Z = 3.0
 """A tangency whose residual lies further than this many robust standard
@@ -169,8 +194,8 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
     -------
     residuals, variances : ndarray, shape (n,)
         Right minus left band offset of each tangency, px, and its variance,
-        px^2: the two fits' and, for each image, the rims' Type B edge
-        displacement (:data:`partinspect.vision.rim_errors.EDGE_BIAS_FLOOR`), and
+        px^2: the two fits' and, for each image, the rim's Type B edge
+        displacement at the tangent point (:func:`_shading_variance`), and
         the rim's own disagreement between its two tangencies
         (:func:`_with_rim_disagreement`).
     select : list of (int, int)
@@ -197,9 +222,10 @@ def tangency_residuals(geo, pairs, select=None, ref_left=None):
             elif not (_observed(fl.ideal.xy, fl.fit.params, tl[k]) and _observed(fr.ideal.xy, fr.fit.params, tr[k])):
                 continue
             # The fits' noise, and in each image the rim's Type B edge
-            # displacement the fits do not carry (EDGE_BIAS_FLOOR).
+            # displacement there, which the fits do not carry.
             v = (_offset_variance(band_left, fl.fit.params, fl.fit.cov, tl[k])
-                 + _offset_variance(band_right, fr.fit.params, fr.fit.cov, tr[k]) + 2 * EDGE_BIAS_FLOOR**2)
+                 + _offset_variance(band_right, fr.fit.params, fr.fit.cov, tr[k])
+                 + _shading_variance(fl, tl[k]) + _shading_variance(fr, tr[k]))
             if np.isfinite(v) and v > 0:
                 res.append(orr[k] - ol[k])
                 var.append(v)
@@ -239,6 +265,29 @@ def along_lines(geo, points):
     lines across themselves in proportion to it.
     """
     return (np.asarray(points, float).reshape(-1, 2) - geo.center) @ geo.ref_left
+
+
+def _shading_variance(f, phase):
+    """Type B variance of a tangent's band offset from the shading beside the rim there, px^2.
+
+    The tangents are read from the ellipse fitted to the points as found,
+    before the shading correction the 3D fit makes
+    (:mod:`partinspect.vision.rim_errors`), so the tangent point keeps the
+    whole displacement that correction would remove: at most
+    ``BACKGROUND_CORRECTION`` times the shading bound of the points there,
+    read as a rectangular half-width (``RIM_BOUND_READING``, GUM 4.3.7).
+    The ellipse's normal at a tangent point lies across the epipolar line,
+    so the offset moves by the whole displacement; the bound is the
+    nearest point's. ``EDGE_BIAS_FLOOR`` in quadrature is the detector's
+    own error; a rim without shading readings carries that alone.
+    """
+    bound = getattr(f, "background_bound", None)
+    floor2 = EDGE_BIAS_FLOOR * EDGE_BIAS_FLOOR
+    if bound is None or f.ideal.xy is None or len(f.ideal.xy) != len(bound):
+        return floor2
+    tp = _ellipse_points(f.fit.params, np.array([phase]))[0]
+    b = float(bound[int(np.argmin(np.linalg.norm(np.asarray(f.ideal.xy, float) - tp, axis=1)))])
+    return (BACKGROUND_CORRECTION * RIM_BOUND_READING * b) ** 2 + floor2
 
 
 def _with_rim_disagreement(var, res, used):
@@ -295,6 +344,8 @@ class DriftEstimate:
         :func:`along_lines`).
     field_cov : ndarray, shape (2, 2)
         Its covariance (Birge-enlarged).
+    kept : ndarray of bool, shape (len(residuals),)
+        Which residuals the field rests on.
     """
 
     shift: float
@@ -307,9 +358,10 @@ class DriftEstimate:
     spread: float = 0.0
     field: np.ndarray = dataclass_field(default_factory=lambda: np.zeros(2))
     field_cov: np.ndarray = dataclass_field(default_factory=lambda: np.zeros((2, 2)))
+    kept: np.ndarray = None
 
 
-def estimate_drift(residuals, variances, along=None, at=None):
+def estimate_drift(residuals, variances, along=None, at=None, min_roll=MIN_ROLL_TANGENCIES):
     """The epipolar residual at the part's edges: a field fitted to the tangencies, with its uncertainty.
 
     A shift of the epipolar lines moves every tangency alike; a turn of the
@@ -332,12 +384,14 @@ def estimate_drift(residuals, variances, along=None, at=None):
         As :func:`tangency_residuals` returns, px and px^2.
     along : array_like, shape (n,), optional
         The tangencies' place along the epipolar lines (:func:`tangency_along`),
-        px. Without it, or with fewer than ``MIN_ROLL_TANGENCIES`` kept, or
+        px. Without it, or with fewer than ``min_roll`` kept, or
         with the tangencies at one place, the field is a constant: the
         weighted mean.
     at : array_like, shape (m,), optional
         The part's edge points' place along the lines (:func:`along_lines`),
         px; default the tangencies'.
+    min_roll : int
+        Tangencies a slope is fitted from (:data:`MIN_ROLL_TANGENCIES`).
 
     Returns
     -------
@@ -349,12 +403,12 @@ def estimate_drift(residuals, variances, along=None, at=None):
     keep = consistent_tangencies(r_all, v_all)
     s_all = None if along is None else np.asarray(along, float)
     at = (s_all if at is None else np.asarray(at, float)) if s_all is not None else None
-    linear = s_all is not None and keep.sum() >= MIN_ROLL_TANGENCIES and np.ptp(s_all[keep]) > _MIN_REACH
+    linear = s_all is not None and keep.sum() >= min_roll and np.ptp(s_all[keep]) > _MIN_REACH
     coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep] if linear else None)
     if linear:
         again = keep.copy()
         again[keep] = consistent_tangencies(left, v_all[keep])
-        if not again.all() and again.sum() >= MIN_ROLL_TANGENCIES:
+        if not again.all() and again.sum() >= min_roll:
             keep = again
             coef, cov, left = _field_fit(r_all[keep], v_all[keep], s_all[keep])
     x = np.array([1.0, float(np.median(at))]) if linear else np.array([1.0])
@@ -366,7 +420,7 @@ def estimate_drift(residuals, variances, along=None, at=None):
     birge = float(np.sqrt(np.sum(left**2 / v_all[keep]) / dof)) if dof > 0 else 1.0
     enlarge = max(1.0, birge)
     return DriftEstimate(value, float(np.sqrt(u2)) * enlarge, int(keep.sum()), birge, r_all,
-                         int((~keep).sum()), float(coef[1]), spread, coef, cov * enlarge**2)
+                         int((~keep).sum()), float(coef[1]), spread, coef, cov * enlarge**2, keep)
 
 
 _MIN_REACH = 50.0
@@ -452,12 +506,12 @@ def rotated_right_camera(calib, rotation, rotation_cov=None):
     return with_extrinsic_covariance(turned, F @ F.T)
 
 
-def fit_drift(calib, pairs, tangencies=None, h=1e-5):
+def fit_drift(calib, pairs, tangencies=None, h=1e-5, min_roll=MIN_ROLL_TANGENCIES):
     """The turns of the right camera (:func:`drift_axes`) that bring the tangency residuals to zero.
 
     Weighted least squares on the residuals' central-difference Jacobian;
-    only the turn about the baseline when fewer than
-    ``MIN_ROLL_TANGENCIES`` tangencies are seen. The covariance is the
+    only the turn about the baseline when fewer than ``min_roll``
+    tangencies are seen. The covariance is the
     fit's, enlarged by the squared Birge ratio of what the turns leave where
     that exceeds 1. ``tangencies``: :func:`tangency_residuals` under
     ``calib``, if already read.
@@ -475,14 +529,8 @@ def fit_drift(calib, pairs, tangencies=None, h=1e-5):
     r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
     keep = consistent_tangencies(r, v)
     r, v, select = r[keep], v[keep], [s for s, k in zip(select, keep) if k]
-    axes = drift_axes(calib)[: 2 if len(r) >= MIN_ROLL_TANGENCIES else 1]
-    J = np.empty((len(r), len(axes)))
-    for k, axis in enumerate(axes):
-        side = []
-        for sign in (1.0, -1.0):
-            moved = epipolar_geometry(rotated_right_camera(calib, sign * h * axis))
-            side.append(tangency_residuals(moved, pairs, select, geo.ref_left)[0])
-        J[:, k] = (side[0] - side[1]) / (2 * h)
+    axes = drift_axes(calib)[: 2 if len(r) >= min_roll else 1]
+    J = _turn_jacobian(calib, pairs, select, axes, h)
     w = 1.0 / v
     A, theta, left = _weighted_fit(J, r, w)
     again = consistent_tangencies(left, v)  # a roll spreads the residuals: judged after the turns too
@@ -495,6 +543,19 @@ def fit_drift(calib, pairs, tangencies=None, h=1e-5):
     return theta @ axes, axes.T @ cov_theta @ axes, birge
 
 
+def _turn_jacobian(calib, pairs, select, axes, h=1e-5):
+    """d residual / d turn of the right camera about each of ``axes`` (k, 3), px per rad, shape (n, k); central differences."""
+    geo = epipolar_geometry(calib)
+    J = np.empty((len(select), len(axes)))
+    for k, axis in enumerate(axes):
+        side = []
+        for sign in (1.0, -1.0):
+            moved = epipolar_geometry(rotated_right_camera(calib, sign * h * axis))
+            side.append(tangency_residuals(moved, pairs, select, geo.ref_left)[0])
+        J[:, k] = (side[0] - side[1]) / (2 * h)
+    return J
+
+
 def _weighted_fit(J, r, w):
     """Normal matrix, step and what is left of ``r`` after ``min sum w (r + J theta)^2``."""
     A = (J * w[:, None]).T @ J
@@ -502,7 +563,30 @@ def _weighted_fit(J, r, w):
     return A, theta, r + J @ theta
 
 
-def predicted_residual_std(calib, pairs, tangencies=None, along=None, at=None):
+def stated_moves(calib, pairs, select):
+    """The tangencies read under the calibration moved along each principal direction of its stated covariance.
+
+    Returns
+    -------
+    list of (residuals, variances)
+        One per direction of
+        :func:`~partinspect.vision.calibration_uncertainty.uncertainty_directions`
+        (first order: a draw from the stated covariance moves the residuals
+        by ``sum_j z_j (r_j - r)``), the same tangencies ``select`` signed
+        by ``calib``'s geometry; empty when it states none.
+    """
+    from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
+
+    ref = epipolar_geometry(calib).ref_left
+    moves = []
+    for d in uncertainty_directions(calib):
+        r, v, _ = tangency_residuals(epipolar_geometry(perturbed_calibration(calib, d)), pairs, select, ref)
+        moves.append((r, v))
+    return moves
+
+
+def predicted_residual_std(calib, pairs, tangencies=None, along=None, at=None, moves=None,
+                           min_roll=MIN_ROLL_TANGENCIES):
     """Standard deviation of the estimated residual (:func:`estimate_drift`) that the calibration's stated uncertainties allow, px.
 
     The calibration is moved along each principal direction of its stated
@@ -510,19 +594,106 @@ def predicted_residual_std(calib, pairs, tangencies=None, along=None, at=None):
     states only standard uncertainties), and the residual estimated as the
     check estimates it (the same tangencies, places and edge points); 0
     when it states none. ``tangencies`` as :func:`fit_drift`'s; ``along``,
-    ``at`` as :func:`estimate_drift`'s.
+    ``at``, ``min_roll`` as :func:`estimate_drift`'s; ``moves``
+    :func:`stated_moves`, if already read.
     """
-    from partinspect.vision.calibration_uncertainty import perturbed_calibration, uncertainty_directions
-
     geo = epipolar_geometry(calib)
     r, v, select = tangencies if tangencies is not None else tangency_residuals(geo, pairs)
-    base = estimate_drift(r, v, along, at).shift
-    total = 0.0
-    for d in uncertainty_directions(calib):
-        moved = perturbed_calibration(calib, d)
-        r, v, _ = tangency_residuals(epipolar_geometry(moved), pairs, select, geo.ref_left)
-        total += (estimate_drift(r, v, along, at).shift - base) ** 2
-    return float(np.sqrt(total))
+    base = estimate_drift(r, v, along, at, min_roll).shift
+    moves = stated_moves(calib, pairs, select) if moves is None else moves
+    return float(np.sqrt(sum((estimate_drift(rm, vm, along, at, min_roll).shift - base) ** 2 for rm, vm in moves)))
+
+
+def field_scatter(residuals, variances, responses, design):
+    """Chi-square of the tangencies about a fitted field, the stated calibration's own uncertainty allowed.
+
+    A calibration within its stated covariance bends the epipolar lines a
+    little differently across the image; the residuals may scatter by that
+    much without the rig having drifted. Their covariance is therefore
+    ``C = diag(variances) + D D^T`` (``D``: their first-order responses to the
+    calibration along each principal direction of its stated covariance,
+    :func:`stated_moves`), the field ``design @ c`` is fitted by generalised
+    least squares, and what is left is judged by
+
+        Q = r^T P r,  P = C^-1 - C^-1 A (A^T C^-1 A)^-1 A^T C^-1,
+
+    chi-square distributed on ``n - k`` degrees of freedom were ``C`` right
+    (``A`` the design, ``k`` its columns).
+
+    Parameters
+    ----------
+    residuals, variances : array_like, shape (n,)
+        px, px^2.
+    responses : array_like, shape (n, q)
+        ``D``, px; q may be 0.
+    design : array_like, shape (n, k)
+        The field's columns: ones, and the place along the lines for a slope.
+
+    Returns
+    -------
+    Q : float
+    dof : int
+    P : ndarray, shape (n, n)
+        The projector above, px^-2: ``x^T P x`` is what a further field ``x``
+        over the tangencies adds to ``Q``'s expectation.
+    """
+    r, A = np.asarray(residuals, float), np.reshape(np.asarray(design, float), (len(residuals), -1))
+    D = np.reshape(np.asarray(responses, float), (len(r), -1))
+    Ci = np.linalg.inv(np.diag(np.asarray(variances, float)) + D @ D.T)
+    CiA = Ci @ A
+    P = Ci - CiA @ np.linalg.solve(A.T @ CiA, CiA.T)
+    return float(r @ P @ r), len(r) - A.shape[1], P
+
+
+def unexplained_roll(calib, pairs, select, Q, dof, P, h=1e-5):
+    """The roll of the right camera that a constant field's excess scatter asks for, rad (its standard uncertainty).
+
+    With fewer than ``MIN_ROLL_DEMANDED`` tangencies, or with all of them
+    at one place along the lines, no roll is fitted (:func:`fit_drift`) and
+    the field is a constant. If the tangencies then
+    scatter about it beyond what their variances and the stated
+    calibration allow (:func:`field_scatter`, :data:`SCATTER_P`), the
+    residual varies across the image by more than the rims' errors explain,
+    and a constant correction would leave that variation in every 3D
+    result. Of the two turns of the right camera (:func:`drift_axes`) only
+    the one about its optical axis moves the epipolar lines differently
+    across the image; the excess is ascribed to it. A roll ``theta`` moves
+    the residuals by ``theta J`` (``J`` their response, px per rad) and adds
+    ``theta^2 J^T P J`` to ``Q``'s expectation ``dof``, so the
+    method-of-moments estimate [4]_ is
+
+        theta^2 = (Q - dof) / (J^T P J).
+
+    Its sign is not determined, so the roll is not applied but carried as
+    a Type B standard uncertainty (GUM 4.3) of the rig's rotation about that
+    axis; the rims' own errors in the excess make it larger, not smaller.
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+    pairs : sequence of (ImageFeature, ImageFeature)
+    select : sequence of (int, int)
+        The tangencies ``Q`` was read from (:func:`tangency_residuals`).
+    Q, dof, P
+        As :func:`field_scatter` returns them for a constant field.
+
+    Returns
+    -------
+    float
+        rad; 0 when ``Q`` does not exceed ``dof``, inf when no roll moves
+        the tangencies apart (all at one place along the lines).
+
+    References
+    ----------
+    .. [4] DerSimonian, R., & Laird, N. (1986). Meta-analysis in clinical
+           trials. Controlled Clinical Trials 7(3), 177-188 (the moment
+           estimate of an excess variance from Cochran's Q).
+    """
+    if Q <= dof:
+        return 0.0
+    J = _turn_jacobian(calib, pairs, select, drift_axes(calib)[1:], h)[:, 0]
+    reach = float(J @ P @ J)
+    return float(np.sqrt((Q - dof) / reach)) if reach > 0 else float("inf")
 
 
 MAX_DRIFT = 3.0
@@ -539,10 +710,12 @@ class CalibrationCheck:
     ----------
     verdict : str
         "consistent" (the drift lies within what the calibration's stated
-        uncertainty allows), "drifted" (beyond it; corrected, the
-        correction's uncertainty carried), "invalid" (beyond ``MAX_DRIFT``:
-        recalibrate) or "not checked" (no circle's tangencies seen in both
-        images).
+        uncertainty allows, and so does the residuals' scatter about the
+        field), "drifted" (beyond it; corrected, the correction's
+        uncertainty carried, and where no roll could be fitted the roll the
+        scatter asks for carried as Type B), "invalid" (beyond
+        ``MAX_DRIFT``: recalibrate) or "not checked" (no circle's
+        tangencies seen in both images).
     drift : DriftEstimate
         Before any correction.
     predicted : float
@@ -557,6 +730,13 @@ class CalibrationCheck:
     calib : StereoCalibration
         The calibration to measure with (corrected where the drift was
         significant).
+    roll_type_b : float
+        Standard uncertainty of the roll carried without a correction
+        (:func:`unexplained_roll`), rad; 0 when none.
+    scatter_p : float
+        Upper tail of the chi-square of the tangencies about the fitted
+        field, the stated calibration's uncertainty allowed
+        (:func:`field_scatter`); 1 when nothing is left to judge.
     """
 
     verdict: str
@@ -566,10 +746,28 @@ class CalibrationCheck:
     correction_cov: np.ndarray
     birge_after: float
     calib: object
+    roll_type_b: float = 0.0
+    scatter_p: float = 1.0
 
     @property
     def corrected(self):
         return bool(np.any(self.correction))
+
+    @property
+    def half_width(self):
+        """Half the image's width, px: a roll of ``theta`` rad moves the epipolar lines at its sides by ``theta`` times it."""
+        return 0.5 * float(self.calib.image_size[0])
+
+    def refusal(self):
+        """The one line an "invalid" check ends the run with."""
+        d = self.drift
+        if not np.isfinite(self.roll_type_b) or self.roll_type_b * self.half_width > MAX_DRIFT:
+            return (f"the calibration does not fit these images: their epipolar residuals scatter beyond their "
+                    f"uncertainty (Birge ratio {d.birge:.1f} on {d.n} tangencies, p {self.scatter_p:.1g}) by a roll of "
+                    f"{self.roll_type_b * self.half_width:.1f} px at the image's sides, more than a run carries "
+                    f"({MAX_DRIFT:g} px); recalibrate the rig")
+        return (f"the calibration does not fit these images: their epipolar lines are {d.shift:+.2f} px off "
+                f"(u {d.u:.2f} px), more than a run corrects; recalibrate the rig")
 
     def to_dict(self):
         """report.json's "calibration_check" (px and degrees)."""
@@ -587,6 +785,9 @@ class CalibrationCheck:
             "epipolar_residual_px": round(d.shift, 4) if measured else None,
             "standard_uncertainty_px": round(d.u, 4) if measured else None,
             "birge_ratio": round(d.birge, 3) if measured else None,
+            "scatter_p_value": float(f"{self.scatter_p:.3g}") if measured else None,
+            "roll_type_b_std_deg": round(float(np.degrees(self.roll_type_b)), 6),
+            "roll_type_b_px_at_side": round(self.roll_type_b * self.half_width, 4),
             "residual_slope_px_per_1000px": round(1000 * d.slope, 4) if measured else None,
             "residual_slope_standard_uncertainty_px_per_1000px": (round(1000 * float(np.sqrt(d.field_cov[1, 1])), 4)
                                                                   if measured else None),
@@ -614,6 +815,10 @@ class CalibrationCheck:
         if self.corrected:
             text += (f"; right camera turned {np.degrees(np.linalg.norm(self.correction)):.5f} deg "
                      f"(u {np.degrees(np.sqrt(np.trace(self.correction_cov))):.5f} deg, carried)")
+        if self.roll_type_b:
+            text += (f"; the tangencies scatter beyond their uncertainty (Birge ratio {d.birge:.2f}, p {self.scatter_p:.1g}) "
+                     f"with too few to fit a roll: a roll of u {np.degrees(self.roll_type_b):.5f} deg "
+                     f"({self.roll_type_b * self.half_width:.2f} px at the image's sides) carried as Type B")
         return text
 
 
@@ -642,6 +847,16 @@ def _within_stated(calib, rotation, cov, drift, predicted):
 def check_calibration(calib, pairs, edges=None):
     """Check the stated calibration against matched ellipse pairs, and correct a significant drift.
 
+    A scatter about a constant field beyond what the tangencies' variances
+    and the stated calibration allow (:data:`SCATTER_P`) asks for the slope:
+    it and the roll are fitted from ``MIN_ROLL_DEMANDED`` tangencies on. A
+    scatter about the fitted field beyond it makes the rig "drifted"
+    whatever the turns' significance: the fitted turns are applied with
+    their covariance, and without a fitted slope the roll the scatter asks
+    for is carried too (:func:`unexplained_roll`), so that every 3D result
+    and the arc-pair test see it; "invalid" where that roll moves the
+    image's sides by more than ``MAX_DRIFT``.
+
     Parameters
     ----------
     calib : StereoCalibration
@@ -667,18 +882,49 @@ def check_calibration(calib, pairs, edges=None):
     none = np.zeros(3), np.zeros((3, 3))
     if drift.n == 0:
         return CalibrationCheck("not checked", drift, 0.0, *none, 1.0, calib)
-    predicted = predicted_residual_std(calib, pairs, tangencies, along, at)
+    moves = stated_moves(calib, pairs, tangencies[2])
+    min_roll = MIN_ROLL_TANGENCIES
+    Q, dof, P, p = _scatter(drift, tangencies, along, moves)
+    if p < SCATTER_P and not drift.field_cov[1, 1] > 0:
+        # The scatter rejects a constant: the slope it asks for is fitted from as few as MIN_ROLL_DEMANDED.
+        sloped = estimate_drift(*tangencies[:2], along, at, MIN_ROLL_DEMANDED)
+        if sloped.field_cov[1, 1] > 0:
+            min_roll, drift = MIN_ROLL_DEMANDED, sloped
+            Q, dof, P, p = _scatter(drift, tangencies, along, moves)
+    predicted = predicted_residual_std(calib, pairs, tangencies, along, at, moves, min_roll)
     # Beyond the matcher's reach on the whole (a roll may put a few tangents further).
     if abs(drift.shift) > MAX_DRIFT or np.percentile(np.abs(drift.residuals), 75) > MAX_DRIFT:
         return CalibrationCheck("invalid", drift, predicted, *none, 1.0, calib)
-    rotation, cov, birge = fit_drift(calib, pairs, tangencies)
+    rotation, cov, birge = fit_drift(calib, pairs, tangencies, min_roll=min_roll)
+    if p < SCATTER_P:
+        # The field does not explain the residuals: not consistent, whatever the turns' significance. The turns
+        # are carried with their Birge-enlarged covariance; without a fitted slope, the roll the scatter asks for too.
+        select = [t for t, keep in zip(tangencies[2], drift.kept) if keep]
+        roll = 0.0 if drift.field_cov[1, 1] > 0 else unexplained_roll(calib, pairs, select, Q, dof, P)
+        axis = drift_axes(calib)[1]
+        check = CalibrationCheck("drifted", drift, predicted, rotation, cov, birge, calib, roll, p)
+        if not np.isfinite(roll) or roll * check.half_width > MAX_DRIFT:
+            return replace(check, verdict="invalid", correction=none[0], correction_cov=none[1], birge_after=1.0)
+        cov = cov + roll**2 * np.outer(axis, axis)
+        return replace(check, correction_cov=cov, calib=rotated_right_camera(calib, rotation, cov))
     # Significant: some turn exceeds MIN_SIGNIFICANCE of its standard uncertainty.
     w, V = np.linalg.eigh(cov)
     z = np.abs(V.T @ rotation) / np.sqrt(np.where(w > 0, w, np.inf))
     if not np.any(z > MIN_SIGNIFICANCE):
-        return CalibrationCheck("consistent", drift, predicted, *none, 1.0, calib)
+        return CalibrationCheck("consistent", drift, predicted, *none, 1.0, calib, scatter_p=p)
     verdict = "consistent" if _within_stated(calib, rotation, cov, drift, predicted) else "drifted"
-    return CalibrationCheck(verdict, drift, predicted, rotation, cov, birge, rotated_right_camera(calib, rotation, cov))
+    return CalibrationCheck(verdict, drift, predicted, rotation, cov, birge, rotated_right_camera(calib, rotation, cov),
+                            scatter_p=p)
+
+
+def _scatter(drift, tangencies, along, moves):
+    """:func:`field_scatter` of the tangencies ``drift`` kept about its field: (Q, dof, P, upper tail of Q)."""
+    r, v, _ = tangencies
+    k = drift.kept
+    design = np.c_[np.ones(k.sum()), along[k]] if drift.field_cov[1, 1] > 0 else np.ones((k.sum(), 1))
+    D = np.stack([rm[k] - r[k] for rm, _ in moves], 1) if moves else np.zeros((k.sum(), 0))
+    Q, dof, P = field_scatter(r[k], v[k], D, design)
+    return Q, dof, P, (float(chdtrc(dof, Q)) if dof > 0 else 1.0)
 
 
 def matched_edge_points(stereo):

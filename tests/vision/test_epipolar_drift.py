@@ -116,6 +116,66 @@ def test_a_drift_beyond_correction_is_invalid(plate):
     assert check_calibration(_shifted(calib, 4.0), pairs).verdict == "invalid"
 
 
+def _rolled_and_levelled(calib, pairs, px):
+    """Rolled by ``px`` at the image's sides, the right principal point moved so that the rims' mean residual is
+    about zero: as on the bracket's renders, where a roll about the rims' middle leaves the mean unmoved."""
+    rolled = _rolled(calib, px)
+    return _shifted(rolled, -check_calibration(rolled, pairs).drift.shift)
+
+
+def test_a_roll_three_tangencies_ask_for_is_fitted_and_corrected(plate):
+    """Two rims, 3 tangencies (fewer than MIN_ROLL_TANGENCIES), rolled 1 px: about a constant they scatter
+    far beyond their variances (Birge ratio 20). Before, no slope was fitted, the mean read zero and the check
+    said "consistent", the roll left in every result; now the scatter asks for the slope, and the roll is
+    fitted and taken out."""
+    from partinspect.vision.epipolar_drift import SCATTER_P, drift_axes
+
+    calib, pairs = plate
+    two = [pairs[0], pairs[3]]
+    stated = _rolled_and_levelled(calib, two, 1.0)
+    check = check_calibration(stated, two)
+    assert check.drift.n == 3 and check.corrected
+    roll = float(check.correction @ drift_axes(stated)[1]) * check.half_width
+    assert roll == pytest.approx(-1.0, abs=0.15), roll  # px at the image's sides
+    assert check.verdict == "drifted" and check.scatter_p > SCATTER_P and check.roll_type_b == 0.0
+    assert _left_over(check, two) < 0.02
+
+
+def test_a_roll_too_few_tangencies_fit_is_carried_not_called_consistent(plate):
+    """Two rims, 2 tangencies: no slope can be fitted and their difference scatters beyond its variance
+    (Birge ratio 27). The scatter is carried as a roll of the right camera, its size (1 px at the image's
+    sides) read from the scatter itself, where before the check said "consistent" and carried nothing."""
+    from partinspect.vision.calibration_uncertainty import full_covariance
+    from partinspect.vision.epipolar_drift import SCATTER_P, drift_axes
+
+    calib, pairs = plate
+    two = [pairs[1], pairs[3]]
+    stated = _rolled_and_levelled(calib, two, 1.0)
+    check = check_calibration(stated, two)
+    assert check.drift.n == 2 and check.scatter_p < SCATTER_P and abs(check.drift.shift) < check.drift.u
+    assert check.verdict == "drifted"
+    axis = drift_axes(stated)[1]
+    carried = np.sqrt(axis @ full_covariance(check.calib)[-6:-3, -6:-3] @ axis) * check.half_width
+    assert 0.7 < carried < 1.5, carried  # px at the sides: the roll's, where the stated calibration states none
+    assert check.roll_type_b * check.half_width == pytest.approx(carried, rel=0.05)
+
+
+def test_the_same_rims_under_the_exact_rig_carry_nothing(plate):
+    calib, pairs = plate
+    for two in ([pairs[0], pairs[3]], [pairs[1], pairs[6]]):
+        check = check_calibration(calib, two)
+        assert check.verdict == "consistent" and check.roll_type_b == 0.0 and check.calib is calib
+
+
+def test_a_scatter_beyond_what_a_run_carries_is_invalid_with_one_line(plate):
+    calib, pairs = plate
+    two = [pairs[1], pairs[3]]
+    check = check_calibration(_rolled_and_levelled(calib, two, 4.0), two)
+    assert check.verdict == "invalid" and check.roll_type_b * check.half_width > 3.0
+    line = check.refusal()
+    assert "\n" not in line and "recalibrate" in line and "roll of" in line
+
+
 BRACKET = IMAGES.parents[1] / "bracket" / "images"
 
 
@@ -129,8 +189,10 @@ def test_a_rims_disagreeing_tangents_do_not_hide_a_roll():
     rolled = replace(drifted_rig(stated, "roll", 0.5), std=stated.std, cov=stated.cov)
     left, right, _ = read_pair(BRACKET, rolled)
     pairs = matched_arcs(measure_stereo(left, right, rolled))
-    _, variances, used = tangency_residuals(epipolar_geometry(rolled), pairs)
-    assert len(used) >= 6 and variances.max() > 10 * np.median(variances)  # the odd rim carries its Type B
+    residuals, variances, used = tangency_residuals(epipolar_geometry(rolled), pairs)
+    a, b = used.index((2, 0)), used.index((2, 1))  # the wall hole's two tangencies
+    # The odd rim carries its own error: its two variances cover what its tangencies disagree by.
+    assert len(used) >= 6 and variances[a] + variances[b] >= (1 - 1e-9) * (residuals[a] - residuals[b]) ** 2
     check = check_calibration(rolled, pairs)
     assert check.corrected and abs(np.degrees(check.correction[2]) + np.degrees(0.5 / 1224)) < 0.01, check.correction
 
@@ -146,3 +208,23 @@ def test_a_precise_circle_is_paired_through_the_calibrations_own_epipolar_error(
     stated = simulated_calibration(calib, np.random.default_rng(0))
     drawn = sum(f.kind != "line" for f in measure_stereo(left, right, stated).features)
     assert drawn == exact >= 7
+
+
+def test_a_tangent_carries_the_uncorrected_shading_beside_it_not_elsewhere():
+    """The tangents are read from the points as found, before the shading correction: a tangent's Type B is
+    the whole displacement that correction would remove where it touches the line (``BACKGROUND_CORRECTION``
+    times the bound, a rectangular half-width), and shading elsewhere on the rim does not reach it."""
+    from types import SimpleNamespace
+
+    from partinspect.vision.epipolar_drift import _ellipse_points, _shading_variance
+    from partinspect.vision.rim_errors import BACKGROUND_CORRECTION, EDGE_BIAS_FLOOR
+
+    params = np.array([400.0, 300.0, 25.0, 17.0, 0.3])
+    t = np.linspace(0.0, 2 * np.pi, 200, endpoint=False)
+    xy = _ellipse_points(params, t)
+    bound = np.where(np.abs(np.angle(np.exp(1j * (t - 1.0)))) < 0.2, 0.12, 0.0)  # shaded about phase 1 only
+    f = SimpleNamespace(fit=SimpleNamespace(params=params), ideal=SimpleNamespace(xy=xy), background_bound=bound)
+    shaded = _shading_variance(f, 1.0)
+    assert np.isclose(shaded, (BACKGROUND_CORRECTION * 0.12) ** 2 / 3 + EDGE_BIAS_FLOOR**2)
+    assert np.isclose(_shading_variance(f, 1.0 + np.pi), EDGE_BIAS_FLOOR**2)
+    assert np.isclose(_shading_variance(SimpleNamespace(fit=f.fit, ideal=f.ideal), 1.0), EDGE_BIAS_FLOOR**2)
