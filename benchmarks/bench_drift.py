@@ -15,7 +15,8 @@ calibrating:
   drift the run corrects);
 - ``roll``: the right camera turned about its optical axis so that points
   at the image's side edges move by ``d`` px across the epipolar lines
-  (a drift that varies over the image, which the run does not correct).
+  (a drift that varies over the image: the run corrects it where its
+  tangencies determine the slope, and carries it where they only show it).
 
 For every drift level the benchmark prints, beside the exact calibration's
 row from the same run: features measured (of the CAD edges) and circles
@@ -25,7 +26,10 @@ over the edges of the features the run measured, per pixel of their left
 image, as the check's edge points count) and the run's estimate with its u,
 the spread of its fitted residual field over the part's edges, and its
 verdict; the field (at the left principal point and its slope along the
-epipolar lines) against the true residual's least-squares line; per characteristic type the
+epipolar lines) against the true residual's least-squares line, and the
+true line at the median place of the check's own edge points (where the
+estimate is read: the two medians above are over other edges, which a
+sloping field reads differently); per characteristic type the
 share of true values within +-U (the claim: 95.45 %) and the RMS of
 (measured - true) / u; and false accepts (a pass whose true value lies
 outside the limits). With ``--refine-rig`` every run re-estimates the rig
@@ -242,7 +246,13 @@ def field_text(r):
         return ""
     a, ua, b, ub = r["field"]
     ta, tb = r["true_field"]
-    return f"; field: at pp {a:+.3f} +- {ua:.3f} (true {ta:+.3f}), slope {b:+.3f} +- {ub:.3f} (true {1000 * tb:+.3f})/1000 px"
+    text = f"; field: at pp {a:+.3f} +- {ua:.3f} (true {ta:+.3f}), slope {b:+.3f} +- {ub:.3f} (true {1000 * tb:+.3f})/1000 px"
+    if b and r.get("est") is not None:
+        # The estimate is the field at the median place of the check's own edge points; the true field there is
+        # the like-for-like truth (true_res and true_measured are medians over other edges of a sloping field).
+        s = 1000.0 * (r["est"] - a) / b
+        text += f"; at the check's edges (s {s:+.0f} px) true {ta + tb * s:+.3f}"
+    return text
 
 
 def by_type(judged):
