@@ -125,7 +125,7 @@ def _rolled_and_levelled(calib, pairs, px):
 
 def test_a_roll_three_tangencies_ask_for_is_fitted_and_corrected(plate):
     """Two rims, 3 tangencies (fewer than MIN_ROLL_TANGENCIES), rolled 1 px: about a constant they scatter
-    far beyond their variances (Birge ratio 20). Before, no slope was fitted, the mean read zero and the check
+    far beyond their variances (Birge ratio 16). Before, no slope was fitted, the mean read zero and the check
     said "consistent", the roll left in every result; now the scatter asks for the slope, and the roll is
     fitted and taken out."""
     from partinspect.vision.epipolar_drift import SCATTER_P, drift_axes
@@ -143,7 +143,7 @@ def test_a_roll_three_tangencies_ask_for_is_fitted_and_corrected(plate):
 
 def test_a_roll_too_few_tangencies_fit_is_carried_not_called_consistent(plate):
     """Two rims, 2 tangencies: no slope can be fitted and their difference scatters beyond its variance
-    (Birge ratio 27). The scatter is carried as a roll of the right camera, its size (1 px at the image's
+    (Birge ratio 22). The scatter is carried as a roll of the right camera, its size (1 px at the image's
     sides) read from the scatter itself, where before the check said "consistent" and carried nothing."""
     from partinspect.vision.calibration_uncertainty import full_covariance
     from partinspect.vision.epipolar_drift import SCATTER_P, drift_axes
