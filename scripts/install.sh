@@ -66,10 +66,13 @@ fi
 install_postgresql || true
 
 # Re-install when pyproject.toml or constraints.txt (the tested versions)
-# changed since the last install by this Python.
+# changed since the last install by this Python, or when the installed
+# partinspect is another checkout's (a clone installed since, then moved or
+# deleted): -I leaves the current folder out of the import path.
 stamp=build/.install-stamp
 want="$("$PYTHON" -c 'import sys;print(sys.executable)') $(cat pyproject.toml constraints.txt | sha256sum | cut -c1-16)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PYTHON" -c "import importlib.metadata as m; m.version(\"partinspect\")" >/dev/null 2>&1 \
+   || ! "$PYTHON" -I -c 'import pathlib, sys, partinspect; sys.exit(pathlib.Path(partinspect.__file__).resolve().parent != pathlib.Path(sys.argv[1]).resolve())' "$PWD/partinspect" >/dev/null 2>&1 \
    || ! "$PYTHON" -c 'import importlib.util as u,sys; sys.exit(not all(u.find_spec(m) for m in ("cadquery","embreex","cv2","trimesh","pytest","psycopg")))'; then
     echo "install: installing partinspect and its Python dependencies (pip)" >&2
     "$PYTHON" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[test,postgresql]"
