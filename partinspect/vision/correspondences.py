@@ -42,7 +42,23 @@ from partinspect.vision.matching import MIN_EPIPOLAR_ANGLE
 from partinspect.vision.psd import covariance_factor
 from partinspect.vision.triangulation import triangulate
 
-__all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred", "curvature_bias", "ARC_MIN_CROSSING"]
+__all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse", "deblurred", "curvature_bias",
+           "CURVATURE_SECOND_ORDER", "ARC_MIN_CROSSING"]
+
+
+CURVATURE_SECOND_ORDER = 0.60
+"""The curvature bias's second order: the first-order bias ``(W^2 / 2) kappa``
+is too large by about this times ``(W kappa)^2`` of itself (W the edge
+profile's width), so each point's is taken times ``1 - 0.60 (W kappa)^2``.
+On exact ellipses (area-integrated, then pixel-domain Gaussian and disc
+kernels of 0.7-2 px; semi-major axes 8-40 px, axis ratios 1-0.45;
+``bench_psf_shape.py --ellipses``) the first order alone leaves on the mean
+radius ``+0.003 + 0.773 W^2 <kappa^3> / <kappa>`` of the correction (means
+over the arc length; up to a third of it on an 8 px rim of axis ratio
+0.45); with this factor, ``+0.004 + 0.003 W^2 <kappa^3> / <kappa>``, every
+cell within -0.05..+0.07, inside the range ``CURVATURE_REMAINDER``
+(:mod:`partinspect.vision.rim_errors`) states. The discs of 15-80 px the
+first order was checked on (``W kappa`` below 0.15) do not change."""
 
 ARC_MIN_CROSSING = np.deg2rad(10.0)
 """Arc points whose epipolar line crosses an ellipse at less than this are dropped, rad.
@@ -103,7 +119,8 @@ def deblurred(xy, fit, blur):
     """Edge points of an arc moved back by the curvature bias of the edge detector.
 
     Gaussian smoothing moves points on a curve towards its centre of
-    curvature by ``blur^2 kappa / 2``, and the sub-pixel interpolation
+    curvature by ``blur^2 kappa / 2`` (less its second order,
+    ``CURVATURE_SECOND_ORDER``), and the sub-pixel interpolation
     along a pixel axis adds ``c sin^2(2 phi) kappa`` (phi the angle between
     the normal and the nearest pixel axis, c =
     :data:`partinspect.vision.edges.CURVATURE_SAMPLING_BIAS`); both are
@@ -134,8 +151,10 @@ def curvature_bias(xy, fit, blur):
     Returns
     -------
     bias : ndarray, shape (N,)
-        ``(blur^2 / 2 + c sin^2(2 phi)) kappa``, px: how far the detector
-        moved each point towards the centre of curvature (:func:`deblurred`).
+        ``(blur^2 / 2 + c sin^2(2 phi)) kappa (1 - s (blur kappa)^2)``, px
+        (s = ``CURVATURE_SECOND_ORDER``, the factor kept at zero or more):
+        how far the detector moved each point towards the centre of
+        curvature (:func:`deblurred`).
     normal : ndarray, shape (N, 2)
         The ellipse's unit normal at each point, along which
         :func:`deblurred` moves it back.
@@ -144,7 +163,8 @@ def curvature_bias(xy, fit, blur):
     _, n, _ = ellipse_geometry(xy, fit.params, phi)
     kappa = ellipse_curvature(fit.params, phi)
     sin2phi_sq = 4.0 * (n[:, 0] * n[:, 1]) ** 2
-    return (0.5 * blur * blur + CURVATURE_SAMPLING_BIAS * sin2phi_sq) * kappa, n
+    second = np.maximum(1.0 - CURVATURE_SECOND_ORDER * (blur * kappa) ** 2, 0.0)
+    return (0.5 * blur * blur + CURVATURE_SAMPLING_BIAS * sin2phi_sq) * kappa * second, n
 
 
 def intersect_line(lines, params):
