@@ -47,18 +47,15 @@ __all__ = ["Correspondences", "correspond", "intersect_line", "intersect_ellipse
 
 
 CURVATURE_SECOND_ORDER = 0.60
-"""The curvature bias's second order: the first-order bias ``(W^2 / 2) kappa``
-is too large by about this times ``(W kappa)^2`` of itself (W the edge
-profile's width), so each point's is taken times ``1 - 0.60 (W kappa)^2``.
-On exact ellipses (area-integrated, then pixel-domain Gaussian and disc
-kernels of 0.7-2 px; semi-major axes 8-40 px, axis ratios 1-0.45;
-``bench_psf_shape.py --ellipses``) the first order alone leaves on the mean
-radius ``+0.003 + 0.773 W^2 <kappa^3> / <kappa>`` of the correction (means
-over the arc length; up to a third of it on an 8 px rim of axis ratio
-0.45); with this factor, ``+0.004 + 0.003 W^2 <kappa^3> / <kappa>``, every
-cell within -0.05..+0.07, inside the range ``CURVATURE_REMAINDER``
-(:mod:`partinspect.vision.rim_errors`) states. The discs of 15-80 px the
-first order was checked on (``W kappa`` below 0.15) do not change."""
+"""The curvature bias's second order: each point's first-order bias
+``(W^2 / 2) kappa`` is taken times ``1 - 0.60 (W kappa)^2`` (W the edge
+profile's width). Where ``W kappa`` nears 1, at the ends of a rim a few
+pixels across seen at a slant, the first order over-states the detector's
+move and the radius reads large; on exact ellipses under Gaussian and disc
+blurs (``bench_psf_shape.py --ellipses``) the factor leaves what
+``CURVATURE_REMAINDER`` (:mod:`partinspect.vision.rim_errors`) states, and
+the discs that remainder was set on (``W kappa`` below 0.15) do not move.
+docs/validation.md has the figures."""
 
 ARC_MIN_CROSSING = np.deg2rad(10.0)
 """Arc points whose epipolar line crosses an ellipse at less than this are dropped, rad.
