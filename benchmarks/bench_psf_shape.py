@@ -45,14 +45,8 @@ SIZE = 220
 
 
 def corrected_error(img, xc, yc, R):
-    """(radius error after the correction, the correction), px."""
-    e = edge_points(img, 1.0, noise=0.5)
-    sel = np.abs(np.hypot(e.xy[:, 0] - xc, e.xy[:, 1] - yc) - R) < 3
-    xy, cov = e.xy[sel], e.cov[sel]
-    fit = fit_ellipse(xy, cov)
-    fixed = fit_ellipse(deblurred(xy, fit, float(np.median(e.width[sel]))), cov, start=fit.params)
-    r0, r1 = np.mean(fit.params[2:4]), np.mean(fixed.params[2:4])
-    return r1 - R, r1 - r0
+    """(radius error after the correction, the correction), px, of a disc."""
+    return ellipse_error(img, Disc(xc, yc, R), reach=3.0)[:2]
 
 
 def kernels():
@@ -65,10 +59,13 @@ def kernels():
         yield f"pixels, then a digital Gaussian {g} px", lambda s, g=g: cv2.GaussianBlur(render_clean(s, SIZE, SIZE, 40.0), (0, 0), g)
 
 
-def ellipse_error(img, shape):
-    """(mean semi-axis error after the correction, the correction there, the edge profile's width), px."""
+def ellipse_error(img, shape, reach=2.5):
+    """(mean semi-axis error after the correction, the correction there, the edge profile's width), px.
+
+    The edge points within ``reach`` px of the outline are the rim's.
+    """
     e = edge_points(img, 1.0, noise=0.5)
-    sel = np.abs(shape.distance(e.xy)) < 2.5
+    sel = np.abs(shape.distance(e.xy)) < reach
     xy, cov, W = e.xy[sel], e.cov[sel], float(np.median(e.width[sel]))
     fit = fit_ellipse(xy, cov)
     fixed = fit_ellipse(deblurred(xy, fit, W), cov, start=fit.params)
@@ -96,15 +93,16 @@ def ellipses(size=150):
     for name, form in pixel:
         for a in (8.0, 10.0, 12.0, 16.0, 24.0, 40.0):
             for q in (1.0, 0.8, 0.6, 0.45):
+                moment = curvature_moment(q)
                 f, x = [], []
                 for _ in range(3):
                     xc, yc = size / 2 + rng.uniform(-0.5, 0.5, 2)
                     shape = Ellipse(xc, yc, a, a * q, rng.uniform(0.0, np.pi))
                     err, corr, W = ellipse_error(form(render_clean([(shape, 200.0)], size, size, 40.0)), shape)
                     f.append(err / corr)
-                    x.append((W * a / (a * q) ** 2) ** 2 * curvature_moment(q))
+                    x.append((W * a / (a * q) ** 2) ** 2 * moment)
                 rows.append((float(np.mean(x)), float(np.mean(f))))
-                print(f"{name:26s} {a:5.1f} {q:5.2f} {np.sqrt(np.mean(x) / curvature_moment(q)):11.2f} "
+                print(f"{name:26s} {a:5.1f} {q:5.2f} {np.sqrt(np.mean(x) / moment):11.2f} "
                       f"{np.mean(f):+10.3f} ({np.min(f):+.3f} .. {np.max(f):+.3f})")
     x, y = np.array(rows).T
     c = np.linalg.lstsq(np.c_[np.ones_like(x), x], y, rcond=None)[0]

@@ -163,11 +163,17 @@ def _offset_variance(band, params, cov, phase):
     return float(np.sum((g @ covariance_factor(C)) ** 2))
 
 
-def _observed(points, params, phase):
+def _nearest(points, params, phase):
+    """(index, distance px) of the point nearest the ellipse's point at ``phase``; (None, inf) without points."""
     if points is None or len(points) == 0:
-        return False
-    tp = _ellipse_points(params, np.array([phase]))[0]
-    return bool(np.min(np.linalg.norm(np.asarray(points, float) - tp, axis=1)) <= TANGENT_REACH)
+        return None, np.inf
+    d = np.linalg.norm(np.asarray(points, float) - _ellipse_points(params, np.array([phase]))[0], axis=1)
+    i = int(np.argmin(d))
+    return i, float(d[i])
+
+
+def _observed(points, params, phase):
+    return _nearest(points, params, phase)[1] <= TANGENT_REACH
 
 
 def tangency_residuals(geo, pairs, select=None, ref_left=None):
@@ -285,8 +291,7 @@ def _shading_variance(f, phase):
     floor2 = EDGE_BIAS_FLOOR * EDGE_BIAS_FLOOR
     if bound is None or f.ideal.xy is None or len(f.ideal.xy) != len(bound):
         return floor2
-    tp = _ellipse_points(f.fit.params, np.array([phase]))[0]
-    b = float(bound[int(np.argmin(np.linalg.norm(np.asarray(f.ideal.xy, float) - tp, axis=1)))])
+    b = float(bound[_nearest(f.ideal.xy, f.fit.params, phase)[0]])
     return (BACKGROUND_CORRECTION * RIM_BOUND_READING * b) ** 2 + floor2
 
 

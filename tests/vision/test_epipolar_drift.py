@@ -189,10 +189,10 @@ def test_a_rims_disagreeing_tangents_do_not_hide_a_roll():
     rolled = replace(drifted_rig(stated, "roll", 0.5), std=stated.std, cov=stated.cov)
     left, right, _ = read_pair(BRACKET, rolled)
     pairs = matched_arcs(measure_stereo(left, right, rolled))
-    residuals, variances, used = tangency_residuals(epipolar_geometry(rolled), pairs)
-    a, b = used.index((2, 0)), used.index((2, 1))  # the wall hole's two tangencies
-    # The odd rim carries its own error: its two variances cover what its tangencies disagree by.
-    assert len(used) >= 6 and variances[a] + variances[b] >= (1 - 1e-9) * (residuals[a] - residuals[b]) ** 2
+    _, variances, used = tangency_residuals(epipolar_geometry(rolled), pairs)
+    odd = [used.index((2, 0)), used.index((2, 1))]  # the wall hole's two tangencies
+    # The odd rim carries its own error, far beyond the fits' noise a well-seen rim's tangency has.
+    assert len(used) >= 6 and variances[odd].max() > 10 * variances.min()
     check = check_calibration(rolled, pairs)
     assert check.corrected and abs(np.degrees(check.correction[2]) + np.degrees(0.5 / 1224)) < 0.01, check.correction
 
