@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from scipy import special
 
-__all__ = ["estimate_noise", "QUANTISATION_STD", "NoiseLevel", "noise_level_function"]
+__all__ = ["estimate_noise", "QUANTISATION_STD", "NoiseLevel", "noise_level_function", "rounding_std"]
 
 # Immerkaer's mask: the difference of two Laplacians, zero on any quadratic.
 _MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
@@ -159,8 +159,10 @@ def estimate_noise(image, *, clip=3.0, edge_k=4.0, iterations=3):
         Standard deviation of the pixel noise, grey levels. Quantisation is a
         part of it: an 8-bit image with Gaussian noise sigma reads as
         sqrt(sigma^2 + 1/12), which is the noise the pixels actually carry;
-        an integer image reads at least ``QUANTISATION_STD``, even one with
-        (almost) no noise, whose flat areas round alike.
+        an image reads at least its rounding (:func:`rounding_std`), even
+        one with (almost) no noise, whose flat areas round alike:
+        ``QUANTISATION_STD`` for an integer image, the floating-point
+        spacing's for a float one.
 
     Notes
     -----
@@ -242,13 +244,25 @@ def _estimate_noise(img, filtered, clip=3.0, edge_k=4.0, iterations=3, grid=None
                 break
             n_sel = m
             sigma = float(np.sqrt(r2[below].mean() / _truncated_variance_factor(clip))) / _MASK_NORM
-    if top is not None:
-        # An integer image with noise well under a grey level reads as
-        # nearly noise-free where it is flat, where rounding is the same for
-        # every pixel; across an edge, where the grey levels change, each
-        # pixel still carries the rounding error of 1/sqrt(12) grey levels.
-        sigma = max(sigma, QUANTISATION_STD)
-    return sigma
+    # An image with noise well under its rounding step reads as nearly
+    # noise-free where it is flat, where rounding is the same for every
+    # pixel; across an edge, where the grey levels change, each pixel still
+    # carries the rounding error of a step over sqrt(12): a grey level for
+    # an integer image, the floating-point spacing for a noise-free render
+    # kept in floats (without it, zero, and every weight infinite).
+    return max(sigma, rounding_std(img))
+
+
+def rounding_std(img):
+    """Standard deviation of the rounding of ``img``'s grey levels to its type, grey levels.
+
+    ``QUANTISATION_STD`` for an integer image; for a floating-point one the
+    spacing of its type at its largest magnitude over sqrt(12).
+    """
+    if np.issubdtype(img.dtype, np.integer):
+        return QUANTISATION_STD
+    top = np.abs(img).max(initial=1.0)
+    return float(np.spacing(np.asarray(top, img.dtype))) / np.sqrt(12.0)
 
 
 NLF_SIGNIFICANCE = 13.8
@@ -398,7 +412,6 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
                  _estimate_noise(img, filtered))
     noise = float(noise)
     constant = NoiseLevel(noise * noise, 0.0, 0.0, noise, False)
-    top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else None
     grey = cv2.blur(filtered[0], (3, 3), borderType=cv2.BORDER_REFLECT)[1:-1:3, 1:-1:3]
     grey_lattice = _levels(grey.ravel(), 9.0)
     level = constant
@@ -415,7 +428,7 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
         if len(bins) < 3:
             return constant
         m1, m2, v, n = bins.T
-        floor = QUANTISATION_STD ** 2 if top is not None else 0.0
+        floor = rounding_std(img) ** 2
         v = np.maximum(v, floor)
         w = n / (2.0 * v * v)
         (b0,), chi_const = _weighted_fit(np.ones((len(v), 1)), v, w)

@@ -51,14 +51,21 @@ def test_noise_free_8bit_image_reads_its_rounding(clean):
     # estimate would give edge points zero uncertainty (the chain then failed).
     img = render(SHAPES, 240, 300, noise=0.0, seed=0, clean=clean)
     assert estimate_noise(img) == pytest.approx(1 / np.sqrt(12))
-    assert estimate_noise(img.astype(float)) < 0.05  # a float image has no rounding
+    # A float image rounds to its floating-point spacing: tiny, never zero.
+    as_float = img.astype(np.float32)
+    assert estimate_noise(as_float) == pytest.approx(np.spacing(np.float32(as_float.max())) / np.sqrt(12))
+    assert 0 < estimate_noise(img.astype(float)) < 1e-12
 
 
-def test_measure_stereo_on_a_noise_free_render():
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_measure_stereo_on_a_noise_free_render(dtype):
+    # In floats the render has no noise at all: its points' uncertainty is
+    # the floating-point rounding's, and the chain measures without a
+    # division by zero (it failed inside an eigendecomposition).
     from tests.vision import stereo_scenes as S
     from partinspect.vision.stereo import measure_stereo
     rig, _, L, R = S.render("plate", 0.0, 0, False, (612, 512))
-    res = measure_stereo(L, R, rig)
+    res = measure_stereo(L.astype(dtype), R.astype(dtype), rig)
     assert len(res.features) >= 10
     assert all(np.isfinite(f.param_cov).all() for f in res.features)
 
