@@ -414,6 +414,7 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
     constant = NoiseLevel(noise * noise, 0.0, 0.0, noise, False)
     grey = cv2.blur(filtered[0], (3, 3), borderType=cv2.BORDER_REFLECT)[1:-1:3, 1:-1:3]
     grey_lattice = _levels(grey.ravel(), 9.0)
+    floor = rounding_std(img) ** 2
     level = constant
     for _ in range(2):
         # The edge mask's threshold follows the noise at each pixel's grey:
@@ -428,7 +429,6 @@ def noise_level_function(image, noise=None, *, edge_k=4.0, n_bins=NLF_BINS):
         if len(bins) < 3:
             return constant
         m1, m2, v, n = bins.T
-        floor = rounding_std(img) ** 2
         v = np.maximum(v, floor)
         w = n / (2.0 * v * v)
         (b0,), chi_const = _weighted_fit(np.ones((len(v), 1)), v, w)

@@ -158,7 +158,6 @@ def test_curvature_bias_removed_by_deblurred(radius):
         assert abs(err[sel].mean()) < 0.004, (lo, err[sel].mean())
 
 
-
 @pytest.mark.parametrize("blur", [1.0, 1.4])
 def test_a_small_oblique_rim_keeps_its_radius_after_the_curvature_correction(blur):
     """An 8 px rim of axis ratio 0.45, exactly area-integrated and blurred on the pixel grid: W kappa reaches
@@ -180,6 +179,7 @@ def test_a_small_oblique_rim_keeps_its_radius_after_the_curvature_correction(blu
     r0, r1, true = np.mean(fit.params[2:4]), np.mean(fixed.params[2:4]), 0.5 * (shape.a + shape.b)
     assert r1 - r0 > 0.1  # a correction this test can see
     assert abs(r1 - true) < 0.07 * (r1 - r0), (r1 - true, r1 - r0)
+
 
 def _vertical_step_draws(draws, seed, x0=32.3, contrast=100.0):
     """Edge points of a vertical step at x0 under noise 2, rows 12-51 (the edge's middle), per draw."""
