@@ -99,6 +99,13 @@ class View:
     modes: np.ndarray | None = None
     mode_names: tuple | None = None
 
+    def __post_init__(self):
+        # A mode without its name would be dropped where the views' modes are
+        # summed by name, silently understating the fit's Type B.
+        if self.modes is not None and (self.mode_names is None or len(self.mode_names) != len(self.modes)):
+            raise ValueError(f"View: {len(self.modes)} modes but {0 if self.mode_names is None else len(self.mode_names)}"
+                             " mode names")
+
     @property
     def random_sigma(self):
         """Standard uncertainty of each point from image noise, its correction's included, px."""

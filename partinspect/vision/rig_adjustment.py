@@ -97,7 +97,8 @@ def circle_observations(stereo, indices, calib):
     -------
     list of CircleObservation
     """
-    from partinspect.vision.stereo import edge_band, views_of
+    from partinspect.vision.band_modes import edge_band
+    from partinspect.vision.stereo import views_of
 
     out = []
     distorted = bool(np.any(calib.D1) or np.any(calib.D2))

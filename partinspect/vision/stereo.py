@@ -66,6 +66,7 @@ from partinspect.vision.feature3d import make_feature3d
 from partinspect.vision.forked import forked
 from partinspect.vision.calibration_points import point_responses
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
+from partinspect.vision.band_modes import band_harmonics, edge_band
 from partinspect.vision.fit3d import View, circle_consistency, circle_residuals_at, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
 from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
@@ -284,10 +285,13 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
 
     ``correction_std``: the two features' :func:`correction_std`, if
     already computed (they depend on neither the calibration nor ``uv``).
-    ``band``: per view, the Type B standard uncertainty, px, of where a
-    broken edge's step lies across its band (:func:`edge_band`), added in
-    quadrature to every point; along a line it is one offset for the whole
-    view, along a rim correlated as the shading's rest. A feature's
+    ``band``: where a broken edge's step lies across its band
+    (:func:`~partinspect.vision.band_modes.edge_band`); along a line its
+    Type B, px, is one offset for the whole view, added in quadrature to
+    every point; round a rim its place is the modes of
+    :func:`~partinspect.vision.band_modes.band_harmonics`, one coefficient
+    each common to both views and one each view's own, sized by ``band``'s
+    parallax share. A feature's
     ``band_modes`` (a broken rim moved onto its sharp edge's image) are the
     views' ``modes``.
     """
@@ -295,6 +299,7 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
     # The rim's curvature mode: one name for its two views, no other's (a
     # joint fit of several rims keeps their modes apart).
     curvature_name = ("curvature", next(_MODE_NAMES)) if fl.kind == "arc" else None
+    band_name = next(_MODE_NAMES) if band is not None and fl.kind == "arc" else None
     if correction_std is None:
         correction_std = (correction_std_of(fl, corr_length), correction_std_of(fr, corr_length))
     views = []
@@ -324,7 +329,16 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
         elif not arc:
             shade = line_type_b(getattr(f, "background_bound", None), getattr(f, "band_shift", None))
             bias = np.full(len(xy), shade) if shade > 0 else None
-        if band is not None:
+        if band is not None and arc:
+            harmonics = band_harmonics(xy, f.fit, band[len(views)])
+            # What the cameras see alike moves the 3D rim (one coefficient of
+            # both views); the parallax's share differs between them.
+            common = np.sqrt(max(1.0 - band.parallax ** 2, 0.0))
+            waves = range(len(harmonics))
+            modes, names = _with_mode(modes, names, np.vstack([common * harmonics, band.parallax * harmonics]),
+                                      [("band", band_name, j) for j in waves]
+                                      + [("band", band_name, len(views), j) for j in waves])
+        elif band is not None:
             b = band[len(views)]
             bias = np.full(len(xy), b) if bias is None else np.hypot(bias, b)
         views.append(View(xy, sigma, P, corr_length, bias, bias_length, sigma_c, correction_corr_length(corr_length),
@@ -335,11 +349,12 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
 _MODE_NAMES = count()
 
 
-def _with_mode(modes, names, row, name):
-    """``View.modes`` and ``mode_names`` with one more row (1, N) and its name."""
+def _with_mode(modes, names, rows, name):
+    """``View.modes`` and ``mode_names`` with more rows (k, N) and their names (one name, or a list of k)."""
+    new = tuple(name) if isinstance(name, list) else (name,)
     if modes is None:
-        return row, (name,)
-    return np.vstack([modes, row]), tuple(names) + (name,)
+        return rows, new
+    return np.vstack([modes, rows]), tuple(names) + new
 
 
 def line_type_b(bound, band=None):
@@ -382,30 +397,6 @@ def line_type_b(bound, band=None):
     if band is None or len(band) == 0:
         return shade
     return float(np.hypot(shade, np.median(band)))
-
-
-def edge_band(points, geo, edge_break):
-    """Per view, the standard uncertainty, px, of where a broken edge's step lies across its band.
-
-    ``edge_break`` is the RMS distance, mm, of the apparent step from the
-    sharp edge over the break's band and sizes; at the points' median depth
-    in each camera it is ``edge_break * f / Z`` px. The two cameras see the
-    step at different places on a rounded edge, so each view carries its own.
-
-    Parameters
-    ----------
-    points : ndarray, shape (N, 3)
-        The feature's triangulated points, rig frame, mm.
-    geo : EpipolarGeometry
-    edge_break : float
-
-    Returns
-    -------
-    (float, float)
-    """
-    z_left = float(np.median(points[:, 2]))
-    z_right = float(np.median(points @ np.asarray(geo.R)[2] + np.asarray(geo.T).ravel()[2]))
-    return edge_break * geo.K1[0, 0] / z_left, edge_break * geo.K2[0, 0] / z_right
 
 
 def views_of(fl, fr, corr_length, band=None):
@@ -506,7 +497,8 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
     edge_break : float, optional
         The part's edges are broken (rounded or chamfered): the RMS
         distance, mm, of the apparent step from the sharp edge. Each point
-        of every feature then carries it as a Type B (:func:`edge_band`),
+        of every feature then carries it as a Type B
+        (:func:`~partinspect.vision.band_modes.edge_band`),
         and a pair of arcs either of which has both polarities is measured
         on one polarity's points (:func:`measure_pair_feature`).
 
@@ -720,12 +712,16 @@ def _without_band(view, band, kind=None):
     Along a straight edge the step's place on the band is one offset, which
     moves no point relative to the others, and so is the shading beside it
     (:func:`line_type_b`): a line's view keeps no Type B. Around a rim the
-    band's variation is the characteristic's own Type B
-    (:mod:`partinspect.tolerances.edge_break`), not a point error to draw.
+    band's place (its modes, :func:`~partinspect.vision.band_modes.band_harmonics`)
+    is the characteristic's own Type B (:mod:`partinspect.tolerances.edge_break`),
+    not a point error to draw: its modes are dropped.
     """
     if kind == "line" and view.bias is not None:
         return replace(view, bias=None)
-    if band is None or view.bias is None:
+    if band is None or view.modes is None:
         return view
-    rest = np.sqrt(np.maximum(np.square(view.bias) - band[0] ** 2, 0.0))
-    return replace(view, bias=rest if np.any(rest > 0) else None)
+    keep = [j for j, name in enumerate(view.mode_names) if not (isinstance(name, tuple) and name[0] == "band")]
+    if len(keep) == len(view.mode_names):
+        return view
+    return replace(view, modes=view.modes[keep] if keep else None,
+                   mode_names=tuple(view.mode_names[j] for j in keep) if keep else None)

@@ -84,20 +84,36 @@ def test_apparent_edge_rms_is_the_chamfer_points_rms_distance_from_the_sharp_edg
 def test_the_band_is_carried_in_pixels_at_each_cameras_depth_and_left_out_of_the_form():
     from partinspect.vision.fit3d import View
     from partinspect.vision.matching import epipolar_geometry
-    from partinspect.vision.stereo import _without_band, edge_band
+    from partinspect.vision.band_modes import edge_band
+    from partinspect.vision.stereo import _without_band
     from partinspect.simulate.rig import default_rig
 
     rig = default_rig((2448, 2048))
     geo = epipolar_geometry(rig)
     X = np.array([[0.0, 0.0, 400.0], [10.0, 0.0, 400.0]])
-    left, right = edge_band(X, geo, 0.1)
+    band = edge_band(X, geo, 0.1)
+    left, right = band.left, band.right
     z_right = float(np.median(X @ np.asarray(geo.R)[2] + np.asarray(geo.T).ravel()[2]))
     assert left == pytest.approx(0.1 * rig.K1[0, 0] / 400.0)
     assert right == pytest.approx(0.1 * rig.K2[0, 0] / z_right)
+    # The share the cameras see differently: the angle between their lines
+    # of sight to the feature over the band normal's quarter turn.
+    eye = -np.asarray(geo.R).T @ np.asarray(geo.T).ravel()
+    c = np.median(X, axis=0)
+    angle = np.arccos(c @ (c - eye) / np.linalg.norm(c) / np.linalg.norm(c - eye))
+    assert band.parallax == pytest.approx(angle / (np.pi / 2)) and 0.05 < band.parallax < 0.5
     line = View(np.zeros((3, 2)), np.full(3, 0.01), np.eye(3, 4), 1.0, np.full(3, left))
-    assert _without_band(line, (left, right)).bias is None
-    rim = View(np.zeros((3, 2)), np.full(3, 0.01), np.eye(3, 4), 1.0, np.hypot([0.02, 0.03, 0.04], left), 5.0)
-    np.testing.assert_allclose(_without_band(rim, (left, right)).bias, [0.02, 0.03, 0.04])
+    assert _without_band(line, band, "line").bias is None
+    # A rim carries its band as modes (band_harmonics): the form's view drops
+    # them and keeps every other mode and its shading Type B.
+    modes = np.arange(18.0).reshape(6, 3)
+    names = (("curvature", 1), ("band", 2, 0), ("band", 2, 1), ("band", 2, 0, 0), ("band", 2, 0, 1), "place")
+    rim = View(np.zeros((3, 2)), np.full(3, 0.01), np.eye(3, 4), 1.0, np.array([0.02, 0.03, 0.04]), 5.0,
+               modes=modes, mode_names=names)
+    kept = _without_band(rim, band, "arc")
+    np.testing.assert_allclose(kept.bias, [0.02, 0.03, 0.04])
+    assert kept.mode_names == (("curvature", 1), "place")
+    np.testing.assert_allclose(kept.modes, modes[[0, 5]])
 
 
 @pytest.mark.parametrize("place", [(0.3, 0.05), (0.8, 0.2)])

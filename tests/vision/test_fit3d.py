@@ -204,3 +204,88 @@ def test_a_shared_mode_moves_both_views_at_once():
     S_apart = fit_circle_3d(apart, CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic
     assert S_apart[5, 5] < 0.8 * S[5, 5]
     assert np.sqrt(np.trace(S[:3, :3])) < 0.1 * np.sqrt(S[5, 5])
+
+
+def _half_arc(n):
+    """Image points of the front half of CIRCLE in both cameras and their ellipse fits."""
+    from partinspect.vision.fitting import fit_ellipse
+
+    X = circle_points(2 * n)[:n]
+    xs = [proj(P, X) for P in PS]
+    return xs, [fit_ellipse(x) for x in xs]
+
+
+def test_a_band_place_moves_a_rims_image_as_a_whole_and_its_size_and_bends_it():
+    """band_harmonics: its mean row moves every point outward alike; its first harmonic's two rows are what a
+    shift of the whole image along x and along y moves each point along its outward normal; the second and
+    third harmonics' rows follow the normal's angle t as cos(k t), sin(k t). Their sizes: a place uniform on a
+    band of width w (RMS distance b = w / sqrt(3) from the sharp edge), its mean's u w / sqrt(12); each
+    harmonic's amplitude uniform on [0, w / 2] at any angle, so the place's variance about its mean is w^2 / 8
+    at every point, between a place uniform on the band at each point (w^2 / 12) and the most (w^2 / 4)."""
+    from partinspect.vision.band_modes import BAND_HARMONICS, band_harmonics
+    from partinspect.vision.fitting import ellipse_geometry
+
+    (x, _), (fit, _) = _half_arc(120)
+    b = 0.7
+    rows = band_harmonics(x, fit, b)
+    assert rows.shape == (1 + 2 * BAND_HARMONICS, len(x)) and BAND_HARMONICS == 3
+    _, n, _ = ellipse_geometry(x, fit.params, fit.phases)
+    w = b * np.sqrt(3.0)
+    assert np.allclose(rows[0], w / np.sqrt(12.0))
+    rng = np.random.default_rng(5)
+    a, phase = rng.uniform(0.0, w / 2, 200_000), rng.uniform(0.0, 2 * np.pi, 200_000)
+    h = np.sqrt(np.mean((a * np.cos(phase)) ** 2))  # one component's u, by simulation
+    assert np.allclose(rows[1], h * n[:, 0], rtol=0.01) and np.allclose(rows[2], h * n[:, 1], rtol=0.01)
+    shift = np.array([0.3, -0.2])
+    assert np.allclose(0.3 * rows[1] - 0.2 * rows[2], h * (n @ shift), rtol=0.01)
+    t = np.arctan2(n[:, 1], n[:, 0])
+    assert np.allclose(rows[3:], h * np.array([np.cos(2 * t), np.sin(2 * t), np.cos(3 * t), np.sin(3 * t)]),
+                       rtol=0.01, atol=1e-12)
+    assert np.allclose(np.sum(rows[1:] ** 2, axis=0), w ** 2 / 8, rtol=0.02)
+    # Outward: away from the ellipse's centre.
+    assert np.all(np.einsum("ni,ni->n", n, x - fit.params[:2]) > 0)
+
+
+def test_a_broken_rims_band_on_a_half_arc_states_its_radius_between_its_mean_and_a_per_point_field():
+    """A half arc's band place as modes per image (both cameras alike): the radius's systematic u is more than
+    moving every point outward by the mean's u moves it, since a half arc's radius takes up the place's second
+    and third waves too; a per-point field of the band's size correlated over 0.2 rad lets the half arc trade
+    radius against centre over every short wave as well, and states it at least twice as large."""
+    from partinspect.vision.band_modes import band_harmonics
+
+    xs, fits = _half_arc(150)
+    b = 0.8  # px
+    rows = [band_harmonics(x, fit, b) for x, fit in zip(xs, fits)]
+    names = tuple(("band", 0, j) for j in range(len(rows[0])))
+    views = [View(x, np.full(len(x), SIGMA), P, 1.0, modes=r, mode_names=names) for x, r, P in zip(xs, rows, PS)]
+    u_r = np.sqrt(fit_circle_3d(views, CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic[5, 5])
+    f0 = fit_circle_3d([View(x, v.sigma, v.P, 1.0) for x, v in zip(xs, views)], CIRCLE["center"],
+                       CIRCLE["normal"], 6.0)
+    mean = rows[0][0, 0]  # the mean's u, px
+    moved = [View(x + mean * _outward_of(x, fit), v.sigma, v.P, 1.0) for x, fit, v in zip(xs, fits, views)]
+    f1 = fit_circle_3d(moved, CIRCLE["center"], CIRCLE["normal"], 6.0)
+    assert u_r > 2.0 * abs(f1.radius - f0.radius)
+    # Mean and first harmonic alone: the mean's move.
+    first = [View(x, v.sigma, v.P, 1.0, modes=r[:3], mode_names=names[:3]) for x, r, v in zip(xs, rows, views)]
+    u_first = np.sqrt(fit_circle_3d(first, CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic[5, 5])
+    assert u_first == pytest.approx(abs(f1.radius - f0.radius), rel=0.25)
+    field = [View(x, np.full(len(x), SIGMA), P, 1.0, np.full(len(x), b), 0.2 * float(max(fit.params[2:4])))
+             for x, fit, P in zip(xs, fits, PS)]
+    u_field = np.sqrt(fit_circle_3d(field, CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic[5, 5])
+    assert u_field > 2.0 * u_r
+
+
+def _outward_of(x, fit):
+    from partinspect.vision.fitting import ellipse_geometry
+
+    return ellipse_geometry(x, fit.params, fit.phases)[1]
+
+
+def test_a_view_refuses_modes_without_their_names():
+    """The fit sums the views' modes by name: a mode without one would be dropped, understating its Type B."""
+    xy = np.zeros((4, 2))
+    with pytest.raises(ValueError, match="2 modes but 1 mode names"):
+        View(xy, np.ones(4), PS[0], modes=np.ones((2, 4)), mode_names=("a",))
+    with pytest.raises(ValueError):
+        View(xy, np.ones(4), PS[0], modes=np.ones((1, 4)))
+    assert View(xy, np.ones(4), PS[0], modes=np.ones((1, 4)), mode_names=("a",)).modes.shape == (1, 4)
