@@ -57,9 +57,10 @@ stays on the band can have (``w^2 / 4``, a square wave between its edges)."""
 FLANK_SHARE = float(np.sqrt(3.0))
 """Standard uncertainty of the offset between a broken rim's two flanks in
 one image over ``b``: the band's whole width ``w = sqrt(3) b``, since
-either flank lies anywhere on the band. Where many points show the other
-flank the fit reads the offset from them; the prior only keeps a few
-points from setting it alone."""
+either flank lies anywhere on the band. As a mode of the fit it weights
+the other flank's points down (their total standard uncertainty grows by
+it) and what it moves the fit through them is propagated into the
+systematic covariance (:class:`partinspect.vision.fit3d.View`)."""
 
 
 class EdgeBand(NamedTuple):
