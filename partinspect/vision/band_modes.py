@@ -26,8 +26,7 @@ import numpy as np
 
 from partinspect.vision.fitting import ellipse_geometry
 
-__all__ = ["EdgeBand", "edge_band", "band_harmonics", "flank_mode", "BAND_MEAN_SHARE", "BAND_HARMONIC_SHARE",
-           "BAND_HARMONICS", "FLANK_SHARE"]
+__all__ = ["EdgeBand", "edge_band", "band_harmonics", "BAND_MEAN_SHARE", "BAND_HARMONIC_SHARE", "BAND_HARMONICS"]
 
 BAND_MEAN_SHARE = 0.5
 """Standard uncertainty of a broken rim's mean band place over the RMS
@@ -52,15 +51,6 @@ unknown angle, so each component's variance is ``w^2 / 24``, ``b sqrt(3 / 24)``
 its mean is then ``w^2 / 8``: more than a place uniform on the band
 independently at each point (``w^2 / 12``), half of the most a place that
 stays on the band can have (``w^2 / 4``, a square wave between its edges)."""
-
-
-FLANK_SHARE = float(np.sqrt(3.0))
-"""Standard uncertainty of the offset between a broken rim's two flanks in
-one image over ``b``: the band's whole width ``w = sqrt(3) b``, since
-either flank lies anywhere on the band. As a mode of the fit it weights
-the other flank's points down (their total standard uncertainty grows by
-it) and what it moves the fit through them is propagated into the
-systematic covariance (:class:`partinspect.vision.fit3d.View`)."""
 
 
 class EdgeBand(NamedTuple):
@@ -147,36 +137,3 @@ def band_harmonics(xy, fit, band):
     k = np.arange(1, BAND_HARMONICS + 1)[:, None]
     waves = np.stack([np.cos(k * t), np.sin(k * t)], axis=1).reshape(2 * BAND_HARMONICS, len(xy))
     return band * np.vstack([np.full((1, len(xy)), BAND_MEAN_SHARE), BAND_HARMONIC_SHARE * waves])
-
-
-def flank_mode(polarity, reference, band):
-    """A broken rim's points on its band's other flank in one image, as one unknown offset, px.
-
-    Where a broken rim's band shows as a ridge (lit brighter, or darker,
-    than both the face and the wall) its two flanks are steps of opposite
-    polarity, and an image's rim is pieced from both
-    (:func:`partinspect.vision.imagefeatures.common_polarity`). The points
-    of the rim's polarity lie at its band place (:func:`band_harmonics`);
-    those of the other lie on the other flank, one offset away along their
-    normals, unknown and the image's own (``FLANK_SHARE`` times ``band``).
-    Fitted with it, a rim keeps both flanks' points, so the whole ellipse,
-    where dropping the other flank left partial arcs whose radius and centre
-    the band's place trades with.
-
-    Parameters
-    ----------
-    polarity : ndarray, shape (N,)
-        Each point's polarity, +1 or -1
-        (:func:`partinspect.vision.imagefeatures.point_polarity`).
-    reference : int
-        The rim's polarity.
-    band : float
-        :func:`edge_band`'s ``b`` in this image, px.
-
-    Returns
-    -------
-    ndarray, shape (1, N)
-        Displacements along each point's normal: ``FLANK_SHARE * band`` on
-        the other flank's points, zero on the rim's.
-    """
-    return (FLANK_SHARE * band * (np.asarray(polarity) != reference))[None, :]

@@ -59,7 +59,7 @@ from partinspect.vision.pixel_phase import without_phase_ripple
 __all__ = [
     "ImageFeature",
     "image_features",
-    "common_polarity",
+    "one_polarity",
     "point_polarity",
     "arc_stretch",
     "at_points",
@@ -415,8 +415,8 @@ def _along_fit_normal(kind, ideal, fit):
     return np.einsum("ni,ni->n", n_out, ideal.normal)
 
 
-def common_polarity(fl, fr):
-    """A matched pair of arcs, either of mixed polarity, with the polarity both images see most as theirs.
+def one_polarity(fl, fr, corr_length, min_points=6):
+    """A matched pair of arcs, either of mixed polarity, restricted to one polarity in both images, refitted.
 
     Across a broken (rounded or chamfered) rim the grey level is not one
     step but a profile over the band: where the band is lit brighter than
@@ -424,28 +424,43 @@ def common_polarity(fl, fr):
     whose two flanks are steps of opposite polarity about a blurred band's
     width apart, and where the wall changes from lit to shadowed the step
     changes place across the band. A rim's pieces of opposite polarity then
-    lie on different curves, and each camera may follow either. The pair's
-    ``polarity`` becomes the one both images see most (the larger of the
-    two polarities' smaller counts in the two images): its points are the
-    rim's band place, the others' the other flank, one unknown offset away
-    in each image (:func:`partinspect.vision.band_modes.flank_mode`). On a
-    sharp rim the two polarities are one curve (``mixed_polarity`` False):
-    such a pair is returned as it is.
+    lie on different curves, and each camera may follow either: a pair
+    measured on both triangulates one image's flank against the other's,
+    out of round by the flanks' distance. On a sharp rim the two
+    polarities are one curve (``mixed_polarity``); only a broken one's pair
+    is restricted, to the polarity both images see most of (the larger of
+    the two polarities' smaller counts in the two images).
 
     Parameters
     ----------
     fl, fr : ImageFeature
         The left and right arcs of one matched pair.
+    corr_length : float
+        The edge filter's scale, px: the refit's correlation length along
+        the edge, as :func:`image_features` fits.
+    min_points : int
+        Fewest points of the kept polarity in each image.
 
     Returns
     -------
-    (ImageFeature, ImageFeature)
+    (ImageFeature, ImageFeature) or None
+        Each arc with only its points of that polarity (:func:`arc_stretch`:
+        the ellipse and its covariance fitted again, ideal px; an arc with
+        no point of the other polarity is returned as it is), or None where
+        an image has fewer than ``min_points`` of it.
     """
     if fl.kind != "arc" or not (fl.mixed_polarity or fr.mixed_polarity):
         return fl, fr
     signs = [point_polarity(f) for f in (fl, fr)]
-    keep = max((1, -1), key=lambda s: min(np.count_nonzero(p == s) for p in signs))
-    return replace(fl, polarity=keep), replace(fr, polarity=keep)
+    keep = max((1.0, -1.0), key=lambda s: min(np.count_nonzero(p == s) for p in signs))
+    out = []
+    for f, p in zip((fl, fr), signs):
+        at = np.flatnonzero(p == keep)
+        if len(at) < min_points:
+            return None
+        out.append(f if len(at) == len(p) else replace(arc_stretch(f, at, corr_length), mixed_polarity=False,
+                                                       polarity=int(keep)))
+    return tuple(out)
 
 
 def arc_stretch(feature, keep, corr_length):

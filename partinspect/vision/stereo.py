@@ -66,10 +66,10 @@ from partinspect.vision.feature3d import make_feature3d
 from partinspect.vision.forked import forked
 from partinspect.vision.calibration_points import point_responses
 from partinspect.vision.calibration_uncertainty import calibration_responses, residual_changes, uncertainty_directions
-from partinspect.vision.band_modes import band_harmonics, edge_band, flank_mode
+from partinspect.vision.band_modes import band_harmonics, edge_band
 from partinspect.vision.fit3d import View, circle_consistency, circle_residuals_at, fit_circle_3d, fit_line_3d
 from partinspect.vision.ideal import camera_matrices, to_ideal
-from partinspect.vision.imagefeatures import ImageFeature, common_polarity, image_features, point_polarity
+from partinspect.vision.imagefeatures import ImageFeature, image_features, one_polarity
 from partinspect.vision.line_profile import line_band_shift
 from partinspect.vision.matching import arc_circle, epipolar_geometry, match_features
 from partinspect.vision.noise import noise_level_function
@@ -338,9 +338,6 @@ def feature_views(fl, fr, corr_length, calib, uv=None, remap=False, correction_s
             modes, names = _with_mode(modes, names, np.vstack([common * harmonics, band.parallax * harmonics]),
                                       [("band", band_name, j) for j in waves]
                                       + [("band", band_name, len(views), j) for j in waves])
-            if f.mixed_polarity:
-                modes, names = _with_mode(modes, names, flank_mode(point_polarity(f), f.polarity, band[len(views)]),
-                                          ("band", band_name, len(views), "flank"))
         elif band is not None:
             b = band[len(views)]
             bias = np.full(len(xy), b) if bias is None else np.hypot(bias, b)
@@ -499,12 +496,11 @@ def measure_stereo(left, right, calib, *, sigma=1.0, progress=None, match_option
         runs everything one after the other.
     edge_break : float, optional
         The part's edges are broken (rounded or chamfered): the RMS
-        distance, mm, of the apparent step from the sharp edge. Every
-        feature then carries it as a Type B
-        (:func:`~partinspect.vision.band_modes.edge_band`), and a pair of
-        arcs either of which has both polarities is measured on both, the
-        other polarity's points at an unknown offset (the band's other
-        flank, :func:`~partinspect.vision.band_modes.flank_mode`).
+        distance, mm, of the apparent step from the sharp edge. Each point
+        of every feature then carries it as a Type B
+        (:func:`~partinspect.vision.band_modes.edge_band`),
+        and a pair of arcs either of which has both polarities is measured
+        on one polarity's points (:func:`measure_pair_feature`).
 
     Returns
     -------
@@ -635,9 +631,14 @@ def measure_pair_feature(match, fl, fr, calib, geo, corr_length, edge_break=None
         that are not one circle, or a failed fit.
     """
     if edge_break is not None:
-        # Across a broken rim the two polarities are the band's two flanks:
-        # the pair's polarity is its band place, the other a flank's offset.
-        fl, fr = common_polarity(fl, fr)
+        # Across a broken rim the two polarities are two curves (one_polarity).
+        try:
+            pair = one_polarity(fl, fr, corr_length)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            return None, f"refit on one polarity failed: {exc}"
+        if pair is None:
+            return None, "the two images' arcs have too few points of one polarity (a broken rim's two steps)"
+        fl, fr = pair
     corr = correspond(fl, fr, geo)
     if len(corr) < 6:
         return None, f"only {len(corr)} corresponding points"

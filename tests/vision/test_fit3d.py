@@ -289,38 +289,3 @@ def test_a_view_refuses_modes_without_their_names():
     with pytest.raises(ValueError):
         View(xy, np.ones(4), PS[0], modes=np.ones((1, 4)))
     assert View(xy, np.ones(4), PS[0], modes=np.ones((1, 4)), mode_names=("a",)).modes.shape == (1, 4)
-
-
-def test_a_broken_rim_pieced_from_both_flanks_is_fitted_with_the_flanks_offset():
-    """band_modes.flank_mode: a rim whose images follow the band's other flank over a stretch (1 px
-    inside, both images; the band 1.04 px wide) is fitted on every point, the stretch's offset one
-    unknown per image of u the band's width, which weights its points down and is propagated into the
-    fit's systematic covariance: the radius comes out within its stated u of the truth. Without the
-    mode the stretch pulls it off by more than the u it states."""
-    from partinspect.vision.band_modes import FLANK_SHARE, band_harmonics, flank_mode
-    from partinspect.vision.fitting import fit_ellipse
-
-    X = circle_points(240)
-    b = 0.6  # px
-    flank = np.zeros(240, bool)
-    flank[30:100] = True
-    polarity = np.where(flank, -1, 1)
-    views, plain = [], []
-    for j, P in enumerate(PS):
-        x = proj(P, X)
-        fit = fit_ellipse(x)
-        x = x - 1.0 * flank[:, None] * _outward_of(x, fit)
-        rows = np.vstack([band_harmonics(x, fit, b), flank_mode(polarity, 1, b)])
-        names = tuple(("band", 0, j, k) for k in range(len(rows)))
-        views.append(View(x, np.full(len(x), SIGMA), P, 1.0, modes=rows, mode_names=names))
-        plain.append(View(x, np.full(len(x), SIGMA), P, 1.0, modes=rows[:-1], mode_names=names[:-1]))
-    assert np.allclose(flank_mode(polarity, 1, b)[0], FLANK_SHARE * b * flank)
-
-    def radius_error_and_u(vs):
-        f = fit_circle_3d(vs, CIRCLE["center"], CIRCLE["normal"], 6.0)
-        return abs(f.radius - CIRCLE["radius"]), np.sqrt(f.param_cov[5, 5] + f.param_cov_systematic[5, 5])
-
-    err, u = radius_error_and_u(views)
-    assert err < u
-    off, u_plain = radius_error_and_u(plain)
-    assert off > 1.3 * u_plain and off > err

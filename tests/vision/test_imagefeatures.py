@@ -212,28 +212,33 @@ def _ridge_rim(seed=0):
     return f, c, len(a_rim)
 
 
-def test_a_broken_rims_pair_takes_the_polarity_both_images_see_most():
-    """Issue 38, NIST ftc_09 circle-26: pieces of opposite polarity on a broken rim are the band's two flanks.
+def test_a_broken_rims_pair_is_measured_on_one_polarity():
+    """Issue 38, NIST ftc_09 circle-26: pieces of opposite polarity on a broken rim are two curves.
 
-    The union's ellipse follows neither: merged, the flank's piece pulls its centre off the rim's by
-    tenths of a pixel, so the pair is fitted with the other flank's offset (band_modes.flank_mode),
-    and which polarity is the rim's is the pair's choice: the one both images see most of. Every
-    point is kept; a sharp rim's pair (neither mixed) is left as it is.
+    The union's ellipse follows neither: merged, the flank's piece pulls its centre off the
+    rim's by tenths of a pixel (what one camera following the flank and the other the rim
+    turns into out-of-roundness). Paired with an arc of the rim's polarity alone, the mixed
+    arc keeps exactly the rim's points and fits the rim: centre and radius within the points'
+    noise; the other arc is left as it is.
     """
     from dataclasses import replace
 
-    from partinspect.vision.imagefeatures import arc_stretch, common_polarity, point_polarity
+    from partinspect.vision.imagefeatures import arc_stretch, one_polarity
 
     f, c, n_rim = _ridge_rim()
     assert np.hypot(*(f.fit.params[:2] - c)) > 0.2  # the mechanism: merged, the fit is off the rim
-    assert np.array_equal(point_polarity(f), np.r_[np.ones(n_rim), -np.ones(len(f.index) - n_rim)])
+    # The other image's arc, of the rim's polarity alone (here the same points: only its identity is used).
     rim_only = replace(arc_stretch(f, np.arange(n_rim), 1.0), mixed_polarity=False)
-    left, right = common_polarity(rim_only, f)
-    assert left.polarity == right.polarity == 1 and right.mixed_polarity
-    assert np.array_equal(right.index, f.index) and right.fit is f.fit
-    # The flank's polarity where both images see more of it.
-    flank = replace(f, ideal=replace(f.ideal, normal=-f.ideal.normal), polarity=-1)
-    assert [g.polarity for g in common_polarity(flank, flank)] == [-1, -1]
-    # 115 and 50 points of +1 against 50 and 115 of -1: a tie, the first polarity tried.
-    assert [g.polarity for g in common_polarity(f, flank)] == [1, 1]
-    assert common_polarity(rim_only, rim_only) == (rim_only, rim_only)
+    left, right = one_polarity(rim_only, f, 1.0)
+    assert left is rim_only
+    assert not right.mixed_polarity and right.polarity == 1
+    assert np.array_equal(right.index, np.arange(n_rim))
+    assert np.hypot(*(right.fit.params[:2] - c)) < 0.02
+    assert abs(right.fit.params[2] - 40.0) < 0.02 and abs(right.fit.params[3] - 40.0) < 0.02
+    assert np.max(np.abs(right.fit.residuals)) < 0.1
+    # Both mixed: the polarity both images see most of (here the rim's, 115 points against 50).
+    left, right = one_polarity(f, f, 1.0)
+    assert len(left.index) == len(right.index) == n_rim
+    # Too few points of it in an image: no pair; sharp rims' arcs (neither mixed) are left as they are.
+    assert one_polarity(f, f, 1.0, min_points=n_rim + 1) is None
+    assert one_polarity(rim_only, rim_only, 1.0) == (rim_only, rim_only)
