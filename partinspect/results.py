@@ -150,8 +150,8 @@ def feature_entries(inv, stereo, registration, seen, decisions, reasons, edge_br
 def edge_break_entries(stereo, registration, calib, rims, lines):
     """Where each measured feature's edge was taken on its broken edge: report.json's features' ``"edge_break"``.
 
-    Under a stated edge break every edge point carries the whole band as a
-    Type B (:func:`partinspect.vision.stereo.edge_band`) unless its feature
+    Under a stated edge break every edge carries the whole band as a Type B
+    (:func:`partinspect.vision.band_modes.edge_band`) unless its feature
     was moved onto the sharp edge's image by its predicted place
     (:func:`partinspect.vision.band_place.rims_at_sharp_edge`,
     :func:`partinspect.vision.line_band.lines_at_sharp_edge`): the entry

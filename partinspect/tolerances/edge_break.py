@@ -123,7 +123,8 @@ def apparent_edge_rms(b_min, b_max):
     ``2 b^2 / 3``; a fillet's band lies between that chamfer and the edge,
     so this bounds it. With ``b`` uniform in ``[b_min, b_max]``: ``sqrt(2
     E[b^2] / 3)``. The stereo chain carries it as a Type B of every edge
-    point (:func:`partinspect.vision.stereo.edge_band`): it covers both
+    (:func:`partinspect.vision.band_modes.edge_band`: one offset along a
+    line, the place's mean and longest waves round a rim): it covers both
     where the step lies on average and how far the two cameras' steps may
     differ.
 

@@ -796,9 +796,11 @@ def rims_at_sharp_edge(stereo, calib, part_to_camera, arcs, places):
     """Broken rims refitted with their points moved onto the sharp rim's image by their predicted places.
 
     The rim's two-view fit then measures the sharp rim, whose size is the
-    wall's, and each point carries, in place of the whole band, the
+    wall's, and the rim carries, in place of the whole band, the
     prediction's own uncertainty: ``u_point`` of the break's expected
-    size, as the Type B of :func:`partinspect.vision.stereo.edge_band`. A
+    size, as the size of :func:`partinspect.vision.band_modes.edge_band`
+    (round the rim, the modes of its mean and longest waves,
+    :func:`~partinspect.vision.band_modes.band_harmonics`). A
     rim whose place is predicted no better than uniform across the band
     (``u`` or ``u_point`` at ``1 / sqrt(12)``: the model does not explain
     the image's own steps there) is left as it was: its points, moved by

@@ -442,7 +442,7 @@ def lines_at_sharp_edge(stereo, calib, part_to_camera, matched, lines, places, b
 
     Each point then carries, in place of the whole band, the prediction's
     standard uncertainty ``LinePlace.u`` as the Type B of
-    :func:`partinspect.vision.stereo.edge_band` (one offset along the line).
+    :func:`partinspect.vision.band_modes.edge_band` (one offset along the line).
     A line whose place is predicted no better than the uniform band
     (``u`` at least ``band``) is left as it was.
 

@@ -439,7 +439,7 @@ def form_view(view, f):
     what the correction leaves, since a form zone is set by its points'
     extremes; the 3D fit's centre and radius, averages round the rim, take
     :func:`rim_type_b`. What the view carries beyond that (a broken edge's
-    band, :func:`~partinspect.vision.stereo.edge_band`) is kept. Lines, and arcs without shading
+    band, :func:`~partinspect.vision.band_modes.edge_band`) is kept. Lines, and arcs without shading
     readings, are returned as they are.
     """
     if view.bias is None or f.kind != "arc" or getattr(f, "background_bound", None) is None:
