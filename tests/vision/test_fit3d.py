@@ -1,5 +1,7 @@
 """3D lines and circles fitted to both views: accuracy and honest covariances."""
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -223,13 +225,12 @@ def test_a_band_place_moves_a_rims_image_as_a_whole_and_its_size_and_bends_it():
     harmonic's amplitude uniform on [0, w / 2] at any angle, so the place's variance about its mean is w^2 / 8
     at every point, between a place uniform on the band at each point (w^2 / 12) and the most (w^2 / 4)."""
     from partinspect.vision.band_modes import BAND_HARMONICS, band_harmonics
-    from partinspect.vision.fitting import ellipse_geometry
 
     (x, _), (fit, _) = _half_arc(120)
     b = 0.7
     rows = band_harmonics(x, fit, b)
     assert rows.shape == (1 + 2 * BAND_HARMONICS, len(x)) and BAND_HARMONICS == 3
-    _, n, _ = ellipse_geometry(x, fit.params, fit.phases)
+    n = _outward_of(x, fit)
     w = b * np.sqrt(3.0)
     assert np.allclose(rows[0], w / np.sqrt(12.0))
     rng = np.random.default_rng(5)
@@ -279,6 +280,27 @@ def _outward_of(x, fit):
     from partinspect.vision.fitting import ellipse_geometry
 
     return ellipse_geometry(x, fit.params, fit.phases)[1]
+
+
+def test_a_broken_rims_band_radius_u_is_the_spread_of_radii_under_drawn_band_places():
+    """The half arc's radius u from the band's modes (the fit's first-order propagation) against the spread of
+    its fitted radius over 200 band places drawn at the modes' stated sizes (each coefficient uniform, unit
+    variance, shared by both images) and moved into the points."""
+    from partinspect.vision.band_modes import band_harmonics
+
+    xs, fits = _half_arc(150)
+    rows = [band_harmonics(x, fit, 0.8) for x, fit in zip(xs, fits)]
+    names = tuple(("band", 0, j) for j in range(len(rows[0])))
+    views = [View(x, np.full(len(x), SIGMA), P, 1.0, modes=r, mode_names=names) for x, r, P in zip(xs, rows, PS)]
+    u_r = np.sqrt(fit_circle_3d(views, CIRCLE["center"], CIRCLE["normal"], 6.0).param_cov_systematic[5, 5])
+    outward = [_outward_of(x, fit) for x, fit in zip(xs, fits)]
+    rng = np.random.default_rng(3)
+    radii = []
+    for _ in range(200):
+        z = rng.uniform(-np.sqrt(3.0), np.sqrt(3.0), len(names))
+        moved = [replace(v, xy=v.xy + (z @ r)[:, None] * o) for v, r, o in zip(views, rows, outward)]
+        radii.append(fit_circle_3d(moved, CIRCLE["center"], CIRCLE["normal"], 6.0).radius)
+    assert 0.85 < np.std(radii) / u_r < 1.15
 
 
 def test_a_view_refuses_modes_without_their_names():
