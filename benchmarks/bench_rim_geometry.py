@@ -28,11 +28,17 @@ Printed per noise level:
   them, predicted from the hole's depth (its other rim in the CAD) and the
   true pose: the image distance, inwards, from a rim point to the image of
   the point a depth below it (negative where the wall is hidden behind the
-  rim).
+  rim);
+- the points' error binned by their distance along the rim image from its
+  nearest end (a gap of more than ``END_GAP`` px between neighbouring
+  points, after the segmentation's own trim), per part: where the rim
+  image stops, beside a limb or where its contrast turns.
 
 Run: ``python benchmarks/bench_rim_geometry.py [--part plate] [--size 816x683]
 [--noise 0,2] [--seeds 3] [--work DIR]``. The figures are in
-docs/validation.md ("The rims' Type B against the image scale").
+docs/validation.md ("The rims' Type B against the image scale"; the ends'
+table in "The wall holes' rims: crowding, the two-step model, the arc's
+ends, the edge-on stretches").
 """
 
 from __future__ import annotations
@@ -51,6 +57,10 @@ LAGS = (1, 2, 4, 8, 16, 32)
 """px along the rim at which the errors' autocorrelation is printed."""
 SEMI_BINS = (0.0, 20.0, 40.0, 80.0, np.inf)
 BAND_BINS = (-np.inf, -24.0, -6.0, 0.0, 6.0, 12.0, 24.0, np.inf)
+END_BINS = (0.0, 1.5, 3.0, 5.0, 8.0, 15.0, np.inf)
+END_GAP = 3.0
+"""px: neighbouring points of a rim image (by their angle about its centre)
+farther apart than this mark an end."""
 
 
 def project(P, X):
@@ -102,6 +112,23 @@ def point_errors(xy, P, centre, normal, radius, depth, eye):
     return np.einsum("ni,ni->n", xy - rim[k], out), band
 
 
+def from_end(xy):
+    """Each point's distance along the rim image from its nearest end, px (inf for a closed one)."""
+    order = np.argsort(np.arctan2(*(xy - xy.mean(axis=0)).T[::-1]))
+    p = xy[order]
+    step = np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1)  # to the next point, round the rim
+    s = np.r_[0.0, np.cumsum(step[:-1])]
+    total = step.sum()
+    dist = np.full(len(p), np.inf)
+    for g in np.flatnonzero(step > END_GAP):
+        for end in (s[g], s[(g + 1) % len(p)]):
+            d = np.abs(s - end)
+            dist = np.minimum(dist, np.minimum(d, total - d))
+    out = np.empty(len(p))
+    out[order] = dist
+    return out
+
+
 def mean_std(d2, type_b, length):
     """Standard deviation of the points' mean error the Type B states, correlated as ``exp(-d^2 / 4 l^2)``.
 
@@ -139,6 +166,7 @@ def rim_images(part, size, noise, seed, work):
                     semi = float(max(fe.fit.params[2:4]))
                     d2 = np.sum((view.xy[:, None, :] - view.xy[None, :, :]) ** 2, axis=-1)
                     out.append(dict(view=k, id=cid, side=side, semi=semi, d=np.sqrt(d2), err=err, band=band,
+                                    end=from_end(view.xy),
                                     type_b=view.bias, stated=mean_std(d2, view.bias, EDGE_BIAS_CORR_ANGLE * semi),
                                     footprint=mean_std(d2, view.bias, footprint)))
     return out
@@ -182,6 +210,18 @@ def by_band(records):
     return rows
 
 
+def by_end(records):
+    end, err, tb = (np.concatenate([r[k] for r in records]) for k in ("end", "err", "type_b"))
+    rows = []
+    for lo, hi in zip(END_BINS[:-1], END_BINS[1:]):
+        m = (end >= lo) & (end < hi)
+        if m.sum() >= 5:
+            rows.append(f"  {lo:4.1f} .. {hi:<4.1f} px from an end: {m.sum():5d} points, "
+                        f"mean error {err[m].mean():+.4f} px, RMS {np.sqrt(np.mean(err[m] ** 2)):.4f}, "
+                        f"mean Type B {tb[m].mean():.4f}")
+    return rows
+
+
 def main(argv=None):
     from partinspect.vision.rim_errors import EDGE_BIAS_CORR_ANGLE
 
@@ -210,6 +250,8 @@ def main(argv=None):
         print("  " + "  ".join(f"{lag}: {a:+.2f} / {b:.2f}" for lag, a, b in zip(LAGS, autocorrelation(records), model)))
         print("The points' error against the wall band's width beside them (negative: wall hidden):")
         print("\n".join(by_band(records)))
+        print("The points' error against their distance along the rim image from its nearest end:")
+        print("\n".join(by_end(records)))
 
 
 if __name__ == "__main__":
