@@ -31,8 +31,8 @@ Printed per noise level:
   rim);
 - the points' error binned by their distance along the rim image from its
   nearest end (a gap of more than ``END_GAP`` px between neighbouring
-  points, after the segmentation's own trim), per part: where the rim
-  image stops, beside a limb or where its contrast turns.
+  points, after the segmentation's own trim): where the rim image stops,
+  beside a limb or where its contrast turns.
 
 Run: ``python benchmarks/bench_rim_geometry.py [--part plate] [--size 816x683]
 [--noise 0,2] [--seeds 3] [--work DIR]``. The figures are in
@@ -59,8 +59,8 @@ SEMI_BINS = (0.0, 20.0, 40.0, 80.0, np.inf)
 BAND_BINS = (-np.inf, -24.0, -6.0, 0.0, 6.0, 12.0, 24.0, np.inf)
 END_BINS = (0.0, 1.5, 3.0, 5.0, 8.0, 15.0, np.inf)
 END_GAP = 3.0
-"""px: neighbouring points of a rim image (by their angle about its centre)
-farther apart than this mark an end."""
+"""px: neighbouring points of a rim image (in the order of their angle about
+the points' mean) farther apart than this mark an end."""
 
 
 def project(P, X):
