@@ -114,10 +114,12 @@ def point_errors(xy, P, centre, normal, radius, depth, eye):
 
 def from_end(xy):
     """Each point's distance along the rim image from its nearest end, px (inf for a closed one)."""
+    from partinspect.vision.contours import arc_length
+
     order = np.argsort(np.arctan2(*(xy - xy.mean(axis=0)).T[::-1]))
     p = xy[order]
     step = np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1)  # to the next point, round the rim
-    s = np.r_[0.0, np.cumsum(step[:-1])]
+    s = arc_length(p)
     total = step.sum()
     dist = np.full(len(p), np.inf)
     for g in np.flatnonzero(step > END_GAP):
@@ -199,27 +201,24 @@ def autocorrelation(records):
     return out
 
 
-def by_band(records):
-    band, err, tb = (np.concatenate([r[k] for r in records]) for k in ("band", "err", "type_b"))
+def binned(records, key, bins, label):
+    """Rows of the points' error binned by the records' ``key``; ``label(lo, hi)`` names a bin."""
+    value, err, tb = (np.concatenate([r[k] for r in records]) for k in (key, "err", "type_b"))
     rows = []
-    for lo, hi in zip(BAND_BINS[:-1], BAND_BINS[1:]):
-        m = (band >= lo) & (band < hi)
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        m = (value >= lo) & (value < hi)
         if m.sum() >= 5:
-            rows.append(f"  band {lo:>5.0f} .. {hi:<5.0f} px: {m.sum():5d} points, mean error {err[m].mean():+.4f} px, "
+            rows.append(f"  {label(lo, hi)}: {m.sum():5d} points, mean error {err[m].mean():+.4f} px, "
                         f"RMS {np.sqrt(np.mean(err[m] ** 2)):.4f}, mean Type B {tb[m].mean():.4f}")
     return rows
 
 
+def by_band(records):
+    return binned(records, "band", BAND_BINS, lambda lo, hi: f"band {lo:>5.0f} .. {hi:<5.0f} px")
+
+
 def by_end(records):
-    end, err, tb = (np.concatenate([r[k] for r in records]) for k in ("end", "err", "type_b"))
-    rows = []
-    for lo, hi in zip(END_BINS[:-1], END_BINS[1:]):
-        m = (end >= lo) & (end < hi)
-        if m.sum() >= 5:
-            rows.append(f"  {lo:4.1f} .. {hi:<4.1f} px from an end: {m.sum():5d} points, "
-                        f"mean error {err[m].mean():+.4f} px, RMS {np.sqrt(np.mean(err[m] ** 2)):.4f}, "
-                        f"mean Type B {tb[m].mean():.4f}")
-    return rows
+    return binned(records, "end", END_BINS, lambda lo, hi: f"{lo:4.1f} .. {hi:<4.1f} px from an end")
 
 
 def main(argv=None):
