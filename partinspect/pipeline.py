@@ -375,7 +375,9 @@ def settle(inputs, stereo, registration, progress):
     stereo, registration, seen
         ``seen``: each CAD feature's visibility at the final pose.
     """
+    from partinspect.cad.outlines import outline_images
     from partinspect.cad.projection import edge_polylines
+    from partinspect.cad.raycast import build_scene
     from partinspect.cad.visibility import visibility
     from partinspect.vision.posed import posed_stereo
 
@@ -387,8 +389,10 @@ def settle(inputs, stereo, registration, progress):
     progress("checking which edges the cameras see")
     seen = seen_at(registration.part_to_camera)
     polylines = edge_polylines(inputs.inv, registration.part_to_camera, inputs.calib)
+    outlines = outline_images(build_scene(inputs.model.mesh), inputs.calib, registration.part_to_camera)
     with inputs.timings.stage("measuring along the posed edges"):
-        more, found, ends, withdrawn = posed_stereo(stereo, registration, seen, inputs.inv, inputs.calib, polylines)
+        more, found, ends, withdrawn = posed_stereo(stereo, registration, seen, inputs.inv, inputs.calib, polylines,
+                                                    outlines)
     if not found and not ends and not withdrawn:
         # ``more`` is ``stereo`` with the stretches found but not measured, if any.
         return more, registration, seen

@@ -162,8 +162,12 @@ def _position_offset(c, parts, inventory):
     return Pn @ (cands[0].center - np.asarray(nominal.center, float))
 
 
-def measure_pair(left, right, calib, inventory, characteristics, *, datums=None, pose_hint=None, seed=0):
+def measure_pair(left, right, calib, inventory, characteristics, *, datums=None, pose_hint=None, seed=0, scene=None):
     """Run the measurement chain on one image pair and evaluate the characteristics.
+
+    ``scene``: the part as rendered (RaycastScene), for its curved faces'
+    outlines (:func:`partinspect.cad.outlines.outline_images`), as inspect
+    takes them from its mesh; None to take none.
 
     Returns
     -------
@@ -175,6 +179,7 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
         Edge points of each registered CAD feature in the left and right
         image features the chain matched (how much of the edge it kept).
     """
+    from partinspect.cad.outlines import outline_images
     from partinspect.cad.registration import register
     from partinspect.cad.projection import edge_polylines
     from partinspect.tolerances.evaluate import evaluate_characteristic
@@ -191,7 +196,8 @@ def measure_pair(left, right, calib, inventory, characteristics, *, datums=None,
     # edge's image here, hidden ones too: this check has no visibility), and
     # edges in line with others measured on their own stretches.
     polylines = edge_polylines(inventory, reg.part_to_camera, calib)
-    more, found, ends, withdrawn = posed_stereo(res, reg, None, inventory, calib, polylines)
+    outlines = None if scene is None else outline_images(scene, calib, reg.part_to_camera)
+    more, found, ends, withdrawn = posed_stereo(res, reg, None, inventory, calib, polylines, outlines)
     if found or ends or withdrawn:
         res, reg = more, registered(more, reg.part_to_camera)
     parts = reg.features_in_part_frame()
@@ -248,7 +254,7 @@ def monte_carlo_check(scene, inventory, calib, part_to_camera, characteristics, 
         left, right = (sensor(img, noise, rng) for img in radiance)
         try:
             evs, offsets, _, _ = measure_pair(left, right, calib, inventory, characteristics, datums=datums,
-                                           pose_hint=part_to_camera, seed=seed + k)
+                                           pose_hint=part_to_camera, seed=seed + k, scene=scene)
         except RegistrationError as exc:
             failed.append(f"draw {k}: {exc}")
             continue

@@ -54,12 +54,12 @@ def image_owners(stereo, registration):
     return owners
 
 
-def posed_stereo(stereo, registration, seen, inv, calib, polylines):
+def posed_stereo(stereo, registration, seen, inv, calib, polylines, outlines=None):
     """What the registered pose adds to ``stereo``: :func:`cleared_stereo`, then :func:`guided_stereo`.
 
     ``seen`` as theirs; ``polylines``: every CAD edge's image at the
     registered pose (:func:`partinspect.cad.projection.edge_polylines`),
-    shared by both.
+    shared by both; ``outlines`` as :func:`cleared_stereo`'s.
 
     Returns
     -------
@@ -69,12 +69,12 @@ def posed_stereo(stereo, registration, seen, inv, calib, polylines):
     cleared, withdrawn : dict
         Of :func:`cleared_stereo`.
     """
-    cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib, polylines)
+    cleared, ends, withdrawn = cleared_stereo(stereo, registration, seen, inv, calib, polylines, outlines)
     more, found = guided_stereo(cleared, registration, seen, inv, calib, polylines)
     return more, found, ends, withdrawn
 
 
-def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
+def cleared_stereo(stereo, registration, seen, inv, calib, polylines, outlines=None):
     """``stereo`` with its registered lines and arcs fitted again clear of the other edges' images at their ends.
 
     Under the registered pose every CAD edge's image is known, faint ones
@@ -91,7 +91,11 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
     only the edges it sees; None to take every edge (more points left out
     near hidden edges' images, never fewer). ``polylines``: every CAD
     edge's image at the registered pose
-    (:func:`partinspect.cad.projection.edge_polylines`).
+    (:func:`partinspect.cad.projection.edge_polylines`). ``outlines``: the
+    curved faces' occluding contours in sight at that pose
+    (:func:`partinspect.cad.outlines.outline_images`), grey steps that are
+    no CAD edge but crowd the edges they run into all the same; None for
+    none.
 
     A line that disagrees with the pose the other features give (a
     registration outlier) and all of whose points in one image lie on
@@ -127,6 +131,8 @@ def cleared_stereo(stereo, registration, seen, inv, calib, polylines):
             images[f.id] = tuple(uv if v > 0 else uv[:0] for uv, v in zip(polylines[f.id], shown))
     # A smooth edge (tangent faces) shows no grey step of its own: it crowds no rim.
     steps = {fid: uv for fid, uv in images.items() if not by_id[fid].smooth or fid in arcs.values()}
+    images.update(outlines or {})
+    steps.update(outlines or {})
     # A rim whose crowded ends pushed its circle past the registration's
     # gates is cleared too: the registration judges it again.
     at = [k for k, f in enumerate(stereo.features) if f.kind != "line"]
