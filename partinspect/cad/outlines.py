@@ -61,7 +61,7 @@ def _outward_faces(rs):
     i, j, a = i[same], j[same], a[same]
     # How far the far corner of one triangle lies in front of the other's plane.
     far = v[opposite[j]] - v[edges[i, 0]]
-    fold = np.einsum("ij,ij->i", far, n[a]) / np.linalg.norm(far, axis=1)
+    fold = np.einsum("ij,ij->i", far, n[a]) / np.maximum(np.linalg.norm(far, axis=1), 1e-300)
     size = int(rs.labels.max()) + 1
     return np.bincount(rs.labels[a], fold < -FLAT_FOLD, size) > np.bincount(rs.labels[a], fold > FLAT_FOLD, size)
 

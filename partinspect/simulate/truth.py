@@ -35,6 +35,7 @@ __all__ = [
     "VISIBLE_FRACTION",
     "feature_visibility",
     "deviated_geometry",
+    "drawn_radius",
     "make_truth",
     "to_json",
 ]
@@ -166,6 +167,51 @@ def deviated_geometry(inv, deviations):
     return geometry
 
 
+def drawn_radius(vertices, geometry, tol=1e-5):
+    """The mean radius of a circle or arc as the render's mesh draws it, mm.
+
+    The mesh draws a circle as a polygon through vertices on it; each side
+    lies inside the circle by up to ``r (1 - cos(a))`` (``2 a`` the angle it
+    spans). An edge fit to its image, through points about evenly spaced
+    along it, reads the polygon's mean distance from the centre along its
+    sides, short of ``r`` by about ``r a^2 / 3``: the truth states that.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (V, 3)
+        The render mesh's vertices, part frame, mm.
+    geometry : dict
+        The circle or arc as rendered (:func:`deviated_geometry`).
+    tol : float
+        mm: how near the circle's plane and radius a vertex lies on it.
+
+    Returns
+    -------
+    float
+        ``geometry["radius"]`` where fewer than 3 vertices lie on the circle.
+    """
+    c, r = np.asarray(geometry["center"], float), float(geometry["radius"])
+    x, y, n = orthonormal_frame(np.asarray(geometry["normal"], float))
+    d = np.asarray(vertices, float) - c
+    on = (np.abs(d @ n) < tol) & (np.abs(np.hypot(d @ x, d @ y) - r) < tol)
+    theta = np.unique(np.arctan2(d[on] @ y, d[on] @ x))
+    if len(theta) < 3:
+        return r
+    if "angle_start" in geometry:
+        span = (geometry["angle_end"] - geometry["angle_start"]) % (2.0 * np.pi) or 2.0 * np.pi
+        t = np.sort((theta - geometry["angle_start"]) % (2.0 * np.pi))
+        gaps = np.diff(t[t <= span + 1e-9])
+    else:
+        gaps = np.diff(np.append(theta, theta[0] + 2.0 * np.pi))
+    a = 0.5 * gaps[gaps > 0]
+    if not len(a):
+        return r
+    # Per side: the integral of the distance along it, h r + d^2 asinh(h / d),
+    # with d = r cos(a) its distance and 2 h = 2 r sin(a) its length.
+    h, d = r * np.sin(a), r * np.cos(a)
+    return float(np.sum(h * r + d * d * np.arcsinh(np.tan(a))) / np.sum(2.0 * h))
+
+
 def _delta_json(delta):
     d = np.asarray(delta, float)
     return float(d) if d.ndim == 0 else d.tolist()
@@ -201,6 +247,8 @@ def make_truth(inv, deviations, rs, calib, part_to_camera, settings, shading=DEF
     for f in inv.features:
         nominal, actual = feature_geometry(f), rendered[f.id]
         changed = any(not np.allclose(nominal[k], actual[k], rtol=0, atol=1e-12) for k in nominal)
+        if f.kind != "line":
+            actual = dict(actual, radius=drawn_radius(rs.vertices, actual))
         vis = feature_visibility(rs, calib, part_to_camera, f.kind, actual, shading)
         features.append(
             {
