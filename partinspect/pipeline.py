@@ -381,15 +381,16 @@ def settle(inputs, stereo, registration, progress):
     from partinspect.cad.visibility import visibility
     from partinspect.vision.posed import posed_stereo
 
+    scene = build_scene(inputs.model.mesh)
+
     def seen_at(pose):
         with inputs.timings.stage("visibility"):
-            return visibility(None, inputs.inv, inputs.calib, pose, mesh=inputs.model.mesh,
-                              images=(inputs.left, inputs.right))
+            return visibility(None, inputs.inv, inputs.calib, pose, images=(inputs.left, inputs.right), scene=scene)
 
     progress("checking which edges the cameras see")
     seen = seen_at(registration.part_to_camera)
     polylines = edge_polylines(inputs.inv, registration.part_to_camera, inputs.calib)
-    outlines = outline_images(build_scene(inputs.model.mesh), inputs.calib, registration.part_to_camera)
+    outlines = outline_images(scene, inputs.calib, registration.part_to_camera)
     with inputs.timings.stage("measuring along the posed edges"):
         more, found, ends, withdrawn = posed_stereo(stereo, registration, seen, inputs.inv, inputs.calib, polylines,
                                                     outlines)

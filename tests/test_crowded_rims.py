@@ -46,23 +46,17 @@ def test_counterbore_rims_are_not_failed_and_their_u_covers_the_truth(counterbor
         assert abs(c["measured"] - 22.0) <= c["expanded_uncertainty"], c
 
 
-# A generated plate (seed 10: rounded vertical corners, a counterbore and a countersink) at the pose
-# bench_robustness drew for it; the render's noise seed as there.
-ROUND_CORNER_POSE = [[0.690242808209607, -0.6742160546446546, -0.2626738993016086, -14.441758440396816],
-                     [-0.6760840159046844, -0.4715870645803641, -0.5661413639354309, 46.28237400495501],
-                     [0.257827983650166, 0.5683646295995832, -0.781336277582846, 383.8719470409501],
-                     [0.0, 0.0, 0.0, 1.0]]
-
-
 @pytest.fixture(scope="module")
 def round_corner(tmp_path_factory):
     import numpy as np
 
     from partinspect.simulate.folder import render_to_folder
     from partinspect.simulate.parts import random_part, write_part
+    from tests.simulate.scenes import ROUND_CORNER_POSE, ROUND_CORNER_SEED
 
     d = tmp_path_factory.mktemp("round")
-    write_part(random_part(10), d / "part.step")
+    write_part(random_part(ROUND_CORNER_SEED), d / "part.step")
+    # The render's noise seed as bench_robustness drew it for this part.
     render_to_folder(d / "part.step", d, pose=np.array(ROUND_CORNER_POSE), noise=2.0, seed=26)
     code = main([str(d / "part.step"), str(d / "images"), "-o", str(d / "out"), "-q"])
     return code, json.loads((d / "out" / "report.json").read_text())

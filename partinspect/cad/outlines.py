@@ -129,11 +129,10 @@ def outline_images(rs, calib, part_to_camera, spacing=0.5):
         either image are left out. Samples, not one ordered polyline: a
         contour may run in several pieces.
     """
-    from partinspect.cad.raycast import camera_in_part, cast
-    from partinspect.cad.sightlines import OCCLUSION_TOLERANCE
+    from partinspect.cad.raycast import camera_in_part
+    from partinspect.cad.sightlines import OCCLUSION_TOLERANCE, in_sight, in_view
     from partinspect.vision.calibration import project_points
 
-    w, h = calib.image_size
     found = {}
     for index in (0, 1):
         K, D, R, t = camera_in_part(calib, index, part_to_camera)
@@ -152,11 +151,8 @@ def outline_images(rs, calib, part_to_camera, spacing=0.5):
         # sight line does not clip the facet beside it.
         out = normals[which, 0] + s * (normals[which, 1] - normals[which, 0])
         aim = pts + OCCLUSION_TOLERANCE * out / np.linalg.norm(out, axis=1)[:, None]
-        ray = aim - eye
-        dist = np.linalg.norm(ray, axis=1)
-        seen = cast(rs, eye, ray / dist[:, None]).distance >= dist - OCCLUSION_TOLERANCE
         q = project_points(pts, K, D, R, t)
-        seen &= np.isfinite(q).all(axis=1) & (q[:, 0] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] >= 0) & (q[:, 1] <= h - 1)
+        seen = in_view(q, calib.image_size) & in_sight(rs, eye, aim)
         for label in np.unique(face[which[seen]]):
             key = f"face-{label + 1} outline"
             pair = found.setdefault(key, [np.zeros((0, 2)), np.zeros((0, 2))])

@@ -30,7 +30,8 @@ import numpy as np
 from partinspect.cad.raycast import DEFAULT_SHADING, camera_in_part, cast, pixel_rays, shade
 from partinspect.vision.calibration import project_points
 
-__all__ = ["MIN_CONTRAST", "CONTRAST_OFFSET", "NEIGHBOUR_STEP_FRACTION", "OCCLUSION_TOLERANCE", "edge_visibility"]
+__all__ = ["MIN_CONTRAST", "CONTRAST_OFFSET", "NEIGHBOUR_STEP_FRACTION", "OCCLUSION_TOLERANCE", "in_view", "in_sight",
+           "edge_visibility"]
 
 MIN_CONTRAST = 20.0
 """Grey levels across an edge for it to count as showing."""
@@ -45,6 +46,20 @@ edges by far more."""
 OCCLUSION_TOLERANCE = 0.05
 """mm: a surface this little in front of an edge point does not hide it
 (the tessellation's chord error, seen at grazing incidence, is below it)."""
+
+
+def in_view(uv, image_size):
+    """Mask of the pixel positions ``uv`` (N, 2) within the pixel centres' span of an image of ``image_size`` (w, h)."""
+    w, h = image_size
+    return np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+
+
+def in_sight(rs, origin, points):
+    """Mask of the ``points`` (N, 3, part frame) that a ray cast from ``origin`` reaches with nothing more than
+    ``OCCLUSION_TOLERANCE`` before them."""
+    ray = points - origin
+    dist = np.linalg.norm(ray, axis=1)
+    return cast(rs, origin, ray / dist[:, None]).distance >= dist - OCCLUSION_TOLERANCE
 
 
 def edge_visibility(rs, calib, index, part_to_camera, points, tangents, shading=DEFAULT_SHADING):
@@ -75,20 +90,14 @@ def edge_visibility(rs, calib, index, part_to_camera, points, tangents, shading=
         samples outside the image.
     """
     K, D, R, t = camera_in_part(calib, index, part_to_camera)
-    w, h = calib.image_size
     uv = project_points(points, K, D, R, t)
     # Image direction of the edge by a central difference along its tangent.
     step = 1e-3
     du = project_points(points + step * tangents, K, D, R, t) - project_points(points - step * tangents, K, D, R, t)
     du /= np.maximum(np.linalg.norm(du, axis=1), 1e-300)[:, None]
     normal = np.stack([-du[:, 1], du[:, 0]], axis=1)
-    in_image = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-
-    origin = -R.T @ t
-    ray = points - origin
-    dist = np.linalg.norm(ray, axis=1)
-    hits = cast(rs, origin, ray / dist[:, None])
-    unoccluded = hits.distance >= dist - OCCLUSION_TOLERANCE
+    in_image = in_view(uv, calib.image_size)
+    unoccluded = in_sight(rs, -R.T @ t, points)
 
     # Contrast: the shading CONTRAST_OFFSET px either side differs enough, and
     # each side is one face out to that distance (no other edge within it),

@@ -118,7 +118,7 @@ def visibility_mesh(shape, inventory=None):
     return tessellate(shape, tolerance=MESH_TOLERANCE, angular_tolerance=0.2, inventory=inventory)
 
 
-def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=None):
+def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=None, scene=None):
     """Visibility of every feature of an inventory in both cameras.
 
     Parameters
@@ -134,6 +134,9 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=Non
     images : (ndarray, ndarray), optional
         The left and right images (grey, as recorded): each edge's grey
         step across it is then read where it is seen.
+    scene : RaycastScene, optional
+        ``build_scene(mesh)``, if the caller has it (``mesh`` and ``shape``
+        are then not read).
 
     Returns
     -------
@@ -144,9 +147,7 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=Non
     from partinspect.cad.sightlines import edge_visibility
     from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 
-    if mesh is None:
-        mesh = visibility_mesh(shape, inventory)
-    rs = build_scene(mesh)
+    rs = build_scene(visibility_mesh(shape, inventory) if mesh is None else mesh) if scene is None else scene
     out = {}
     for f in inventory.features:
         pts, tan = sample_edge(f.kind, feature_geometry(f))

@@ -81,12 +81,10 @@ def test_only_convex_faces_show_an_outline():
     # outwards at places there, but the cone is concave and shows no outline.
     from partinspect.cad.features import inventory
     from partinspect.simulate.parts import random_part
+    from tests.simulate.scenes import ROUND_CORNER_POSE, ROUND_CORNER_SEED
 
-    shape = random_part(10).shape
-    pose = np.array([[0.690242808209607, -0.6742160546446546, -0.2626738993016086, -14.441758440396816],
-                     [-0.6760840159046844, -0.4715870645803641, -0.5661413639354309, 46.28237400495501],
-                     [0.257827983650166, 0.5683646295995832, -0.781336277582846, 383.8719470409501],
-                     [0.0, 0.0, 0.0, 1.0]])
+    shape = random_part(ROUND_CORNER_SEED).shape
+    pose = np.array(ROUND_CORNER_POSE)
     inv = inventory(shape)
     out = outline_images(build_scene(visibility_mesh(shape, inv)), default_rig(), pose)
     surfaces = {inv[key.split()[0]].surface for key in out}

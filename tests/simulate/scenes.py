@@ -13,6 +13,15 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 SIZE = (816, 683)
 
+# A generated plate (random_part seed 10: round vertical corners, a counterbore and a countersink) at
+# the pose bench_robustness drew for it: one round corner's side starts as a wedge on its top arc in
+# the left image, and the countersink's cone turns edge-on to the right camera.
+ROUND_CORNER_SEED = 10
+ROUND_CORNER_POSE = [[0.690242808209607, -0.6742160546446546, -0.2626738993016086, -14.441758440396816],
+                     [-0.6760840159046844, -0.4715870645803641, -0.5661413639354309, 46.28237400495501],
+                     [0.257827983650166, 0.5683646295995832, -0.781336277582846, 383.8719470409501],
+                     [0.0, 0.0, 0.0, 1.0]]
+
 
 def step_path(name):
     path = REPO / "examples" / name / "part.step"
