@@ -6,7 +6,8 @@ pockets, bosses, steps, chamfers and fillets, drawn from a seed), plus the
 issue-46 lug (planned), the issue-46 flange (rendered and inspected) and
 the bundled plate (planned). Each command runs as a child process,
 ``python3 -m partinspect ...``, with the bundled rig
-(``examples/plate/images/calibration.yaml``):
+(``examples/plate/images/calibration.yaml``), or with ``--rigs random``
+each generated part through its own rig (:func:`part_rig`):
 
 - ``inspect features PART --json`` on every part;
 - ``inspect plan PART --rig RIG`` on the first ``--n-plan`` generated parts;
@@ -220,8 +221,8 @@ def make_parts(base, n, seed):
     return out
 
 
-def write_pose(step, folder, seed):
-    """A random reachable pose of the part, in view, as a pose file ``inspect render --pose`` reads."""
+def write_pose(step, folder, seed, rig=RIG):
+    """A random reachable pose of the part, in view of ``rig``, as a pose file ``inspect render --pose`` reads."""
     from partinspect.cad.step import load_step
     from partinspect.simulate.parts import random_pose
     from partinspect.vision.calibration import read_calibration
@@ -229,8 +230,38 @@ def write_pose(step, folder, seed):
     path = Path(folder) / "pose.json"
     if not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
-        P, fp = random_pose(seed, load_step(step), read_calibration(RIG))
+        P, fp = random_pose(seed, load_step(step), read_calibration(rig))
         path.write_text(json.dumps({"part_to_camera": P.tolist(), "fixture": fp.label}))
+    return path
+
+
+RIG_STREAM = 4646
+"""Second word of a generated part's rig seed (the first is the part's own seed)."""
+
+
+def part_rig(step, folder, rigs):
+    """The rig a part is planned, posed and rendered with: the bundled one, or (``rigs == "random"``, generated
+    parts) its own :func:`partinspect.simulate.rig.random_rig`, kept as ``rig.yaml`` in its run folder.
+
+    The rig frames the part's bounding-sphere diameter and is drawn from the part's seed, so a part keeps
+    its rig whichever commands run and in which order.
+    """
+    import numpy as np
+
+    meta = Path(step).parent / "part.json"
+    if rigs != "random" or not meta.is_file():
+        return RIG
+    path = Path(folder) / "rig.yaml"
+    if not path.is_file():
+        from partinspect.cad.step import load_step
+        from partinspect.poses import bounds_of
+        from partinspect.simulate.rig import random_rig
+        from partinspect.vision.calibration import write_calibration
+
+        b = bounds_of(load_step(step))
+        rng = np.random.default_rng([json.loads(meta.read_text())["seed"], RIG_STREAM])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_calibration(path, random_rig(rng, float(np.linalg.norm(b[1] - b[0]))))
     return path
 
 
@@ -267,26 +298,27 @@ def jobs(parts, n_plan, n_inspect, nist):
     return out
 
 
-def run_job(base, job, steps, timeout, seed):
+def run_job(base, job, steps, timeout, seed, rigs="bundled"):
     """Run one job's command(s); a list of result dicts, each with its part, kind and command."""
     name, kind, command, step = job
     step = step or steps[name]
     folder = base / "runs" / name
+    rig = part_rig(step, folder, rigs)
     results = []
     if command == "features":
         res = run_command(["features", step, "--json"], folder / "features", timeout, stdout_json="features.json")
         results.append(check_json(res, folder / "features", ["features.json"]))
     elif command == "plan":
         spec = nist_spec(step, folder) if kind == "nist" else None
-        res = run_command(["plan", step, "--rig", RIG, "-o", folder / "plan"] + (["--tolerances", spec] if spec else []),
+        res = run_command(["plan", step, "--rig", rig, "-o", folder / "plan"] + (["--tolerances", spec] if spec else []),
                           folder / "plan-run", timeout)
         results.append(check_json(res, folder / "plan", ["plan.json", "best_pose.json"]))
         results[-1]["plan_findings"] = plan_findings(folder / "plan" / "plan.json")
     elif command == "inspect":
-        pose = write_pose(step, folder, seed)
+        pose = write_pose(step, folder, seed, rig)
         render = folder / "render"
-        res = run_command(["render", step, render, "--pose", pose, "--noise", NOISE, "--seed", seed],
-                          folder / "render-run", timeout)
+        res = run_command(["render", step, render, "--pose", pose, "--noise", NOISE, "--seed", seed]
+                          + (["--rig", rig] if rig != RIG else []), folder / "render-run", timeout)
         results.append(check_json(res, render, ["truth.json"]))
         if res["rc"] == 0:
             res = run_command([step, render / "images", "-o", folder / "inspection"], folder / "inspect-run",
@@ -369,9 +401,23 @@ def report_findings(path, truth_path):
             unmeasured[key] = unmeasured.get(key, 0) + 1
     reg = rep.get("registration") or {}
     return {"verdict": rep.get("verdict"), "characteristics": rows, "silent": silent, "unmeasured": unmeasured,
+            "footprint": footprint(truth, Path(truth_path).parent / "images" / "calibration.yaml"),
             "symmetry": bool(reg.get("symmetry")), "ambiguity": len((reg.get("ambiguity") or {}).get("competing", [])),
             "features": len(rep.get("features", [])),
             "measured": sum(f.get("measured") is not None for f in rep.get("features", []))}
+
+
+def footprint(truth, calibration):
+    """mm on the part per pixel of the left image at the part frame's origin, or None without the calibration."""
+    from partinspect.vision.calibration import read_calibration
+
+    if not Path(calibration).is_file():
+        return None
+    return float(truth["part_to_camera"][2][3]) / float(read_calibration(calibration).K1[0, 0])
+
+
+FOOTPRINTS = ((0.0, 0.06), (0.06, 0.1), (0.1, 1.0))
+"""Classes of the part's pixel footprint, mm/px, the honesty is also printed by (the bundled rig: 0.055)."""
 
 
 # ---------------------------------------------------------------- summary
@@ -453,14 +499,22 @@ def summarise(results):
             rows.append([r["part"], r["kind"], f"exit {r['rc']}", f"{rep['measured']}/{rep['features']}",
                          ", ".join(f"{k} {v}" for k, v in sorted(dec.items())), f"{inside}/{len(chars)}",
                          "yes" if rep["symmetry"] else "-",
-                         f"{rep.get('ambiguity', 0) + 1} poses" if rep.get("ambiguity") else "-"])
+                         f"{rep.get('ambiguity', 0) + 1} poses" if rep.get("ambiguity") else "-",
+                         "-" if rep.get("footprint") is None else f"{rep['footprint']:.3f}"])
         print(f"Rendered and inspected parts (noise {NOISE:g}):")
-        table(["part", "kind", "exit", "feat. meas.", "decisions", "true in +-U", "symmetric model", "ambiguous"],
-              rows)
+        table(["part", "kind", "exit", "feat. meas.", "decisions", "true in +-U", "symmetric model", "ambiguous",
+               "mm/px"], rows)
 
         print(f"Honesty per characteristic type (claim {100 * COVERAGE_CLAIM:.2f} % inside measured +- U, "
               "RMS of error/u 1):")
         table(*honesty_by_type(c for r in inspected for c in r["report"]["characteristics"]))
+        scales = [r["report"].get("footprint") for r in inspected]
+        if len({round(f, 3) for f in scales if f is not None}) > 1:
+            for lo, hi in FOOTPRINTS:
+                within = [r for r, f in zip(inspected, scales) if f is not None and lo <= f < hi]
+                if within:
+                    print(f"Parts seen at {lo:g}-{hi:g} mm per pixel ({len(within)}):")
+                    table(*honesty_by_type(c for r in within for c in r["report"]["characteristics"]))
 
         false_accept, false_reject = [], []
         for r in inspected:
@@ -508,6 +562,10 @@ def _args():
                     help="seconds one command may take (default 1800)")
     ap.add_argument("--no-nist", action="store_true", help="leave the NIST files out")
     ap.add_argument("--summary", action="store_true", help="only print the tables from the results in --dir")
+    ap.add_argument("--rigs", choices=("bundled", "random"), default=env("ROBUST_RIGS", "bundled"),
+                    help="the generated parts' rig: the bundled one (default) or each its own random rig "
+                         "(partinspect.simulate.rig.random_rig: other sensors, lenses, distances, baselines at any "
+                         "angle, distortion)")
     ap.add_argument("--commands", default="features,plan,inspect",
                     help="the commands to run, of features, plan, inspect (default all); the others are passed "
                          "over in their places, so every part keeps the pose and noise seed of the full run")
@@ -544,7 +602,7 @@ def main():
         for k, job in enumerate(todo):
             if job[2] not in commands:
                 continue
-            for r in run_job(base, job, steps, args.timeout, args.seed * 100_000 + k):
+            for r in run_job(base, job, steps, args.timeout, args.seed * 100_000 + k, args.rigs):
                 results.append(r)
                 flag = " INTERNAL ERROR" if r["internal"] else (" TIMEOUT" if r["timeout"] else "")
                 flag += " NON-FINITE" if r["nonfinite"] or r["bad_json"] else ""

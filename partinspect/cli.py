@@ -179,7 +179,10 @@ def _render_parser():
     p.add_argument("--light", metavar="X,Y,Z", default=None,
                    help="direction towards the light in the left camera frame (default near the cameras: "
                    "0.351,-0.084,-0.933); moves shading and highlights")
-    p.add_argument("--size", metavar="WxH", default="2448x2048", help="image size in pixels (default 2448x2048)")
+    p.add_argument("--size", metavar="WxH", default=None, help="image size in pixels (default 2448x2048)")
+    p.add_argument("--rig", metavar="CALIBRATION", default=None,
+                   help="render through this rig (a calibration.yaml with its image size, as exact) instead of the "
+                   "simulator's: its size and distortion are the images'; not with --size, --distortion, --defocus")
     p.add_argument("--views", metavar="RX,RY,RZ;...", default=None,
                    help="several views, one pair each in OUT_DIR/view-1/, view-2/, ...: the part turned in its own "
                    "frame by RX,RY,RZ degrees about its bounding-box centre (0,0,120: a turntable's 120 degrees about "
@@ -618,12 +621,29 @@ def _parse_size(text):
     return w, h
 
 
+def _render_rig(args):
+    """The rig ``--rig`` names, read and checked against the options it excludes; None without it."""
+    if args.rig is None:
+        return None
+    given = [name for name, value in (("--size", args.size), ("--distortion", args.distortion),
+                                      ("--defocus", args.defocus)) if value]
+    if given:
+        raise InputError(args.rig, f"--rig sets the image size and the lenses: not with {', '.join(given)}")
+    from partinspect.vision.calibration import read_calibration
+
+    rig = read_calibration(args.rig)
+    if rig.image_size is None:
+        raise InputError(args.rig, "the calibration gives no image size (image_width, image_height), which a render needs")
+    return rig
+
+
 def _run_render(args):
     if args.noise is not None and args.noise < 0:
         raise InputError(None, f"--noise must be >= 0 grey levels, got {args.noise}")
     _check_realism(args)
-    size = _parse_size(args.size)
+    size = _parse_size(args.size or "2448x2048")
     drift = _parse_drift(args.drift)
+    rig = _render_rig(args)
     from partinspect.simulate.folder import render_to_folder, render_views_to_folder
 
     progress = _progress(args.quiet)
@@ -651,6 +671,7 @@ def _run_render(args):
         photon=args.photon,
         light=args.light,
         progress=progress,
+        rig=rig,
     )
     if not args.quiet and views:
         print(f"rendered {len(views['views'])} views, each a pair with its truth: "

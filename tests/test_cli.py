@@ -116,6 +116,73 @@ def test_render_then_inspect_an_unseen_step_file(tmp_path, test_data, capsys):
     assert not (tmp_path / "inspection").exists()
 
 
+def _small_random_rig(path, scale=4):
+    """A random rig (:func:`~partinspect.simulate.rig.random_rig`) binned ``scale`` x ``scale``, written to ``path``."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from partinspect.simulate.rig import random_rig
+    from partinspect.vision.calibration import write_calibration
+
+    rig = random_rig(11, 100.0)
+    K1, K2 = rig.K1.copy(), rig.K2.copy()
+    for K in (K1, K2):
+        K[:2, :2] /= scale
+        K[:2, 2] = (K[:2, 2] + 0.5) / scale - 0.5
+    rig = replace(rig, image_size=tuple(int(np.ceil(v / scale)) for v in rig.image_size), K1=K1, K2=K2)
+    write_calibration(path, rig)
+    return rig
+
+
+def test_render_through_a_given_rig(repo, tmp_path, capsys):
+    """``--rig``: the images are the rig's size, made through it, and calibration.yaml states it."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from partinspect.vision.calibration import read_calibration
+
+    rig = _small_random_rig(tmp_path / "rig.yaml")
+    step = repo / "examples" / "plate" / "part.step"
+    out = tmp_path / "render"
+    assert main(["render", str(step), str(out), "--rig", str(tmp_path / "rig.yaml"), "--noise", "1", "-q"]) == 0
+    w, h = rig.image_size
+    for name in ("left.png", "right.png"):
+        assert cv2.imread(str(out / "images" / name), cv2.IMREAD_GRAYSCALE).shape == (h, w)
+    assert read_calibration(out / "images" / "calibration.yaml").same_rig(read_calibration(tmp_path / "rig.yaml"))
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["image_size"] == [w, h] and truth["distortion"] is True
+    # The part is where the rig looks: its box's centre at the rig's fixation point.
+    from partinspect.cad.step import load_step
+    from partinspect.poses import bounds_of, fixation_point
+
+    P = np.asarray(truth["part_to_camera"], float)
+    centre = P[:3, :3] @ bounds_of(load_step(step)).mean(axis=0) + P[:3, 3]
+    np.testing.assert_allclose(centre, fixation_point(rig), atol=1e-6)
+    left = cv2.imread(str(out / "images" / "left.png"), cv2.IMREAD_GRAYSCALE)
+    assert left.std() > 20  # the part is in the image, not only the background
+
+
+@pytest.mark.parametrize("extra", [["--size", "612x512"], ["--distortion"], ["--defocus", "8,400"]])
+def test_render_rig_excludes_what_it_sets(repo, tmp_path, capsys, extra):
+    _small_random_rig(tmp_path / "rig.yaml")
+    step = repo / "examples" / "plate" / "part.step"
+    code = main(["render", str(step), str(tmp_path / "r"), "--rig", str(tmp_path / "rig.yaml")] + extra)
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and str(tmp_path / "rig.yaml") in err and extra[0] in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_render_rig_missing_is_one_line(repo, tmp_path, capsys):
+    step = repo / "examples" / "plate" / "part.step"
+    code = main(["render", str(step), str(tmp_path / "r"), "--rig", str(tmp_path / "none.yaml")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "none.yaml" in err
+    assert not (tmp_path / "r").exists()
+
+
 def test_render_bad_deviation_is_one_line(repo, tmp_path, capsys):
     step = repo / "examples" / "plate" / "part.step"
     code = main(["render", str(step), str(tmp_path / "r"), "--size", "64x64", "--deviate", "circle-99.diameter=0.1"])

@@ -73,6 +73,7 @@ def render_to_folder(
     light=None,
     progress=None,
     images_dir="images",
+    rig=None,
 ):
     """Render a stereo pair of a STEP part and write it with its ground truth.
 
@@ -139,6 +140,13 @@ def render_to_folder(
     images_dir : str
         Sub-folder of ``out_dir`` for the images and the calibration; ``""``
         writes them beside ``truth.json`` (a view of a views folder).
+    rig : StereoCalibration or None
+        The rig that makes the images (a user's calibration file, or
+        :func:`partinspect.simulate.rig.random_rig`); its image size and
+        distortion are the render's, so ``image_size`` is not used and
+        ``distortion`` and ``defocus`` (which needs the sensor's pixel pitch,
+        which a calibration does not state) must be off. None: the
+        simulator's :func:`~partinspect.simulate.rig.default_rig`.
 
     Returns
     -------
@@ -174,6 +182,7 @@ def render_to_folder(
     (left, right), stated, truth = _form(
         step_path, form, pose=pose, deviations=deviations, distortion=distortion, image_size=image_size,
         calib_error=calib_error, drift=drift, realism=realism, shading=shading, noise=noise, seed=seed, say=say,
+        rig=rig,
     )
     say(f"writing {out_dir}")
     _write(out_dir, left, right, stated, truth, images_dir)
@@ -181,7 +190,7 @@ def render_to_folder(
 
 
 def render_views_to_folder(step_path, out_dir, views, *, pose=None, seed=0, image_size=(2448, 2048),
-                           distortion=False, progress=None, **options):
+                           distortion=False, progress=None, rig=None, **options):
     """Render the part in several views, one image folder each, with the same rig.
 
     Parameters
@@ -201,7 +210,7 @@ def render_views_to_folder(step_path, out_dir, views, *, pose=None, seed=0, imag
     seed : int
         View ``k`` (from 1) is rendered with noise seed ``seed + 1000 (k - 1)``:
         each pair has its own noise, as separate exposures do.
-    image_size, distortion, progress
+    image_size, distortion, progress, rig
         As :func:`render_to_folder`.
     **options
         Any other :func:`render_to_folder` option (``noise``,
@@ -219,13 +228,13 @@ def render_views_to_folder(step_path, out_dir, views, *, pose=None, seed=0, imag
     say = progress or (lambda message: None)
     turns = parse_views(views) if isinstance(views, str) else [np.asarray(v, float) for v in views]
     bounds = bounds_of(load_step(Path(step_path)))
-    base = _resolve_pose(pose, bounds, default_rig(image_size, distortion=distortion))
+    base = _resolve_pose(pose, bounds, rig if rig is not None else default_rig(image_size, distortion=distortion))
     truths = []
     for k, turn in enumerate(turns, 1):
         say(f"view {k} of {len(turns)}: the part turned {','.join(f'{a:g}' for a in turn)} degrees")
         truth = render_to_folder(step_path, Path(out_dir) / f"view-{k}", pose=turned_pose(base, turn, bounds),
                                  seed=seed + 1000 * (k - 1), image_size=image_size, distortion=distortion,
-                                 progress=progress, images_dir="", **options)
+                                 progress=progress, images_dir="", rig=rig, **options)
         truths.append(truth)
     return truths
 
@@ -242,6 +251,7 @@ def render_noiseless(
     defocus=None,
     light=None,
     progress=None,
+    rig=None,
 ):
     """The noiseless radiance pair :func:`render_to_folder` would sense, with its truth and rig.
 
@@ -275,7 +285,7 @@ def render_noiseless(
 
     radiance, rig, truth = _form(
         step_path, form, pose=pose, deviations=deviations, distortion=distortion, image_size=image_size,
-        calib_error=None, drift=None, realism=realism, shading=shading, noise=None, seed=0, say=say,
+        calib_error=None, drift=None, realism=realism, shading=shading, noise=None, seed=0, say=say, rig=rig,
     )
     return radiance, rig, truth
 
@@ -286,15 +296,14 @@ def stated_calibration(rig, seed):
 
 
 def _form(step_path, form, *, pose, deviations, distortion, image_size, calib_error, drift, realism, shading, noise,
-          seed, say):
+          seed, say, rig=None):
     """The part's scene formed into images by ``form``; (images, the stated calibration, truth)."""
     from partinspect.cad.raycast import build_scene
-    from partinspect.simulate.rig import default_rig
     from partinspect.simulate.truth import make_truth
 
     step_path = Path(step_path)
     inv, devs, shape, bounds = _load_part(step_path, deviations, say)
-    calibrated = default_rig(image_size, distortion=distortion)
+    calibrated = _making_rig(rig, image_size, distortion, realism)
     rig = calibrated
     if drift is not None:
         from partinspect.simulate.calibration import drifted_rig
@@ -308,14 +317,15 @@ def _form(step_path, form, *, pose, deviations, distortion, image_size, calib_er
     mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
     truth_scene = build_scene(mesh)
     rs, finish, extra = _real_part(step_path, shape, inv if not devs else None, truth_scene, realism, say)
-    pitch = PIXEL_PITCH * FULL_SIZE[0] / float(image_size[0])
+    pitch = PIXEL_PITCH * FULL_SIZE[0] / float(calibrated.image_size[0])
     extra.update(_real_camera(realism, rig, pitch))
     images, stats = form(rs, rig, part_to_camera, finish, pitch)
     if "defocus" in extra:
         extra["defocus"]["coc_px"] = {name: stats[name].pop("coc_px") for name in ("left", "right")}
 
     say("computing the ground truth")
-    settings = _settings(step_path, rig, noise, seed, distortion, stats, len(rs.triangles), shading)
+    distorted = bool(np.any(calibrated.D1) or np.any(calibrated.D2))
+    settings = _settings(step_path, rig, noise, seed, distorted, stats, len(rs.triangles), shading)
     if finish is not None:
         settings["shading"]["model"] = "lambertian + cook-torrance (see material)"
     if "edge_break" in extra:
@@ -333,6 +343,21 @@ def _form(step_path, form, *, pose, deviations, distortion, image_size, calib_er
         }
     truth = make_truth(inv, devs, truth_scene, rig, part_to_camera, settings, shading)
     return images, stated, truth
+
+
+def _making_rig(rig, image_size, distortion, realism):
+    """The rig that makes the images: ``rig`` as given, else the default rig at ``image_size``."""
+    from partinspect.simulate.rig import default_rig
+
+    if rig is None:
+        return default_rig(image_size, distortion=distortion)
+    if distortion:
+        raise ValueError("a given rig renders through its own distortion: not with the default lens's distortion")
+    if realism["defocus"] is not None:
+        raise ValueError("defocus needs the sensor's pixel pitch, which a calibration does not state: not with a given rig")
+    if rig.image_size is None:
+        raise ValueError("the rig states no image size")
+    return rig
 
 
 def _realism(edge_break, material, defocus, photon):

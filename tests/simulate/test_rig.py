@@ -106,3 +106,79 @@ def test_calibration_file_round_trip(tmp_path):
 def test_bad_size():
     with pytest.raises(ValueError):
         default_rig((0, 10))
+
+
+# ------------------------------------------------------------------ random rigs
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from partinspect.simulate.rig import LENSES, SENSORS, random_rig
+
+
+def _sphere_in_view(rig, centre, radius, n=400):
+    """Whether points on a sphere about ``centre`` project inside both images."""
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(n, 3))
+    X = centre + radius * d / np.linalg.norm(d, axis=1)[:, None]
+    w, h = rig.image_size
+    for index in (0, 1):
+        K, D, R, t = rig.camera(index)
+        uv = project_points(X, K, D, R, t)
+        if not (np.isfinite(uv).all() and uv.min() >= 0 and (uv[:, 0] <= w - 1).all() and (uv[:, 1] <= h - 1).all()):
+            return False
+    return True
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), field=st.floats(20.0, 300.0))
+def test_random_rig_frames_the_part_in_both_images(seed, field):
+    rig = random_rig(seed, field)
+    F = fixation_point(rig)
+    middle = camera_pose(rig, 1)[0] / 2  # of the baseline
+    assert 2.5 * field - 1.0 <= np.linalg.norm(F - middle) <= 1201.0
+    # A part of that size about the fixation point is seen whole by both cameras.
+    assert _sphere_in_view(rig, F, field / 2)
+    # Converging cameras 12-35 degrees apart, a proper rotation.
+    _, axis = camera_pose(rig, 1)
+    assert 11.0 < np.degrees(np.arccos(axis[2])) < 36.0
+    np.testing.assert_allclose(rig.R @ rig.R.T, np.eye(3), atol=1e-12)
+    assert ((rig.image_size, pytest.approx(rig.K1[0, 0], rel=0.02)) in
+            [(size, lens / pitch) for size, pitch in SENSORS for lens in LENSES])
+
+
+def test_random_rigs_differ_as_users_rigs_do():
+    rigs = [random_rig(seed, 120.0) for seed in range(40)]
+    # Seeded: the same seed gives the same rig.
+    again = random_rig(7, 120.0)
+    for name in ("K1", "D1", "K2", "D2", "R", "T"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(rigs[7], name))
+    # Baselines at every angle about the view, horizontal and vertical ones among them: the
+    # epipolar lines run in any direction in the image.
+    angles = []
+    for rig in rigs:
+        centre, _ = camera_pose(rig, 1)
+        angles.append(np.degrees(np.arctan2(centre[1], centre[0])) % 180.0)
+    angles = np.array(angles)
+    assert (np.minimum(angles, 180.0 - angles) < 20.0).any() and (np.abs(angles - 90.0) < 20.0).any()
+    assert len({rig.image_size for rig in rigs}) >= 3
+    baselines = [rig.baseline for rig in rigs]
+    assert max(baselines) > 2.0 * min(baselines)
+    # Distortion, different per lens and never folding the image over.
+    for rig in rigs[:10]:
+        assert not np.allclose(rig.D1, rig.D2)
+        w, h = rig.image_size
+        for K, D in ((rig.K1, rig.D1), (rig.K2, rig.D2)):
+            border = np.concatenate([np.stack([np.arange(0, w, 7), np.zeros(len(range(0, w, 7)))], 1),
+                                     np.stack([np.zeros(len(range(0, h, 7))), np.arange(0, h, 7)], 1),
+                                     [[w - 1, h - 1]]])
+            xb = undistort_points(border, K, D)
+            back = project_points(np.c_[xb, np.ones(len(xb))], K, D)
+            assert np.abs(back - border).max() < 1e-6
+
+
+def test_random_rig_refuses_what_no_lens_frames():
+    with pytest.raises(ValueError, match="> 0"):
+        random_rig(0, 0.0)
+    with pytest.raises(ValueError, match="no sensor and lens"):
+        random_rig(0, 2000.0)
