@@ -23,7 +23,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.linalg import block_diag
 
-from partinspect.vision.contours import CLEARANCE, arc_length, end_runs
+from partinspect.vision.contours import CLEARANCE, arc_length
 from partinspect.vision.edges import BACKGROUND_DISTANCES
 from partinspect.vision.fitting import fit_line, line_with_covariance
 from partinspect.vision.ideal import IDEAL_FIELDS
@@ -294,7 +294,7 @@ def guided_lines(stereo, calib, expected, owned, *, others=None, min_points=12):
 
 
 def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
-    """Measured lines fitted again without their end points that lie near another edge's image.
+    """Measured lines fitted again without their points that lie near another edge's image.
 
     The segmentation keeps a line's ends clear of the other edges it can
     see (:func:`partinspect.vision.contours._crowded`), but not of an edge
@@ -302,8 +302,12 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
     still mixes into the line's (at the corner of a thin face seen nearly
     edge-on, a wedge of darker grey between a bright face and the
     background): the line's last points are displaced by several of their
-    standard uncertainties and set a short line's straightness. Once the
-    pose is known the CAD model says where every edge's image is.
+    standard uncertainties and set a short line's straightness. The same
+    happens inside a line where such a face runs beside it over a stretch
+    (a chamfer seen at grazing incidence along a silhouette, narrowing
+    along it): the points there are pulled by a few tenths of a px, a bend
+    that reads as form. Once the pose is known the CAD model says where
+    every edge's image is.
 
     Parameters
     ----------
@@ -336,9 +340,11 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
     Notes
     -----
     Points within ``CLEARANCE`` edge widths of another edge's image are left
-    out where they run up to an end of the line, as the segmentation does
-    (:func:`partinspect.vision.contours._make_segments`): by position
-    alone, never by residual.
+    out wherever they lie along the line, by position alone, never by
+    residual. The segmentation cuts a line back from its ends only
+    (:func:`partinspect.vision.contours._make_segments`), since a crowded
+    point inside a segment must not split it; here the line is one already,
+    and its fit and its form need no unbroken run of points.
     """
     L, R, geo = stereo.left, stereo.right, stereo.geometry
     sigma = float(L.edges.sigma)
@@ -355,7 +361,7 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
             f = res.features[f3.left if side == 0 else f3.right]
             order = np.argsort(f.ideal.xy @ f.fit.direction, kind="stable")
             near = ~crowds[side].clear_of_others(f.uv[order], cid, reach[side])
-            bad = end_runs(near)
+            bad = near & ~near.all()  # all of them crowded: covered, left as it was (below)
             kept.append(order[~bad])
             lost.append(int(bad.sum()))
             if len(f.uv) and near.all() and cid not in covered:

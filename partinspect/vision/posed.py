@@ -75,11 +75,13 @@ def posed_stereo(stereo, registration, seen, inv, calib, polylines, outlines=Non
 
 
 def cleared_stereo(stereo, registration, seen, inv, calib, polylines, outlines=None):
-    """``stereo`` with its registered lines and arcs fitted again clear of the other edges' images at their ends.
+    """``stereo`` with its registered lines and arcs fitted again clear of the other edges' images.
 
     Under the registered pose every CAD edge's image is known, faint ones
-    too, whose grey step displaces a line's end points without giving edge
-    points of its own (:func:`partinspect.vision.guided.clear_line_ends`),
+    too, whose grey step displaces a line's points (at its ends, or along a
+    stretch where a face seen near grazing incidence runs beside it)
+    without giving edge points of its own
+    (:func:`partinspect.vision.guided.clear_line_ends`),
     and the occluding edge a rim runs into where it passes out of sight
     (:func:`partinspect.vision.guided.clear_arc_ends`). A measured rim the
     registration left unmatched is cleared as the CAD rim whose image it

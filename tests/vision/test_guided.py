@@ -117,7 +117,7 @@ def test_points_near_another_edges_image_are_not_taken(plate_lines):
 def test_line_ends_near_another_edges_image_are_left_out_and_refitted(plate_lines):
     """An edge's image running beside a measured line's first 30 % (2 px away: a faint edge the
     segmentation saw no points of) takes that end run out of the line in that image; the line is
-    refitted from the rest. The same edge beside the middle of the line takes nothing."""
+    refitted from the rest. The same edge beside the middle of the line takes the middle out."""
     from partinspect.vision.guided import clear_line_ends
 
     rig, stereo, k = plate_lines
@@ -144,9 +144,14 @@ def test_line_ends_near_another_edges_image_are_left_out_and_refitted(plate_line
     new = out.features[k]
     assert new.kind == "line" and len(new.correspondences) < len(whole.correspondences)
     assert all(a is b for i, (a, b) in enumerate(zip(out.features, stereo.features)) if i != k)
-    # Beside the middle only: nothing is taken.
-    same, none, covered = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.35, 0.65)})
-    assert none == {} and covered == {} and same is stereo
+    # Beside the middle only: the middle is taken, both ends kept.
+    mid, cleared, covered = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.35, 0.65)})
+    lost_l, lost_r = cleared["edge"]
+    assert covered == {} and lost_r == 0 and 0.25 * len(uv) < lost_l < 0.35 * len(uv)
+    kept = np.isin(fl.index[order], mid.left.features[whole.left].index)
+    i0, i1 = np.flatnonzero(~kept)[[0, -1]]
+    assert kept[:i0].all() and not kept[i0:i1 + 1].any() and kept[i1 + 1:].all()
+    assert 0.3 * len(uv) < i0 < 0.36 * len(uv) and 0.64 * len(uv) < i1 < 0.7 * len(uv)
     # Beside all of it, in the left image: left as it was, and named as covered by that edge.
     same, none, covered = clear_line_ends(stereo, rig, {k: "edge"}, {"edge": own, "faint": beside(0.0, 1.0)})
     assert none == {} and same is stereo and covered == {"edge": ("left", "faint")}
