@@ -361,9 +361,8 @@ def clear_line_ends(stereo, calib, lines, images, *, min_points=12):
             f = res.features[f3.left if side == 0 else f3.right]
             order = np.argsort(f.ideal.xy @ f.fit.direction, kind="stable")
             near = ~crowds[side].clear_of_others(f.uv[order], cid, reach[side])
-            bad = near & ~near.all()  # all of them crowded: covered, left as it was (below)
-            kept.append(order[~bad])
-            lost.append(int(bad.sum()))
+            kept.append(order[~near])
+            lost.append(int(near.sum()))
             if len(f.uv) and near.all() and cid not in covered:
                 covered[cid] = (("left", "right")[side], crowds[side].nearest_other(f.uv, cid))
         if not any(lost) or min(len(x) for x in kept) < min_points:
