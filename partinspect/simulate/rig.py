@@ -206,6 +206,14 @@ def random_rig(rng, field, *, distortion=True, tries=200):
     ------
     ValueError
         If ``field`` is not positive, or no sensor and lens frame it.
+
+    References
+    ----------
+    .. [1] Brown, D. C. (1966). Decentering distortion of lenses.
+           Photogrammetric Engineering 32(3), 444-462.
+    .. [2] Steger, C., Ulrich, M., Wiedemann, C. (2018). *Machine Vision
+           Algorithms and Applications*, 2nd ed., ch. 2 (image acquisition:
+           lenses, sensors) and 3.10 (stereo reconstruction). Wiley-VCH.
     """
     rng = np.random.default_rng(rng)
     if not field > 0:
