@@ -52,12 +52,12 @@ def main(argv=None):
     ideal = np.column_stack([(np.arange(n2) + 0.5) / n2 - 0.5, np.zeros(n2)])
     print(f"rotated {args.samples} x {args.samples} lattice, {n2} rays; coverage error of one pixel row, px")
     print(f"{'angle, deg':>10}  {'widest gap':>10}  {'RMS':>7}  {'largest':>7}  {'baseline RMS':>12}")
+    base = np.sqrt(np.mean(coverage_error(ideal, 0.0) ** 2))
     for deg in ANGLES:
         err = coverage_error(offsets, deg)
-        base = coverage_error(ideal, 0.0)
         across = np.sort(offsets[:, 0] - np.tan(np.deg2rad(deg)) * offsets[:, 1])
         print(f"{deg:10.2f}  {np.diff(across).max():10.4f}  {np.sqrt(np.mean(err ** 2)):7.4f}  {np.abs(err).max():7.4f}  "
-              f"{np.sqrt(np.mean(base ** 2)):12.4f}")
+              f"{base:12.4f}")
 
 
 if __name__ == "__main__":

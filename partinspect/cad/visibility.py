@@ -147,7 +147,9 @@ def visibility(shape, inventory, calib, part_to_camera, *, mesh=None, images=Non
     from partinspect.cad.sightlines import edge_visibility
     from partinspect.cad.edge_sampling import feature_geometry, sample_edge
 
-    rs = build_scene(visibility_mesh(shape, inventory) if mesh is None else mesh) if scene is None else scene
+    rs = scene
+    if rs is None:
+        rs = build_scene(visibility_mesh(shape, inventory) if mesh is None else mesh)
     out = {}
     for f in inventory.features:
         pts, tan = sample_edge(f.kind, feature_geometry(f))

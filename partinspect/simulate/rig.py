@@ -83,6 +83,11 @@ def _look_at(center, target):
     return np.stack([x, y, z])
 
 
+def _relative_pose(r_left, c_left, r_right, c_right):
+    """``(R, T)`` with ``X_right = R @ X_left + T`` of two cameras ``X_cam = r (X_w - c)`` in a world frame."""
+    return r_right @ r_left.T, r_right @ (c_left - c_right)
+
+
 def _camera_matrix(index, image_size):
     w, h = image_size
     # Scale continuous image coordinates (origin at the top-left corner of the
@@ -134,9 +139,7 @@ def default_rig(image_size=FULL_SIZE, distortion=False):
     c_left, c_right = np.array([-half, 0.0, 0.0]), np.array([half, 0.0, 0.0])
     r_left = _look_at(c_left, fix)
     r_right = _rot_x(_RIGHT_PITCH) @ _rot_z(_RIGHT_ROLL) @ _look_at(c_right, fix)
-    # X_w -> X_left: r_left (X_w - c_left); X_right = r_right (X_w - c_right)
-    R = r_right @ r_left.T
-    T = r_right @ (c_left - c_right)
+    R, T = _relative_pose(r_left, c_left, r_right, c_right)
     zero = np.zeros(5)
     D1, D2 = (np.array(d, float) for d in _DISTORTION) if distortion else (zero, zero.copy())
     return StereoCalibration(
@@ -234,6 +237,7 @@ def random_rig(rng, field, *, distortion=True, tries=200):
     r_left = _look_at(c_left, fix)
     mount = _rot_x(np.deg2rad(rng.normal(0.0, 0.05))) @ _rot_z(np.deg2rad(rng.normal(0.0, 0.3)))
     r_right = mount @ _look_at(c_right, fix)
+    R, T = _relative_pose(r_left, c_left, r_right, c_right)
     cameras = []
     for _ in range(2):
         f = lens / pitch * (1.0 + rng.normal(0.0, 0.002))
@@ -246,8 +250,8 @@ def random_rig(rng, field, *, distortion=True, tries=200):
         D1=cameras[0][1],
         K2=cameras[1][0],
         D2=cameras[1][1],
-        R=r_right @ r_left.T,
-        T=r_right @ (c_left - c_right),
+        R=R,
+        T=T,
         std={},
     )
 

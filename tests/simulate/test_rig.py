@@ -13,6 +13,17 @@ from partinspect.poses import fixation_point
 from partinspect.vision.calibration import camera_pose, project_points, read_calibration, undistort_points, write_calibration
 
 
+def _border_round_trip(K, D, size, step):
+    """Largest px error of the image border (every ``step`` px) undistorted and projected back: tiny
+    unless the distortion model folds the image over somewhere."""
+    W, H = size
+    xs, ys = np.arange(0, W, step, dtype=float), np.arange(0, H, step, dtype=float)
+    border = np.concatenate([np.stack([xs, np.zeros_like(xs)], 1), np.stack([xs, np.full_like(xs, H - 1)], 1),
+                             np.stack([np.zeros_like(ys), ys], 1), np.stack([np.full_like(ys, W - 1), ys], 1)])
+    xb = undistort_points(border, K, D)
+    return np.abs(project_points(np.c_[xb, np.ones(len(xb))], K, D) - border).max()
+
+
 def test_full_size_numbers():
     rig = default_rig()
     assert rig.image_size == (2448, 2048)
@@ -86,12 +97,7 @@ def test_distortion_is_realistic():
         tang = np.stack([2 * p1 * xn[:, 0] * xn[:, 1] + p2 * (3 * xn[:, 0] ** 2 + xn[:, 1] ** 2),
                          p1 * (xn[:, 0] ** 2 + 3 * xn[:, 1] ** 2) + 2 * p2 * xn[:, 0] * xn[:, 1]], axis=1)
         assert np.abs(tang * K[0, 0]).max() < 0.5
-        # The model does not fold over anywhere in the image: the whole border undistorts.
-        border = np.concatenate([np.stack([np.arange(W), np.zeros(W)], 1), np.stack([np.arange(W), np.full(W, H - 1)], 1),
-                                 np.stack([np.zeros(H), np.arange(H)], 1), np.stack([np.full(H, W - 1), np.arange(H)], 1)])
-        xb = undistort_points(border, K, D)
-        back = project_points(np.c_[xb, np.ones(len(xb))], K, D)
-        assert np.abs(back - border).max() < 1e-6
+        assert _border_round_trip(K, D, FULL_SIZE, 1) < 1e-6  # the model does not fold the image over
 
 
 def test_calibration_file_round_trip(tmp_path):
@@ -113,6 +119,7 @@ def test_bad_size():
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from partinspect.cad.sightlines import in_view
 from partinspect.simulate.rig import LENSES, SENSORS, random_rig
 
 
@@ -121,13 +128,7 @@ def _sphere_in_view(rig, centre, radius, n=400):
     rng = np.random.default_rng(0)
     d = rng.normal(size=(n, 3))
     X = centre + radius * d / np.linalg.norm(d, axis=1)[:, None]
-    w, h = rig.image_size
-    for index in (0, 1):
-        K, D, R, t = rig.camera(index)
-        uv = project_points(X, K, D, R, t)
-        if not (np.isfinite(uv).all() and uv.min() >= 0 and (uv[:, 0] <= w - 1).all() and (uv[:, 1] <= h - 1).all()):
-            return False
-    return True
+    return all(in_view(project_points(X, *rig.camera(index)), rig.image_size).all() for index in (0, 1))
 
 
 @settings(max_examples=25, deadline=None)
@@ -167,14 +168,8 @@ def test_random_rigs_differ_as_users_rigs_do():
     # Distortion, different per lens and never folding the image over.
     for rig in rigs[:10]:
         assert not np.allclose(rig.D1, rig.D2)
-        w, h = rig.image_size
         for K, D in ((rig.K1, rig.D1), (rig.K2, rig.D2)):
-            border = np.concatenate([np.stack([np.arange(0, w, 7), np.zeros(len(range(0, w, 7)))], 1),
-                                     np.stack([np.zeros(len(range(0, h, 7))), np.arange(0, h, 7)], 1),
-                                     [[w - 1, h - 1]]])
-            xb = undistort_points(border, K, D)
-            back = project_points(np.c_[xb, np.ones(len(xb))], K, D)
-            assert np.abs(back - border).max() < 1e-6
+            assert _border_round_trip(K, D, rig.image_size, 7) < 1e-6
 
 
 def test_random_rig_refuses_what_no_lens_frames():

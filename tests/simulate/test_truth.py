@@ -6,6 +6,7 @@ import pytest
 from partinspect.simulate.folder import SAMPLES, render_to_folder
 from partinspect.simulate.truth import SCHEMA, deviated_geometry, drawn_radius, feature_visibility, to_json
 from partinspect.cad.edge_sampling import feature_geometry, sample_edge
+from partinspect.frames import orthonormal_frame
 from tests.simulate.scenes import step_path
 
 SMALL = (612, 512)
@@ -253,22 +254,34 @@ def test_a_face_boundary_shaded_alike_beside_an_edge_does_not_hide_it(bracket):
 
 @pytest.mark.parametrize("sides", [12, 180, 1257])
 def test_a_polygons_drawn_radius_is_its_mean_distance_from_the_centre(sides):
-    # A regular polygon inscribed in a 40 mm circle, tilted, as a mesh's vertices (with others off the circle).
+    # A polygon inscribed in a 40 mm circle, tilted, its sides unequal (so that which sides count
+    # matters), as a mesh's vertices (with others off the circle).
     r, centre, normal = 40.0, np.array([3.0, -2.0, 7.0]), np.array([0.2, -0.3, 0.93])
     normal /= np.linalg.norm(normal)
     x = np.cross(normal, [1.0, 0.0, 0.0])
     x /= np.linalg.norm(x)
     y = np.cross(normal, x)
-    t = np.arange(sides) * 2.0 * np.pi / sides + 0.1
+    jitter = np.random.default_rng(sides).uniform(-0.4, 0.4, sides)
+    t = (np.arange(sides) + jitter) * 2.0 * np.pi / sides + 0.1
     ring = centre + r * (np.cos(t)[:, None] * x + np.sin(t)[:, None] * y)
     other = centre + np.array([[0.0, 0.0, 5.0], [10.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     drawn = drawn_radius(np.vstack([ring, other]), {"center": centre, "normal": normal, "radius": r})
-    # The polygon's mean distance from the centre, by brute force along its sides.
+    # The polygon's mean distance from the centre along its sides (each side weighted by its length,
+    # as evenly spaced edge points weight it), by brute force.
     s = (np.arange(20000) + 0.5) / 20000
-    a, b = ring, np.roll(ring, -1, axis=0)
-    dist = np.linalg.norm(a[:, None] + s[None, :, None] * (b - a)[:, None] - centre, axis=2)
-    assert drawn == pytest.approx(dist.mean(), rel=1e-9)
+
+    def mean_distance(a, b):
+        per_side = np.linalg.norm(a[:, None] + s[None, :, None] * (b - a)[:, None] - centre, axis=2).mean(axis=1)
+        return np.average(per_side, weights=np.linalg.norm(b - a, axis=1))
+
+    assert drawn == pytest.approx(mean_distance(ring, np.roll(ring, -1, axis=0)), rel=1e-9)
     assert drawn < r
-    # An arc: only its own sides count, not the chord across its gap.
+    # An arc: only its own sides count (the ring's vertices within it, consecutive), not the chord
+    # across its gap nor the sides outside it.
     arc = {"center": centre, "normal": normal, "radius": r, "angle_start": 0.0, "angle_end": np.pi}
-    assert drawn_radius(np.vstack([ring, other]), arc) > r - r * (np.pi / sides) ** 2
+    fx, fy, _ = orthonormal_frame(normal)  # the frame the arc's angles are measured in
+    angle = np.arctan2((ring - centre) @ fy, (ring - centre) @ fx) % (2 * np.pi)
+    inside = np.flatnonzero(angle <= np.pi)
+    inside = inside[np.argsort(angle[inside])]
+    own = mean_distance(ring[inside[:-1]], ring[inside[1:]])
+    assert drawn_radius(np.vstack([ring, other]), arc) == pytest.approx(own, rel=1e-9)
