@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from bench_drift import CHI2_3
-from bench_stress import honesty_by_type, pose_mahalanobis, table, true_value
+from bench_stress import coverage_cell, honesty_by_type, pose_mahalanobis, table, true_value
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ("project", "blur-after", "disc-prnu")
@@ -207,11 +207,11 @@ def main():
         header, rows = honesty_by_type(r["rows"])
         c = np.asarray(r["centres"])
         if len(c):
-            rows.append(["centre (3D)", len(c), len(c), f"{100 * np.mean(c <= CHI2_3):.1f} %",
+            rows.append(["centre (3D)", len(c), len(c), coverage_cell(np.sum(c <= CHI2_3), len(c)),
                          f"{np.sqrt(np.mean(c / 3)):.2f}", "-", f"{np.sqrt(c.max() / 3):.1f}"])
         p = np.asarray(r["poses"])
         if len(p):
-            rows.append(["pose (6D)", len(p), len(p), f"{100 * np.mean(p <= CHI2_6):.1f} %",
+            rows.append(["pose (6D)", len(p), len(p), coverage_cell(np.sum(p <= CHI2_6), len(p)),
                          f"{np.sqrt(np.mean(p / 6)):.2f}", "-", f"{np.sqrt(p.max() / 6):.1f}"])
         table(header, rows)
     if not args.dir:

@@ -68,7 +68,7 @@ import numpy as np
 
 from bench_drift import CHI2_3, NIST_VIEW
 from bench_formation import score
-from bench_stress import PARTS, _nist_spec, _pose, _reason_counts, honesty_by_type, plan, table, true_value
+from bench_stress import PARTS, _nist_spec, _pose, _reason_counts, coverage_cell, honesty_by_type, plan, table, true_value
 
 ROOT = Path(__file__).resolve().parents[1]
 NOISE = 2.0
@@ -252,7 +252,7 @@ def summarise(results, title):
         header = ["type", "n", "error RMS", "median |error|"] + header[3:]
         trows = [[r[0], r[2], f"{err[r[0]][0]:.4f}", f"{err[r[0]][1]:.4f}"] + r[3:] for r in trows if r[0] in err]
         if len(centres):
-            trows.append(["centre (3D)", len(centres), "-", "-", f"{100 * np.mean(centres <= CHI2_3):.1f} %",
+            trows.append(["centre (3D)", len(centres), "-", "-", coverage_cell(np.sum(centres <= CHI2_3), len(centres)),
                           f"{np.sqrt(np.mean(centres / 3)):.2f}", "-", f"{np.sqrt(centres.max() / 3):.1f}"])
         table(header, trows)
         reasons = defaultdict(int)
