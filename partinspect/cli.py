@@ -11,6 +11,7 @@ usage), with one line on stderr naming the file and the problem.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -182,7 +183,11 @@ def _render_parser():
     p.add_argument("--size", metavar="WxH", default=None, help="image size in pixels (default 2448x2048)")
     p.add_argument("--rig", metavar="CALIBRATION", default=None,
                    help="render through this rig (a calibration.yaml with its image size, as exact) instead of the "
-                   "simulator's: its size and distortion are the images'; not with --size, --distortion, --defocus")
+                   "simulator's: its size and distortion are the images'; not with --size or --distortion, and "
+                   "--defocus needs --pixel-pitch")
+    p.add_argument("--pixel-pitch", metavar="UM", type=float, default=None,
+                   help="with --rig: its sensor's pixel pitch in micrometres (the datasheet's, e.g. 3.45), which "
+                   "--defocus needs to turn the focal length in pixels into mm")
     p.add_argument("--views", metavar="RX,RY,RZ;...", default=None,
                    help="several views, one pair each in OUT_DIR/view-1/, view-2/, ...: the part turned in its own "
                    "frame by RX,RY,RZ degrees about its bounding-box centre (0,0,120: a turntable's 120 degrees about "
@@ -624,11 +629,18 @@ def _parse_size(text):
 def _render_rig(args):
     """The rig ``--rig`` names, read and checked against the options it excludes; None without it."""
     if args.rig is None:
+        if args.pixel_pitch is not None:
+            raise InputError(None, "--pixel-pitch is the pixel pitch of --rig's sensor: give it with --rig")
         return None
-    given = [name for name, value in (("--size", args.size), ("--distortion", args.distortion),
-                                      ("--defocus", args.defocus)) if value]
+    given = [name for name, value in (("--size", args.size), ("--distortion", args.distortion)) if value]
     if given:
         raise InputError(args.rig, f"--rig sets the image size and the lenses: not with {', '.join(given)}")
+    if args.pixel_pitch is not None and not (math.isfinite(args.pixel_pitch) and 0.0 < args.pixel_pitch <= 100.0):
+        raise InputError(None, f"--pixel-pitch: expected the sensor's pixel pitch in micrometres (above 0, at most "
+                         f"100), got {args.pixel_pitch:g}")
+    if args.defocus and args.pixel_pitch is None:
+        raise InputError(args.rig, "--defocus needs the sensor's pixel pitch, which a calibration does not state: "
+                         "give it with --pixel-pitch UM")
     from partinspect.vision.calibration import read_calibration
 
     rig = read_calibration(args.rig)
@@ -672,6 +684,7 @@ def _run_render(args):
         light=args.light,
         progress=progress,
         rig=rig,
+        pixel_pitch=None if args.pixel_pitch is None else args.pixel_pitch * 1e-3,
     )
     if not args.quiet and views:
         print(f"rendered {len(views['views'])} views, each a pair with its truth: "

@@ -167,12 +167,54 @@ def test_render_through_a_given_rig(repo, tmp_path, capsys):
 
 @pytest.mark.parametrize("extra", [["--size", "612x512"], ["--distortion"], ["--defocus", "8,400"]])
 def test_render_rig_excludes_what_it_sets(repo, tmp_path, capsys, extra):
+    """What a calibration sets, or cannot state (the pixel pitch a defocus needs), is one line and exit 2."""
     _small_random_rig(tmp_path / "rig.yaml")
     step = repo / "examples" / "plate" / "part.step"
     code = main(["render", str(step), str(tmp_path / "r"), "--rig", str(tmp_path / "rig.yaml")] + extra)
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and str(tmp_path / "rig.yaml") in err and extra[0] in err
+    if extra[0] == "--defocus":
+        assert "--pixel-pitch" in err
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("extra", [["--pixel-pitch", "3.45"], ["--rig", "RIG", "--pixel-pitch", "0"],
+                                   ["--rig", "RIG", "--pixel-pitch", "nan"]])
+def test_render_pixel_pitch_misused_is_one_line(repo, tmp_path, capsys, extra):
+    """A pitch without a rig, or one that is no length, is one line and exit 2."""
+    _small_random_rig(tmp_path / "rig.yaml")
+    step = repo / "examples" / "plate" / "part.step"
+    extra = [str(tmp_path / "rig.yaml") if a == "RIG" else a for a in extra]
+    code = main(["render", str(step), str(tmp_path / "r")] + extra)
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "--pixel-pitch" in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_render_defocus_through_a_given_rig(repo, tmp_path):
+    """``--defocus`` through ``--rig`` with the sensor's ``--pixel-pitch``: the thin lens is the rig's own lens.
+
+    The test rig is random_rig(11)'s 1920 x 1200 sensor of 5.86 um pixels
+    behind a 35 mm lens, binned 4 x 4: 23.44 um pixels.
+    """
+    import json
+
+    import numpy as np
+
+    from partinspect.poses import fixation_point
+
+    rig = _small_random_rig(tmp_path / "rig.yaml")
+    step = repo / "examples" / "plate" / "part.step"
+    out = tmp_path / "render"
+    focus = float(np.linalg.norm(fixation_point(rig)))
+    assert main(["render", str(step), str(out), "--rig", str(tmp_path / "rig.yaml"), "--pixel-pitch", "23.44",
+                 "--defocus", f"2.8,{focus:.1f}", "-q"]) == 0
+    lens = json.loads((out / "truth.json").read_text())["defocus"]
+    assert lens["pixel_pitch"] == pytest.approx(0.02344)
+    np.testing.assert_allclose(lens["focal_length"], 35.0, rtol=5e-3)
+    # Focused on the part: sharp where it crosses the focus, blurred in front and behind.
+    for lo, hi in lens["coc_px"].values():
+        assert lo < 0.5 < hi
 
 
 def test_render_rig_missing_is_one_line(repo, tmp_path, capsys):

@@ -74,6 +74,7 @@ def render_to_folder(
     progress=None,
     images_dir="images",
     rig=None,
+    pixel_pitch=None,
 ):
     """Render a stereo pair of a STEP part and write it with its ground truth.
 
@@ -126,7 +127,7 @@ def render_to_folder(
     defocus : str, ThinLens or None
         ``F_NUMBER,FOCUS_MM``: depth of field of a thin lens
         (:mod:`partinspect.simulate.defocus`), pixel pitch
-        ``PIXEL_PITCH * 2448 / width``.
+        ``PIXEL_PITCH * 2448 / width``, or ``pixel_pitch`` with ``rig``.
     photon : str, PhotonSensor or None
         ``FULL_WELL,GAIN,READ`` (e-, DN/e-, e-): Poisson-Gaussian noise and
         cos^4 vignetting (:mod:`partinspect.simulate.photon`) instead of
@@ -144,9 +145,13 @@ def render_to_folder(
         The rig that makes the images (a user's calibration file, or
         :func:`partinspect.simulate.rig.random_rig`); its image size and
         distortion are the render's, so ``image_size`` is not used and
-        ``distortion`` and ``defocus`` (which needs the sensor's pixel pitch,
-        which a calibration does not state) must be off. None: the
-        simulator's :func:`~partinspect.simulate.rig.default_rig`.
+        ``distortion`` must be off, and ``defocus`` needs ``pixel_pitch``
+        (a calibration states the focal length in pixels, the thin lens
+        needs it in mm). None: the simulator's
+        :func:`~partinspect.simulate.rig.default_rig`.
+    pixel_pitch : float or None
+        The sensor's pixel pitch behind ``rig``, mm (> 0); only with
+        ``rig``.
 
     Returns
     -------
@@ -182,7 +187,7 @@ def render_to_folder(
     (left, right), stated, truth = _form(
         step_path, form, pose=pose, deviations=deviations, distortion=distortion, image_size=image_size,
         calib_error=calib_error, drift=drift, realism=realism, shading=shading, noise=noise, seed=seed, say=say,
-        rig=rig,
+        rig=rig, pixel_pitch=pixel_pitch,
     )
     say(f"writing {out_dir}")
     _write(out_dir, left, right, stated, truth, images_dir)
@@ -252,6 +257,7 @@ def render_noiseless(
     light=None,
     progress=None,
     rig=None,
+    pixel_pitch=None,
 ):
     """The noiseless radiance pair :func:`render_to_folder` would sense, with its truth and rig.
 
@@ -286,6 +292,7 @@ def render_noiseless(
     radiance, rig, truth = _form(
         step_path, form, pose=pose, deviations=deviations, distortion=distortion, image_size=image_size,
         calib_error=None, drift=None, realism=realism, shading=shading, noise=None, seed=0, say=say, rig=rig,
+        pixel_pitch=pixel_pitch,
     )
     return radiance, rig, truth
 
@@ -296,14 +303,14 @@ def stated_calibration(rig, seed):
 
 
 def _form(step_path, form, *, pose, deviations, distortion, image_size, calib_error, drift, realism, shading, noise,
-          seed, say, rig=None):
+          seed, say, rig=None, pixel_pitch=None):
     """The part's scene formed into images by ``form``; (images, the stated calibration, truth)."""
     from partinspect.cad.raycast import build_scene
     from partinspect.simulate.truth import make_truth
 
     step_path = Path(step_path)
     inv, devs, shape, bounds = _load_part(step_path, deviations, say)
-    calibrated = _making_rig(rig, image_size, distortion, realism)
+    calibrated, pitch = _making_rig(rig, image_size, distortion, realism, pixel_pitch)
     rig = calibrated
     if drift is not None:
         from partinspect.simulate.calibration import drifted_rig
@@ -317,7 +324,6 @@ def _form(step_path, form, *, pose, deviations, distortion, image_size, calib_er
     mesh = tessellate(shape, RENDER_TOLERANCE, RENDER_ANGULAR_TOLERANCE, inventory=None if devs else inv)
     truth_scene = build_scene(mesh)
     rs, finish, extra = _real_part(step_path, shape, inv if not devs else None, truth_scene, realism, say)
-    pitch = PIXEL_PITCH * FULL_SIZE[0] / float(calibrated.image_size[0])
     extra.update(_real_camera(realism, rig, pitch))
     images, stats = form(rs, rig, part_to_camera, finish, pitch)
     if "defocus" in extra:
@@ -345,19 +351,24 @@ def _form(step_path, form, *, pose, deviations, distortion, image_size, calib_er
     return images, stated, truth
 
 
-def _making_rig(rig, image_size, distortion, realism):
-    """The rig that makes the images: ``rig`` as given, else the default rig at ``image_size``."""
+def _making_rig(rig, image_size, distortion, realism, pixel_pitch=None):
+    """The rig that makes the images and its pixel pitch, mm: ``rig`` as given, else the default rig at ``image_size``."""
     from partinspect.simulate.rig import default_rig
 
     if rig is None:
-        return default_rig(image_size, distortion=distortion)
+        if pixel_pitch is not None:
+            raise ValueError("a pixel pitch is given with a rig: the simulator's rig has its own")
+        rig = default_rig(image_size, distortion=distortion)
+        return rig, PIXEL_PITCH * FULL_SIZE[0] / float(rig.image_size[0])
     if distortion:
         raise ValueError("a given rig renders through its own distortion: not with the default lens's distortion")
-    if realism["defocus"] is not None:
-        raise ValueError("defocus needs the sensor's pixel pitch, which a calibration does not state: not with a given rig")
+    if pixel_pitch is not None and not (np.isfinite(pixel_pitch) and pixel_pitch > 0):
+        raise ValueError(f"the pixel pitch must be a positive length, got {pixel_pitch}")
+    if realism["defocus"] is not None and pixel_pitch is None:
+        raise ValueError("defocus needs the sensor's pixel pitch, which a calibration does not state: give it with the rig")
     if rig.image_size is None:
         raise ValueError("the rig states no image size")
-    return rig
+    return rig, pixel_pitch
 
 
 def _realism(edge_break, material, defocus, photon):
